@@ -14,7 +14,6 @@ A bad file raises :class:`GrabFormatError` naming the file and the problem;
 from __future__ import annotations
 
 import logging
-import zipfile
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -126,8 +125,8 @@ def load_sequence(path: str | Path, root: str | Path, keep_vertex_contact: bool 
     path, root = Path(path), Path(root)
     try:
         npz = np.load(path, allow_pickle=True)
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
-        raise GrabFormatError(path, f"not a readable npz file ({e})") from e
+    except Exception as e:  # numpy falls back to unpickling non-zip files: any error is possible
+        raise GrabFormatError(path, f"not a readable npz file ({type(e).__name__}: {e})") from e
     with npz:
         try:
             top = {k: _item(npz, k, path) for k in
