@@ -14,6 +14,7 @@ points (B, V, 3) with per-point GRAB contact codes, so metrics are backend-agnos
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +29,7 @@ from .surface import FOOT_CODES, LEFT_HAND_CODES, RIGHT_HAND_CODES, build_proxy,
 @dataclass
 class BodyModelConfig:
     backend: str = "open"  # "open" | "smplx"
-    smplx_model_dir: str | None = None  # folder holding smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz
+    smplx_model_dir: str | None = None  # folder with smplx/SMPLX_{MALE,FEMALE,NEUTRAL}.npz (or the files directly)
     hand_spacing: float = 0.004  # open proxy sampling (m)
     body_spacing: float = 0.02
 
@@ -74,7 +75,8 @@ class BodyModel:
                 vertices: bool = False) -> BodyOutput:
         raise NotImplementedError
 
-    __call__ = forward
+    def __call__(self, *args, **kwargs) -> BodyOutput:
+        return self.forward(*args, **kwargs)
 
 
 class OpenSkeletonBody(BodyModel):
@@ -89,7 +91,7 @@ class OpenSkeletonBody(BodyModel):
         rest = np.asarray(rest_joints, dtype=np.float64)
         proxy = build_proxy(rest, self.cfg.hand_spacing, self.cfg.body_spacing)
         return Subject(
-            key=key or f"rest:{hash(rest.tobytes())}", gender=gender,
+            key=key or f"rest:{hashlib.sha1(rest.tobytes()).hexdigest()[:16]}", gender=gender,
             rest_joints=torch.from_numpy(rest), vertex_code=proxy.code,
             extra={"proxy_joint": torch.from_numpy(proxy.joint), "proxy_rest": torch.from_numpy(proxy.rest_points)},
         )

@@ -255,8 +255,6 @@ class SmplxBody(BodyModel):
         verts = self._vertices(subject, rotmats, transl) if vertices else None
         return BodyOutput(joints, g_rot, verts)
 
-    __call__ = forward
-
     def _vertices(self, subject: Subject, rotmats: torch.Tensor, transl: torch.Tensor | None) -> torch.Tensor:
         lead = rotmats.shape[:-3]
         rot = rotmats.reshape(-1, sk.NUM_JOINTS, 3, 3)

@@ -9,6 +9,7 @@ read by exactly the reader that reads a user's GRAB download.
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -104,5 +105,18 @@ def write_grab_npz(
         "contact": np.array({"body": contact_body.astype(np.int8), "object": contact_object.astype(np.int8)},
                             dtype=object),
     }
-    (np.savez_compressed if compress else np.savez)(path, **entries)
+    _savez_reproducible(path, entries, compress)
     return path
+
+
+def _savez_reproducible(path: Path, entries: dict, compress: bool) -> None:
+    """``np.savez(_compressed)`` with a fixed zip timestamp per entry, so that equal content
+    gives byte-identical files (numpy stamps each entry with the current time)."""
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with zipfile.ZipFile(path, "w", compression=method, allowZip64=True) as zf:
+        for key, value in entries.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            info.external_attr = 0o600 << 16
+            with zf.open(info, "w", force_zip64=True) as fid:
+                np.lib.format.write_array(fid, np.asanyarray(value), allow_pickle=True)

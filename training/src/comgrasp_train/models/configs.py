@@ -174,14 +174,25 @@ PRESETS = tuple(_CODEBOOKS)
 
 
 def make_config(
-    preset: str = "default", *, single: bool = False, down_t: int = 4, causal_decoder: bool = True, **model_overrides
+    preset: str = "default",
+    *,
+    single: bool = False,
+    down_t: int = 4,
+    causal_decoder: bool = True,
+    width_scale: float = 1.0,
+    **model_overrides,
 ) -> VQConfig:
-    """A preset, optionally as the single-VQ ablation, another ``down_t`` or the paper's decoder."""
+    """A preset, optionally as the single-VQ ablation, another ``down_t``, the paper's
+    (non-causal) decoder, or narrower/wider convs (``width_scale``, e.g. 0.5 for a light
+    bundle; widths are rounded to a multiple of 32 so attention heads divide them)."""
     if preset not in _CODEBOOKS:
         raise ValueError(f"unknown VQ preset {preset!r}; choose one of {PRESETS}")
     books = _CODEBOOKS[preset]
     tiny = preset == "tiny"
-    width = (lambda name: 32) if tiny else _WIDTHS.__getitem__
+
+    def width(name: str) -> int:
+        base = 32 if tiny else _WIDTHS[name]
+        return max(32, int(round(base * width_scale / 32)) * 32)
     if single:
         n, d = books[_SINGLE_FROM]
         comps = (ComponentConfig(SINGLE, n, d, width(_SINGLE_FROM)),)
@@ -191,5 +202,9 @@ def make_config(
     if tiny:
         model = replace(model, res_depth=1, attn_heads=2)
     model = replace(model, **model_overrides)
-    train = TrainConfig(batch_size=4, window_frames=4 * 2**down_t, total_iters=10) if tiny else TrainConfig()
+    fpt = 2**down_t
+    if tiny:
+        train = TrainConfig(batch_size=4, window_frames=4 * fpt, total_iters=10)
+    else:  # about 4 s at 30 fps, at least two tokens
+        train = TrainConfig(window_frames=fpt * max(2, 128 // fpt))
     return VQConfig(preset=preset, model=model, train=train)

@@ -33,7 +33,8 @@ class Part:
     def local(self, p: np.ndarray) -> np.ndarray:
         """Object-frame points -> this part's frame."""
         r = Rotation.from_rotvec(self.rotvec).as_matrix()
-        return (p - np.asarray(self.pos)) @ r  # row-vector form of R^T (p - t)
+        # einsum, not @: this numpy's BLAS path for (N,3)@(3,3) is ~100x slower at large N.
+        return np.einsum("ni,ij->nj", p - np.asarray(self.pos), r)  # row form of R^T (p - t)
 
     def sdf(self, p: np.ndarray) -> np.ndarray:
         return _SDF[self.kind](self.local(p), **self.params)

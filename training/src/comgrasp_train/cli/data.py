@@ -1,0 +1,188 @@
+"""`comgrasp-data`: make, inspect, prepare and render grasp datasets in GRAB's layout.
+
+    comgrasp-data synth   --out DIR --sequences N --seed S [--workers W]
+    comgrasp-data info    ROOT [--split NAME]
+    comgrasp-data prepare ROOT --out DIR [--split NAME] [--fps 30] [--body-model open|smplx --smplx-dir D]
+    comgrasp-data check   ROOT [--limit N] [--json FILE]
+    comgrasp-data render  FILE.npz --out OUT.gif|OUT.png [--strip] [--root ROOT]
+    comgrasp-data text    FILE.npz [--root ROOT] [--hands]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+
+def _root_of(file: Path, root: str | None) -> Path:
+    """A GRAB file lives at ROOT/grab/<subject>/<name>.npz."""
+    return Path(root) if root else file.resolve().parents[2]
+
+
+def _body_cfg(args):
+    from ..body_model import BodyModelConfig
+
+    return BodyModelConfig(backend=args.body_model, smplx_model_dir=args.smplx_dir)
+
+
+def cmd_synth(args) -> int:
+    from ..synth.generate import generate_dataset
+
+    summary = generate_dataset(Path(args.out), args.sequences, args.seed, workers=args.workers,
+                               progress=not args.quiet)
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+def cmd_info(args) -> int:
+    from ..grab.reader import load_dataset
+    from ..grab.splits import get_split
+
+    split = get_split(args.split) if args.split else None
+    for part in (("train", "val", "test") if split else ("all",)):
+        seqs, summary = load_dataset(args.root, split, part, progress=not args.quiet)
+        frames = sum(s.n_frames for s in seqs)
+        print(f"[{part}] {summary}; {frames} frames, {frames / 120 / 60:.1f} min at 120 fps")
+        for key in ("intent", "obj_name", "sbj_id"):
+            print(f"  {key}: " + ", ".join(f"{k} {v}" for k, v in sorted(Counter(getattr(s, key) for s in seqs).items())))
+        for p in summary.problems:
+            print(f"  skipped: {p}")
+    return 0
+
+
+def cmd_prepare(args) -> int:
+    from ..dataset import prepare_features
+    from ..grab.splits import get_split
+    from ..normalization import Normalizer
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    split = get_split(args.split)
+    stats = None
+    for part in ("train", "val", "test"):
+        if not split.subjects(part):
+            continue
+        fs, summary = prepare_features(args.root, split, part, fps=args.fps, body=_body_cfg(args),
+                                       mention_hands=args.hands, progress=not args.quiet)
+        print(f"[{part}] {summary}")
+        if part == "train":
+            stats = Normalizer.fit(fs.features)
+            stats.save(out / "stats.npz")
+        fs.save(out / f"features_{part}.npz")
+    if stats is None:
+        print("no training sequences: stats not written", file=sys.stderr)
+        return 1
+    (out / "prepare.json").write_text(json.dumps(vars(args), indent=1, default=str))
+    return 0
+
+
+def cmd_check(args) -> int:
+    from ..plausibility import dataset_plausibility
+
+    report = dataset_plausibility(Path(args.root), limit=args.limit, body=_body_cfg(args), fps=args.fps)
+    print(json.dumps(report, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+def cmd_render(args) -> int:
+    from ..body_model import make_body_model
+    from ..grab.reader import load_sequence
+    from ..render import render_sequence
+    from ..representation import resample_sequence
+
+    file = Path(args.file)
+    seq = resample_sequence(load_sequence(file, _root_of(file, args.root)), args.fps)
+    out = render_sequence(seq, make_body_model(_body_cfg(args)), Path(args.out), fps=args.fps, strip=args.strip)
+    print(out)
+    return 0
+
+
+def cmd_text(args) -> int:
+    from ..grab.reader import load_sequence
+    from ..grab.text import describe
+
+    file = Path(args.file)
+    seq = load_sequence(file, _root_of(file, args.root))
+    for t in describe(seq.gender, seq.intent, seq.obj_name, seq.contact, mention_hands=args.hands):
+        print(t)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="comgrasp-data", description=__doc__.split("\n")[0])
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def body_args(sp):
+        sp.add_argument("--body-model", default="open", choices=("open", "smplx"))
+        sp.add_argument("--smplx-dir", default=None, help="folder with smplx/SMPLX_*.npz (backend smplx)")
+
+    s = sub.add_parser("synth", help="generate the SynthGrasp dataset in GRAB's layout")
+    s.add_argument("--out", required=True)
+    s.add_argument("--sequences", type=int, default=1000)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--workers", type=int, default=2)
+    s.set_defaults(fn=cmd_synth)
+
+    s = sub.add_parser("info", help="count sequences, intents, objects; list skipped files")
+    s.add_argument("root")
+    s.add_argument("--split", default=None)
+    s.set_defaults(fn=cmd_info)
+
+    s = sub.add_parser("prepare", help="build 335-D feature sets and normalization stats for a split")
+    s.add_argument("root")
+    s.add_argument("--out", required=True)
+    s.add_argument("--split", default="diffgrasp")
+    s.add_argument("--fps", type=float, default=30.0)
+    s.add_argument("--hands", action="store_true", help="name the hand(s) in the texts (SynthGrasp)")
+    body_args(s)
+    s.set_defaults(fn=cmd_prepare)
+
+    s = sub.add_parser("check", help="physical plausibility of a dataset's ground truth (metric suite)")
+    s.add_argument("root")
+    s.add_argument("--limit", type=int, default=100)
+    s.add_argument("--fps", type=float, default=30.0)
+    s.add_argument("--json", default=None)
+    body_args(s)
+    s.set_defaults(fn=cmd_check)
+
+    s = sub.add_parser("render", help="render a sequence to an animated GIF or a PNG strip")
+    s.add_argument("file")
+    s.add_argument("--out", required=True)
+    s.add_argument("--root", default=None, help="dataset root (default: the file's grandparent folder)")
+    s.add_argument("--fps", type=float, default=15.0)
+    s.add_argument("--strip", action="store_true", help="one PNG of key frames instead of a GIF")
+    body_args(s)
+    s.set_defaults(fn=cmd_render)
+
+    s = sub.add_parser("text", help="print the text descriptions of a sequence")
+    s.add_argument("file")
+    s.add_argument("--root", default=None)
+    s.add_argument("--hands", action="store_true")
+    s.set_defaults(fn=cmd_text)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
+    t0 = time.time()
+    try:
+        rc = args.fn(args)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"comgrasp-data {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
+    if not args.quiet:
+        print(f"[{args.cmd} took {time.time() - t0:.1f} s]", file=sys.stderr)
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,116 @@
+"""EMA-reset vector quantizer (T2M-GPT's ``QuantizeEMAReset``, made checkpoint- and DDP-safe).
+
+The whole state (codebook, EMA sums, EMA counts, the "initialised" flag) is registered
+buffers, so ``state_dict`` round trips reproduce codes and EMA statistics exactly and a
+resumed run continues where it stopped instead of re-initialising the codebook.
+
+Training-mode forward, per batch of encoder outputs ``x`` (N, d):
+1. first batch only: the codebook is drawn from ``x`` (the "init flag");
+2. nearest-code assignment;
+3. EMA update of per-code sums and counts (decay 0.99); under ``torch.distributed`` the
+   batch statistics are all-reduced so every rank applies the same update;
+4. codes whose EMA count fell below ``reset_threshold`` are reset to random encoder
+   outputs of the current batch (drawn on rank 0 and broadcast). Unlike T2M-GPT, the reset
+   also restarts that code's EMA sum and count, so the next update averages from the new
+   vector instead of the stale one.
+The quantized output uses the updated codebook with a straight-through gradient; the
+commitment term is ``mse(x, sg[q])`` (weighted by beta in the loss).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import nn
+
+
+class Quantized(NamedTuple):
+    x_q: torch.Tensor  # (N, d) straight-through quantized vectors
+    codes: torch.Tensor  # (N,) int64
+    commit: torch.Tensor  # scalar, mse(x, sg[q])
+    perplexity: torch.Tensor  # scalar, exp(entropy) of this batch's code histogram
+
+
+def _distributed() -> bool:
+    return dist.is_available() and dist.is_initialized()
+
+
+class EMAResetQuantizer(nn.Module):
+    def __init__(self, codebook_size: int, code_dim: int, decay: float = 0.99, reset_threshold: float = 1.0):
+        super().__init__()
+        self.codebook_size, self.code_dim = codebook_size, code_dim
+        self.decay, self.reset_threshold = decay, reset_threshold
+        self.register_buffer("codebook", torch.zeros(codebook_size, code_dim))
+        self.register_buffer("ema_sum", torch.zeros(codebook_size, code_dim))
+        self.register_buffer("ema_count", torch.zeros(codebook_size))
+        self.register_buffer("initialised", torch.tensor(False))
+
+    def nearest(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, d) -> (N,) index of the closest code (squared Euclidean)."""
+        c = self.codebook.float()
+        x = x.float()
+        d2 = x.pow(2).sum(-1, keepdim=True) - 2.0 * x @ c.t() + c.pow(2).sum(-1)[None]
+        return d2.argmin(-1)
+
+    def dequantize(self, codes: torch.Tensor) -> torch.Tensor:
+        return F.embedding(codes, self.codebook)
+
+    def forward(self, x: torch.Tensor) -> Quantized:
+        xd = x.detach().float()
+        if self.training and not bool(self.initialised):
+            self._initialise(xd)
+        codes = self.nearest(xd)
+        counts = torch.bincount(codes, minlength=self.codebook_size).float()
+        if self.training:
+            counts = self._ema_update(xd, codes, counts)
+        q = self.dequantize(codes).to(x.dtype)
+        commit = F.mse_loss(x, q.detach())
+        p = counts / counts.sum().clamp_min(1.0)
+        perplexity = torch.exp(-(p * torch.log(p.clamp_min(1e-10))).sum())
+        return Quantized(x + (q - x).detach(), codes, commit, perplexity)
+
+    @torch.no_grad()
+    def _initialise(self, x: torch.Tensor) -> None:
+        rows = self._broadcast(self._sample_rows(x, self.codebook_size))
+        self.codebook.copy_(rows)
+        self.ema_sum.copy_(rows)
+        self.ema_count.fill_(1.0)
+        self.initialised.fill_(True)
+
+    @torch.no_grad()
+    def _ema_update(self, x: torch.Tensor, codes: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+        """Returns the (all-reduced) batch code counts."""
+        sums = torch.zeros_like(self.ema_sum).index_add_(0, codes, x)
+        if _distributed():
+            dist.all_reduce(sums)
+            dist.all_reduce(counts)
+        self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)
+        self.ema_count.mul_(self.decay).add_(counts, alpha=1.0 - self.decay)
+        dead = self.ema_count < self.reset_threshold
+        fresh = self._broadcast(self._sample_rows(x, self.codebook_size))
+        restart = max(self.reset_threshold, 1e-3)
+        self.ema_sum.copy_(torch.where(dead[:, None], fresh * restart, self.ema_sum))
+        self.ema_count.copy_(torch.where(dead, torch.full_like(self.ema_count, restart), self.ema_count))
+        self.codebook.copy_(self.ema_sum / self.ema_count[:, None])
+        return counts
+
+    @staticmethod
+    def _sample_rows(x: torch.Tensor, n: int) -> torch.Tensor:
+        """``n`` random rows of ``x``; tiled with small noise when the batch has fewer rows."""
+        if x.shape[0] < n:
+            reps = math.ceil(n / x.shape[0])
+            x = x.repeat(reps, 1)
+            x = x + torch.randn_like(x) * (0.01 / math.sqrt(x.shape[1]))
+        return x[torch.randperm(x.shape[0], device=x.device)[:n]]
+
+    @staticmethod
+    def _broadcast(t: torch.Tensor) -> torch.Tensor:
+        """Rank 0's draw for every rank, so the codebooks never diverge."""
+        if _distributed():
+            t = t.contiguous()
+            dist.broadcast(t, 0)
+        return t

@@ -1,0 +1,119 @@
+"""VQ-VAE objective and one optimisation step (paper Sec. IV-A).
+
+Per component c (losses are summed over components, so training the container equals
+training the four tokenizers independently, each with its own loss scale):
+
+    L_c = L1_param,c + lambda_joint * L1_joint,c + lambda_vel * L1_vel,c
+          + lambda_cont * BCE_c (hand components only) + beta * commit_c
+
+* L1_param: mean |x_hat - x| over the component's non-contact channels (normalized space).
+* L1_vel:   the same on first differences in time.
+* BCE:      on the component's contact channels; the decoder emits logits there.
+* L1_joint: mean |FK(h_c) - FK(x)| over all 55 joints (metres), where h_c is the ground
+  truth frame with only component c's slice replaced by its reconstruction, so each
+  component is charged for its own joint error and no gradient crosses components. FK
+  is the caller's ``joints_fn`` on de-normalized features (``denormalize`` maps normalized
+  to de-normalized, identity when None), e.g.
+  ``lambda x: representation.features_to_joints(x, rest_joints)``. ``joints_fn`` must
+  accept extra leading dims: it gets (P, B, T, 335) and returns (P, B, T, J, 3).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ..layout import CONTACT_CHANNELS
+from .configs import LossConfig, TrainConfig, VQConfig
+from .vqvae import ComponentVQ
+
+Fn = Callable[[torch.Tensor], torch.Tensor]
+
+
+def _core(model: nn.Module) -> ComponentVQ:
+    return getattr(model, "module", model)  # unwrap DistributedDataParallel
+
+
+def _per_component(per_channel: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """(335,) per-channel means -> (P,) means over each component's masked channels (0 if none)."""
+    m = mask.to(per_channel.dtype)
+    return (m @ per_channel) / m.sum(-1).clamp_min(1.0)
+
+
+def compute_loss(
+    model: nn.Module, x: torch.Tensor, joints_fn: Fn, cfg: LossConfig | VQConfig, denormalize: Fn | None = None
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """x: (B, T, 335) normalized features (contact 0/1). Returns the loss and detached metrics
+    (per component ``<metric>/<name>`` and totals; call ``.item()`` when logging)."""
+    cfg = cfg.loss if isinstance(cfg, VQConfig) else cfg
+    vq = _core(model)
+    out = model(x)
+    feat = vq.to_features(out.raw)
+    comp = vq.component_mask  # (P, 335)
+    cont = list(CONTACT_CHANNELS)
+    param_mask = comp.clone()
+    param_mask[:, cont] = False
+
+    l_param = _per_component((feat - x).abs().mean((0, 1)), param_mask)
+    l_vel = _per_component((feat.diff(dim=1) - x.diff(dim=1)).abs().mean((0, 1)), param_mask)
+    bce = F.binary_cross_entropy_with_logits(out.raw[..., cont], x[..., cont], reduction="none").mean((0, 1))
+    l_cont = _per_component(bce, comp[:, cont])
+
+    dn = denormalize or (lambda t: t)
+    hybrid = torch.where(comp[:, None, None, :], feat[None], x[None])  # (P, B, T, 335)
+    with torch.no_grad():
+        j_true = joints_fn(dn(x))
+    l_joint = (joints_fn(dn(hybrid)) - j_true[None]).abs().flatten(1).mean(1)
+
+    per = l_param + cfg.lambda_joint * l_joint + cfg.lambda_vel * l_vel + cfg.lambda_cont * l_cont + cfg.beta * out.commit
+    loss = per.sum()
+    metrics = {"loss": loss.detach()}
+    for key, v in (("param", l_param), ("joint", l_joint), ("vel", l_vel), ("cont", l_cont),
+                   ("commit", out.commit), ("perplexity", out.perplexity), ("loss", per)):
+        v = v.detach()
+        if key != "loss":
+            metrics[key] = v.sum() if key != "perplexity" else v.mean()
+        for name, val in zip(vq.names, v):
+            metrics[f"{key}/{name}"] = val
+    return loss, metrics
+
+
+def make_optimizer(model: nn.Module, cfg: TrainConfig | VQConfig) -> torch.optim.Optimizer:
+    cfg = cfg.train if isinstance(cfg, VQConfig) else cfg
+    return torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+
+
+def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig | VQConfig) -> torch.optim.lr_scheduler.LambdaLR:
+    """Linear warm-up, then T2M-GPT's single x0.05 drop at two thirds of the run."""
+    cfg = cfg.train if isinstance(cfg, VQConfig) else cfg
+    warm, drop = max(cfg.warmup_iters, 1), (2 * cfg.total_iters) // 3
+
+    def factor(it: int) -> float:
+        return min(1.0, (it + 1) / warm) * (0.05 if it >= drop else 1.0)
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def vq_training_step(
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    x: torch.Tensor,
+    joints_fn: Fn,
+    cfg: VQConfig,
+    denormalize: Fn | None = None,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+) -> dict[str, torch.Tensor]:
+    """One AdamW step on a (B, T, 335) normalized batch; returns the detached metrics."""
+    model.train()
+    optimizer.zero_grad(set_to_none=True)
+    loss, metrics = compute_loss(model, x, joints_fn, cfg, denormalize)
+    loss.backward()
+    if cfg.train.grad_clip > 0:
+        metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.train.grad_clip).detach()
+    optimizer.step()
+    if scheduler is not None:
+        scheduler.step()
+    return metrics

@@ -1,0 +1,228 @@
+"""Grasps that close on the object's analytic surface.
+
+A grasp is the wrist pose in the object frame plus a curl per finger, found geometrically:
+the open hand (fingers straight) is oriented from the grasp type, then slid along its
+approach direction until its proxy first touches the object's SDF (or an obstacle: the
+table, the other hand), and each finger then curls until its capsules first touch. So the
+hand touches the object within ``GAP`` and penetrates nothing. Because the hand is rigid
+relative to the object while it holds it, the GRAB contact codes of a grasp are computed
+once, in the object frame.
+
+Hand orientation convention (SMPL-X canonical hand, wrist rotation = identity): the palm
+faces -y, the fingers point +x (left hand) / -x (right hand), the thumb side is +z.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from .. import skeleton as sk
+from ..objects.shapes import Shape
+from ..surface import LEFT_HAND_CODES, RIGHT_HAND_CODES, pose_points
+from .ik import axis_angle, unit
+from .subjects import SubjectModel
+
+# GRAB's contact threshold is a squared distance of 2e-5 m^2 (reference §1.3), about 4.5 mm.
+CONTACT_THRESHOLD = float(np.sqrt(2e-5))
+GAP = 0.0005  # clearance left between the hand proxy and the object when it touches
+PALM_RADIUS = 0.012  # radius of the palm capsules in surface.py
+# Maximum flexion (degrees) of joints 1..3 of each finger at curl 1, in sk.FINGERS order.
+FLEX_DEG = {"index": (75, 95, 60), "middle": (75, 95, 60), "pinky": (75, 95, 60), "ring": (75, 95, 60),
+            "thumb": (45, 45, 60)}
+_PALM_NORMAL = np.array([0.0, -1.0, 0.0])
+_CURL_GRID = np.linspace(0.0, 1.0, 33)
+
+
+class Hand:
+    """One hand of a subject: its proxy points, finger curl model and capsules."""
+
+    def __init__(self, model: SubjectModel, side: str):
+        self.side = side
+        self.rest = model.rest
+        proxy = model.proxy
+        idx = {n: i for i, n in enumerate(sk.JOINT_NAMES)}
+        self.wrist = idx[f"{side}_wrist"]
+        codes = LEFT_HAND_CODES if side == "left" else RIGHT_HAND_CODES
+        self.index = np.nonzero(proxy.mask(codes))[0]  # into the subject's proxy points
+        self.code = proxy.code[self.index]
+        self.fingers = np.array([[idx[f"{side}_{f}{k}"] for k in (1, 2, 3)] for f in sk.FINGERS])
+        self.finger_mask = np.stack([np.isin(self.code, f + 1) for f in self.fingers])  # (5, Ph)
+        self.axes = np.stack([unit(np.cross(self.rest[f[1]] - self.rest[f[0]], _PALM_NORMAL)) for f in self.fingers])
+        self.max_angles = np.radians([FLEX_DEG[f] for f in sk.FINGERS])
+        sign = 1.0 if side == "left" else -1.0
+        # Columns: finger direction, palm normal, thumb side (canonical).
+        self.canonical = np.stack([[sign, 0.0, 0.0], _PALM_NORMAL, [0.0, 0.0, 1.0]], axis=-1)
+        caps = [c for c in proxy.capsules if c.code in codes]
+        self._cap_a = np.stack([c.a for c in caps])
+        self._cap_b = np.stack([c.b for c in caps])
+        self.cap_radius = np.array([c.radius for c in caps])
+        self._cap_joint = np.array([c.joint for c in caps])
+        self._torch = (torch.from_numpy(proxy.joint[self.index]), torch.from_numpy(proxy.rest_points[self.index]),
+                       torch.from_numpy(self.rest))
+
+    def finger_locals(self, curls: np.ndarray) -> np.ndarray:
+        """(..., 5) curls in [0, 1] -> (..., 5, 3, 3, 3) local rotations of the finger joints."""
+        angles = np.asarray(curls)[..., :, None] * self.max_angles
+        return axis_angle(self.axes[:, None, :], angles)
+
+    def pose(self, curls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Hand proxy points (B, Ph, 3) and capsule ends (B, K, 3) x2 in the wrist frame
+        (wrist at the origin, wrist rotation identity) for curls (B, 5)."""
+        curls = np.atleast_2d(curls)
+        rot = np.tile(np.eye(3), (len(curls), sk.NUM_JOINTS, 1, 1))
+        rot[:, self.fingers] = self.finger_locals(curls)
+        joint_t, rest_pts_t, rest_t = self._torch
+        g, j = sk.forward_kinematics(torch.from_numpy(rot), rest_t)
+        pts = pose_points(joint_t, rest_pts_t, rest_t, g, j).numpy() - self.rest[self.wrist]
+        g, j = g.numpy(), j.numpy() - self.rest[self.wrist]
+        cj = self._cap_joint
+        a = np.einsum("bkij,kj->bki", g[:, cj], self._cap_a - self.rest[cj]) + j[:, cj]
+        b = np.einsum("bkij,kj->bki", g[:, cj], self._cap_b - self.rest[cj]) + j[:, cj]
+        return pts, a, b
+
+    @cached_property
+    def open_points(self) -> np.ndarray:
+        return self.pose(np.zeros(5))[0][0]
+
+    def anchor(self, lam: float) -> np.ndarray:
+        """A point on the palm surface (wrist frame): ``lam`` of the way from the wrist to the
+        middle-finger knuckle (0.5 palm centre, 1 knuckles)."""
+        middle1 = self.fingers[sk.FINGERS.index("middle"), 0]
+        return lam * (self.rest[middle1] - self.rest[self.wrist]) + PALM_RADIUS * _PALM_NORMAL
+
+    def orientation(self, palm_normal: np.ndarray, thumb: np.ndarray) -> np.ndarray:
+        """Wrist rotation that makes the palm face ``palm_normal`` with the thumb side toward
+        ``thumb`` (orthogonalized)."""
+        n = unit(np.asarray(palm_normal, float))
+        t = unit(thumb - (thumb @ n) * n)
+        f = np.cross(n, t) if self.side == "right" else np.cross(t, n)
+        return np.stack([f, n, t], axis=-1) @ self.canonical.T
+
+
+@dataclass
+class Obstacles:
+    """What a grasping hand must not enter besides the object, in the object frame:
+    half-spaces ``p . n <= offset`` (a table top) and capsules (the other hand)."""
+
+    planes: tuple[tuple[np.ndarray, float], ...] = ()
+    cap_a: np.ndarray | None = None
+    cap_b: np.ndarray | None = None
+    cap_r: np.ndarray | None = None
+
+    def sdf(self, p: np.ndarray) -> np.ndarray:
+        d = np.full(p.shape[:-1], np.inf)
+        for n, off in self.planes:
+            d = np.minimum(d, p @ n - off)
+        if self.cap_a is not None:
+            for a, b, r in zip(self.cap_a, self.cap_b, self.cap_r):
+                ba = b - a
+                h = np.clip(((p - a) @ ba) / (ba @ ba), 0.0, 1.0)
+                d = np.minimum(d, np.linalg.norm(p - a - h[..., None] * ba, axis=-1) - r)
+        return d
+
+
+def table_obstacle(obj_rot: np.ndarray, obj_pos: np.ndarray, table_height: float) -> tuple[np.ndarray, float]:
+    """The table top (world z <= table_height) as an object-frame half-space."""
+    return obj_rot[2].copy(), float(table_height - obj_pos[2])
+
+
+@dataclass
+class Grasp:
+    """A hand holding the object; every array is in the object frame."""
+
+    hand: Hand
+    rot: np.ndarray  # (3, 3) wrist rotation
+    pos: np.ndarray  # (3,) wrist position
+    curls: np.ndarray  # (5,)
+    approach: np.ndarray  # (3,) direction the hand moved in to touch (into the object)
+    points: np.ndarray  # (Ph, 3) hand proxy points
+    cap_a: np.ndarray
+    cap_b: np.ndarray
+    object_dist: np.ndarray  # (V,) distance of each object vertex to the nearest hand point
+    object_codes: np.ndarray  # (V,) int8 GRAB code of that point within the threshold, else 0
+    body_codes: np.ndarray  # (Ph,) int8 each hand point's own code where it touches, else 0
+
+    def obstacles(self, extra_planes=()) -> Obstacles:
+        return Obstacles(tuple(extra_planes), self.cap_a, self.cap_b, self.hand.cap_radius)
+
+
+def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, target: np.ndarray,
+               approach: np.ndarray, lam: float, obstacles: Obstacles) -> Grasp | None:
+    """Slide the open hand (wrist rotation ``rot``, object frame) along ``approach`` so that
+    its palm anchor travels on the line through ``target`` until it first touches, then
+    curl each finger until it touches. None if the hand cannot touch the object there."""
+    approach = unit(approach)
+
+    def clearance(p):
+        return np.minimum(shape.sdf(p), obstacles.sdf(p))
+
+    pos = target - 0.3 * approach - rot @ hand.anchor(lam)
+    pts = hand.open_points @ rot.T + pos
+    s, dist = 0.0, float(clearance(pts).min())
+    if dist < GAP:
+        return None
+    for _ in range(100):  # sphere tracing: the SDFs are distance bounds, so never overshoots
+        if dist - GAP < 2e-5:
+            break
+        s += dist - GAP
+        if s > 0.6:
+            return None
+        dist = float(clearance(pts + s * approach).min())
+    else:
+        return None
+    pos = pos + s * approach
+    curls = _close_fingers(hand, rot, pos, clearance)
+
+    pts, a, b = hand.pose(curls)
+    pts, a, b = pts[0] @ rot.T + pos, a[0] @ rot.T + pos, b[0] @ rot.T + pos
+    sdf = shape.sdf(pts)
+    if sdf.min() > GAP + 1e-4 or clearance(pts).min() < GAP - 1e-5:
+        return None
+    dist_v, nearest = cKDTree(pts).query(verts, distance_upper_bound=CONTACT_THRESHOLD)
+    touching = np.isfinite(dist_v)
+    if not touching.any():
+        return None
+    object_codes = np.where(touching, hand.code[np.minimum(nearest, len(pts) - 1)], 0).astype(np.int8)
+    body_codes = np.where(sdf <= CONTACT_THRESHOLD, hand.code, 0).astype(np.int8)
+    return Grasp(hand, rot, pos, curls, approach, pts, a, b, dist_v, object_codes, body_codes)
+
+
+def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> np.ndarray:
+    """Per finger, the largest curl on the way from open at which it still keeps ``GAP``:
+    the first touch on a grid of curls, refined by bisection."""
+    pts = hand.pose(np.repeat(_CURL_GRID[:, None], 5, axis=1))[0] @ rot.T + pos
+    d = clearance(pts)  # (G, Ph)
+    dmin = np.stack([d[:, m].min(axis=1) for m in hand.finger_mask], axis=1)  # (G, 5)
+    hit = dmin < GAP
+    first = np.where(hit.any(axis=0), hit.argmax(axis=0), len(_CURL_GRID))
+    lo = _CURL_GRID[np.clip(first - 1, 0, None)]
+    hi = np.where(first < len(_CURL_GRID), _CURL_GRID[np.minimum(first, len(_CURL_GRID) - 1)], 1.0)
+    lo = np.where(first == 0, 0.0, lo)
+    free = (first > 0) & (first < len(_CURL_GRID))
+    for _ in range(10):
+        mid = np.where(free, 0.5 * (lo + hi), lo)
+        pm = hand.pose(mid)[0][0] @ rot.T + pos
+        dm = clearance(pm)
+        ok = np.array([dm[m].min() >= GAP for m in hand.finger_mask])
+        lo = np.where(free & ok, mid, lo)
+        hi = np.where(free & ~ok, mid, hi)
+    return lo
+
+
+def edge_point(shape: Shape, origin: np.ndarray, direction: np.ndarray, max_len: float = 0.3) -> np.ndarray:
+    """The last point inside the object on the ray from an inside ``origin`` (object frame),
+    e.g. the rim of a cup's top toward the mouth."""
+    direction = unit(np.asarray(direction, float))
+    lo, hi = 0.0, max_len
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if shape.sdf(origin + mid * direction) <= 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return origin + lo * direction

@@ -1,0 +1,308 @@
+"""Component VQ-VAEs: configs, quantizer state, streaming == offline decoding, the loss."""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import warnings
+
+import pytest
+import torch
+
+from comgrasp_train import skeleton as sk
+from comgrasp_train.layout import CONTACT_CHANNELS, FRAME_DIM
+from comgrasp_train.models import (
+    ComponentVQ,
+    EMAResetQuantizer,
+    StreamingDecoder,
+    VQConfig,
+    compute_loss,
+    fit_to_tokens,
+    make_config,
+    make_optimizer,
+    vq_training_step,
+)
+from comgrasp_train.models.streaming import DecoderStep
+from comgrasp_train.representation import features_to_joints
+
+REST = torch.tensor(sk.DEFAULT_REST_JOINTS, dtype=torch.float32)
+
+
+def joints_fn(x: torch.Tensor) -> torch.Tensor:
+    return features_to_joints(x, REST.to(x.device))
+
+
+def random_batch(b: int, t: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(b, t, FRAME_DIM, generator=g) * 0.5
+    x[..., list(CONTACT_CHANNELS)] = (torch.rand(b, t, 2, generator=g) > 0.5).float()
+    return x
+
+
+def randomized(vq: ComponentVQ, seed: int = 0) -> ComponentVQ:
+    """Non-trivial parameters and codebooks (pad, attention bias, ... are zero at init)."""
+    torch.manual_seed(seed)
+    with torch.no_grad():
+        for p in vq.parameters():
+            p.add_(torch.randn_like(p) * 0.05)
+        for part in vq.parts.values():
+            part.quantizer.codebook.normal_()
+            part.quantizer.initialised.fill_(True)
+    return vq.eval()
+
+
+# ---------------------------------------------------------------- configs
+
+
+def test_presets_and_json_round_trip(tmp_path):
+    d = make_config("default").model.components
+    assert [(c.name, c.codebook_size, c.code_dim) for c in d] == [
+        ("global", 512, 128), ("body", 1024, 256), ("lhand", 512, 192), ("rhand", 512, 192)]
+    s, b = make_config("small").model.components, make_config("big").model.components
+    assert all(x.codebook_size * 2 == y.codebook_size and x.code_dim * 2 == y.code_dim for x, y in zip(s, d))
+    assert all(x.codebook_size * 2 == y.codebook_size and x.code_dim * 2 == y.code_dim for x, y in zip(d, b))
+    for cfg in (make_config("default"), make_config("tiny", single=True, down_t=2, causal_decoder=False)):
+        cfg.save_json(tmp_path / "vq.json")
+        assert VQConfig.load_json(tmp_path / "vq.json") == cfg
+    bad = cfg.to_dict()
+    bad["model"]["down_tt"] = 3
+    with pytest.raises(ValueError, match="down_tt"):
+        VQConfig.from_dict(json.loads(json.dumps(bad)))
+    with pytest.raises(ValueError):
+        make_config("huge")
+
+
+def test_fit_to_tokens():
+    x = torch.arange(40.0).reshape(1, 20, 2)
+    assert fit_to_tokens(x, 16).shape == (1, 16, 2)
+    p = fit_to_tokens(x, 16, "pad")
+    assert p.shape == (1, 32, 2) and torch.equal(p[0, 20:], x[0, -1:].expand(12, 2))
+    with pytest.raises(ValueError):
+        fit_to_tokens(x[:, :8], 16)
+
+
+# ---------------------------------------------------------------- quantizer
+
+
+def _train_quantizer(q: EMAResetQuantizer, batches) -> list[torch.Tensor]:
+    q.train()
+    return [q(x).codes for x in batches]
+
+
+def test_quantizer_init_ema_and_reset():
+    torch.manual_seed(0)
+    q = EMAResetQuantizer(8, 4, decay=0.99)
+    assert not bool(q.initialised)
+    x = torch.randn(32, 4)
+    q.train()(x)
+    assert bool(q.initialised)
+    # Every code is a vector of the first batch or an EMA average of them: near the data.
+    assert torch.cdist(q.codebook, x).min(1).values.max() < 1.0
+    # When the data moves away, codes no vector picks any more decay below the count
+    # threshold and are reset onto encoder outputs of the current batch.
+    for _ in range(60):
+        far = torch.randn(64, 4) + 100.0
+        q(far)
+    assert torch.cdist(q.codebook, far).min(1).values.max() < 3.0
+    assert (q.ema_count >= q.reset_threshold).all()
+    # eval mode never touches the state
+    before = {k: v.clone() for k, v in q.state_dict().items()}
+    q.eval()(torch.randn(16, 4))
+    assert all(torch.equal(before[k], v) for k, v in q.state_dict().items())
+
+
+def test_quantizer_state_survives_save_load_and_resume():
+    batches = [torch.randn(40, 6) * (1 + i) for i in range(6)]
+    torch.manual_seed(1)
+    q = EMAResetQuantizer(16, 6)
+    _train_quantizer(q, batches[:3])
+    buf = io.BytesIO()
+    torch.save(q.state_dict(), buf)
+    buf.seek(0)
+    q2 = EMAResetQuantizer(16, 6)
+    q2.load_state_dict(torch.load(buf))
+    assert set(q.state_dict()) == {"codebook", "ema_sum", "ema_count", "initialised"}
+    for k, v in q.state_dict().items():
+        assert torch.equal(v, q2.state_dict()[k]), k
+    probe = torch.randn(50, 6)
+    assert torch.equal(q.eval()(probe).codes, q2.eval()(probe).codes)
+    # Resume: the same batches and RNG give bit-identical codes and EMA state (no re-init).
+    torch.manual_seed(7)
+    a = _train_quantizer(q, batches[3:])
+    torch.manual_seed(7)
+    b = _train_quantizer(q2, batches[3:])
+    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    for k, v in q.state_dict().items():
+        assert torch.equal(v, q2.state_dict()[k]), k
+
+
+def test_quantizer_distributed_path_matches_single_process(tmp_path):
+    """A 1-rank gloo group exercises the all-reduce / broadcast branch."""
+    dist = torch.distributed
+    if not dist.is_available():
+        pytest.skip("torch.distributed unavailable")
+    batches = [torch.randn(20, 4) for _ in range(3)]
+    torch.manual_seed(3)
+    ref = EMAResetQuantizer(8, 4)
+    _train_quantizer(ref, batches)
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path}/pg", rank=0, world_size=1)
+    try:
+        torch.manual_seed(3)
+        q = EMAResetQuantizer(8, 4)
+        _train_quantizer(q, batches)
+    finally:
+        dist.destroy_process_group()
+    for k, v in ref.state_dict().items():
+        assert torch.equal(v, q.state_dict()[k]), k
+
+
+# ---------------------------------------------------------------- model, streaming
+
+
+@pytest.mark.parametrize("down_t", [4, 2])
+def test_streaming_decode_equals_offline(down_t):
+    vq = randomized(ComponentVQ(make_config("tiny", down_t=down_t).model))
+    k, f = vq.context_tokens, vq.frames_per_token
+    assert k == 8
+    n = k + 5
+    tokens = torch.stack([torch.randint(0, p.comp.codebook_size, (2, n)) for p in vq.parts.values()], 1)
+    with torch.no_grad():
+        offline = vq.decode(tokens)
+    assert offline.shape == (2, n * f, FRAME_DIM)
+    sd = StreamingDecoder(vq, batch_size=2)
+    assert sd.state.shape == (2, 4, k - 1)
+    chunks = [sd.step(tokens[:, :, i]) for i in range(n)]
+    assert all(c.shape == (2, f, FRAME_DIM) for c in chunks)
+    assert (torch.cat(chunks, 1) - offline).abs().max().item() <= 1e-4
+    assert torch.equal(sd.state, tokens[:, :, -(k - 1):])
+
+
+def test_receptive_field_is_exactly_k_tokens():
+    """Token n's frames ignore token n-K and do depend on token n-K+1."""
+    vq = randomized(ComponentVQ(make_config("tiny").model))
+    k, f = vq.context_tokens, vq.frames_per_token
+    n = k + 2
+    tokens = torch.stack([torch.randint(0, p.comp.codebook_size, (1, n)) for p in vq.parts.values()], 1)
+    last = slice((n - 1) * f, n * f)
+    with torch.no_grad():
+        base = vq.decode(tokens)[:, last]
+        for back, changes in ((k, False), (k - 1, True)):
+            t2 = tokens.clone()
+            t2[:, :, n - 1 - back] = (t2[:, :, n - 1 - back] + 1) % 32
+            diff = (vq.decode(t2)[:, last] - base).abs().max().item()
+            assert (diff > 1e-6) == changes, (back, diff)
+
+
+def test_encode_decode_shapes_and_paper_decoder():
+    x = random_batch(2, 64)
+    for cfg in (make_config("tiny", causal_decoder=False), make_config("tiny", single=True)):
+        vq = ComponentVQ(cfg.model)
+        vq.train()(x)  # initialises the codebooks
+        codes = vq.eval().encode(x)
+        p = len(cfg.model.components)
+        assert codes.shape == (2, p, 4) and codes.dtype == torch.long
+        y = vq.decode(codes)
+        assert y.shape == x.shape
+        c = list(CONTACT_CHANNELS)
+        assert ((y[..., c] >= 0) & (y[..., c] <= 1)).all()
+    with pytest.raises(ValueError, match="causal"):
+        DecoderStep(ComponentVQ(make_config("tiny", causal_decoder=False).model))
+    with pytest.raises(ValueError, match="multiple"):
+        vq(x[:, :40])
+
+
+def test_model_state_dict_round_trip_reproduces_tokens_and_frames():
+    x = random_batch(2, 64, seed=1)
+    vq = ComponentVQ(make_config("tiny").model)
+    vq.train()(x)
+    buf = io.BytesIO()
+    torch.save(vq.state_dict(), buf)
+    buf.seek(0)
+    vq2 = ComponentVQ(make_config("tiny").model)
+    vq2.load_state_dict(torch.load(buf))
+    vq.eval(), vq2.eval()
+    assert torch.equal(vq.encode(x), vq2.encode(x))
+    with torch.no_grad():
+        assert torch.equal(vq.decode(vq.encode(x)), vq2.decode(vq.encode(x)))
+
+
+# ---------------------------------------------------------------- loss, training step
+
+
+def test_loss_terms_and_component_isolation():
+    torch.manual_seed(0)
+    cfg = make_config("tiny")
+    vq = ComponentVQ(cfg.model)
+    x = random_batch(2, 32, seed=2)
+    loss, m = compute_loss(vq, x, joints_fn, cfg)
+    assert torch.isfinite(loss)
+    for key in ("param", "joint", "vel", "cont", "commit", "perplexity"):
+        assert {f"{key}/{n}" for n in vq.names} <= set(m), key
+    assert m["param"] > 0 and m["joint"] > 0 and m["vel"] > 0
+    assert m["cont/global"] == 0 and m["cont/body"] == 0 and m["cont/lhand"] > 0
+    # Each component is charged only for its own slice (the joint term uses ground truth
+    # elsewhere): changing the body tokenizer leaves the global tokenizer's gradients alone.
+    other = copy.deepcopy(vq)
+    with torch.no_grad():
+        for p in other.parts["body"].parameters():
+            p.add_(torch.randn_like(p))
+    grads = []
+    for model in (vq, other):
+        model.zero_grad()
+        compute_loss(model, x, joints_fn, cfg)[0].backward()
+        grads.append(torch.cat([p.grad.flatten() for p in model.parts["global"].parameters()]))
+    assert grads[0].abs().max() > 0
+    torch.testing.assert_close(grads[0], grads[1])
+
+
+def test_training_step_reduces_loss_and_handles_denormalize():
+    torch.manual_seed(0)
+    cfg = make_config("tiny", single=True)
+    vq = ComponentVQ(cfg.model)
+    opt = make_optimizer(vq, VQConfig(cfg.preset, cfg.model, cfg.loss, cfg.train.__class__(lr=2e-3)))
+    x = random_batch(2, 32, seed=3)
+    mean, std = torch.randn(FRAME_DIM) * 0.1, torch.rand(FRAME_DIM) + 0.5
+    first = vq_training_step(vq, opt, x, joints_fn, cfg, denormalize=lambda t: t * std + mean)
+    for _ in range(8):
+        last = vq_training_step(vq, opt, x, joints_fn, cfg, denormalize=lambda t: t * std + mean)
+    assert last["loss"] < first["loss"]
+    assert "grad_norm" in last and "perplexity/all" in last
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_training_step_and_streaming_on_cuda():
+    cfg = make_config("tiny")
+    vq = ComponentVQ(cfg.model).cuda()
+    x = random_batch(2, 64).cuda()
+    m = vq_training_step(vq, make_optimizer(vq, cfg), x, joints_fn, cfg)
+    assert torch.isfinite(m["loss"])
+    vq.eval()
+    tokens = vq.encode(x)
+    sd = StreamingDecoder(vq, batch_size=2)
+    frames = torch.cat([sd.step(tokens[:, :, i]) for i in range(tokens.shape[-1])], 1)
+    with torch.no_grad():
+        assert (frames - vq.decode(tokens)).abs().max().item() <= 1e-4
+
+
+def test_streaming_step_exports_to_static_onnx(tmp_path):
+    """The step graph has static shapes and explicit state in/out, and matches PyTorch."""
+    pytest.importorskip("onnx")
+    ort = pytest.importorskip("onnxruntime")
+    vq = randomized(ComponentVQ(make_config("tiny").model))
+    step = DecoderStep(vq).eval()
+    state = step.initial_state(1)
+    path = tmp_path / "vq_step.onnx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(step, (state, torch.zeros(1, 4, dtype=torch.long)), str(path), dynamo=False,
+                          input_names=["state", "tokens"], output_names=["frames", "next_state"], opset_version=17)
+    sess = ort.InferenceSession(str(path))
+    n = vq.context_tokens + 3
+    tokens = torch.stack([torch.randint(0, p.comp.codebook_size, (1, n)) for p in vq.parts.values()], 1)
+    st, frames = state.numpy(), []
+    for i in range(n):
+        f, st = sess.run(None, {"state": st, "tokens": tokens[:, :, i].numpy()})
+        frames.append(torch.from_numpy(f))
+    with torch.no_grad():
+        assert (torch.cat(frames, 1) - vq.decode(tokens)).abs().max().item() <= 1e-4
