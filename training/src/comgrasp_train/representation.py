@@ -127,7 +127,7 @@ def features_to_joints(x: torch.Tensor, rest_joints: torch.Tensor) -> torch.Tens
 
     ``rest_joints`` is (55, 3) or broadcastable (..., 1, 55, 3) per sample."""
     rotmats = features_to_rotmats(x)
-    rest = rest_joints.to(x.dtype)
+    rest = rest_joints.to(device=x.device, dtype=x.dtype)
     pelvis = x[..., FIELD["root_transl"].slice]
     transl = pelvis - rest[..., 0, :]
     return sk.forward_kinematics(rotmats, rest, transl)[1]

@@ -159,6 +159,14 @@ def _depth_levels(parents: tuple[int, ...]) -> list[torch.Tensor]:
 
 _LEVELS = _depth_levels(PARENTS)
 _PARENTS_T = torch.tensor(PARENTS)
+_DEVICE_INDEX: dict[torch.device, tuple[torch.Tensor, list[torch.Tensor]]] = {}
+
+
+def _index_tensors(device: torch.device) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The parent and depth-level index tensors on ``device`` (made once per device)."""
+    if device not in _DEVICE_INDEX:
+        _DEVICE_INDEX[device] = (_PARENTS_T.to(device), [lv.to(device) for lv in _LEVELS])
+    return _DEVICE_INDEX[device]
 
 
 def forward_kinematics(
@@ -170,16 +178,17 @@ def forward_kinematics(
     transl: (..., 3) or None. Returns global rotations (..., 55, 3, 3) and world joint
     positions (..., 55, 3). Processed one tree depth at a time (about 10 steps).
     """
-    rest_joints = rest_joints.to(rotmats.dtype)
+    rest_joints = rest_joints.to(device=rotmats.device, dtype=rotmats.dtype)
     batch = rotmats.shape[:-3]
     rest_joints = rest_joints.expand(*batch, NUM_JOINTS, 3)
-    offsets = rest_joints - rest_joints[..., _PARENTS_T.clamp_min(0), :]
+    parents_t, levels = _index_tensors(rotmats.device)
+    offsets = rest_joints - rest_joints[..., parents_t.clamp_min(0), :]
     jdim = rotmats.dim() - 3
     # Out-of-place index_copy per depth level keeps autograd simple (no in-place writes).
     g_rot = rotmats
     g_pos = rest_joints
-    for lvl in _LEVELS:
-        par = _PARENTS_T[lvl]
+    for lvl in levels:
+        par = parents_t[lvl]
         pr = g_rot[..., par, :, :]
         g_rot = g_rot.index_copy(jdim, lvl, pr @ rotmats[..., lvl, :, :])
         new_pos = g_pos[..., par, :] + (pr @ offsets[..., lvl, :, None])[..., 0]
@@ -191,7 +200,7 @@ def forward_kinematics(
 
 def global_to_local(global_rot: torch.Tensor) -> torch.Tensor:
     """Inverse of the rotation part of FK: local_i = G_parent^T G_i."""
-    par = _PARENTS_T.clamp_min(0)
+    par = _index_tensors(global_rot.device)[0].clamp_min(0)
     parent_rot = global_rot[..., par, :, :]
     local = parent_rot.transpose(-1, -2) @ global_rot
     local[..., 0, :, :] = global_rot[..., 0, :, :]

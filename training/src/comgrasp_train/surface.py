@@ -132,6 +132,7 @@ def pose_points(
     global_rot: torch.Tensor, joints: torch.Tensor,
 ) -> torch.Tensor:
     """Posed proxy points (..., P, 3) from FK output: p = G_j (p_rest - J_rest_j) + J_j."""
-    local = proxy_rest.to(joints.dtype) - rest_joints.to(joints.dtype)[..., proxy_joint, :]
+    proxy_joint = proxy_joint.to(joints.device)
+    local = proxy_rest.to(joints) - rest_joints.to(joints)[..., proxy_joint, :]
     rot = global_rot[..., proxy_joint, :, :]
     return (rot @ local[..., None])[..., 0] + joints[..., proxy_joint, :]

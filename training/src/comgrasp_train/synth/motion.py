@@ -1,0 +1,217 @@
+"""From a plan to per-frame motion: torso, arm IK, fingers, gaze, FK, attached object, contact.
+
+Order per sequence (all frames at once):
+1. sample the object track and every hand's wrist target where it is a world pose or held
+   (held = object pose x grasp transform);
+2. torso yaw toward the object and the forward bend that keeps those targets within reach;
+3. the hanging (idle) wrist poses follow the torso; reach/retract blend between them and the
+   task targets, rising before moving over the table and retreating before lowering;
+4. two-bone IK for both arms, finger curls, head look-at; FK of the whole skeleton;
+5. while a hand holds, the object pose is recomputed from that hand's FK wrist and the grasp
+   transform (the first-gripping hand carries it when both hold); the plan is rejected
+   unless every holding wrist is exactly where the object needs it (< 0.1 mm);
+6. GRAB contact codes for the holding frames, from each grasp's object-frame codes.
+
+The pelvis and legs never move, so the feet neither slide nor leave the floor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .. import skeleton as sk
+from .ik import SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
+from .plan import FPS, HELD, IDLE, SIDES, Plan, PlanRejected, Track, segments, world_pose
+from .subjects import ROOT_ROT
+
+THETA_MARGIN = 0.03  # extra bend (rad) beyond the smallest one that reaches
+LAG = 0.3  # share of a reach during which the hand only rises (or, retracting, only retreats)
+TOLERANCE = 1e-4  # m: a holding wrist must be this close to where the object needs it
+
+
+@dataclass
+class Motion:
+    local_rot: np.ndarray  # (T, 55, 3, 3) local joint rotations
+    transl: np.ndarray  # (T, 3) SMPL-X transl (pelvis = rest J0 + transl)
+    global_rot: np.ndarray  # (T, 55, 3, 3) from FK
+    joints: np.ndarray  # (T, 55, 3) from FK
+    object_rot: np.ndarray  # (T, 3, 3) column-vector world rotation
+    object_pos: np.ndarray  # (T, 3)
+    holding: np.ndarray  # (T, 2) bool, [left, right]
+    contact_object: np.ndarray  # (T, V) int8 GRAB codes
+    contact_body: np.ndarray  # (T, P) int8 GRAB codes on the subject's proxy points
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.transl.shape[0])
+
+    @property
+    def fullpose(self) -> np.ndarray:
+        """(T, 165) axis-angle in GRAB's layout, which is the joint order 0..54."""
+        return matrix_to_rotvec(self.local_rot).reshape(self.n_frames, -1)
+
+
+@dataclass
+class _HandFrames:
+    k0: np.ndarray
+    k1: np.ndarray
+    u: np.ndarray
+    kind0: np.ndarray
+    kind1: np.ndarray
+    key_rot: np.ndarray  # (K, 3, 3), NaN at idle keys
+    key_pos: np.ndarray
+    rot: np.ndarray  # (T, 3, 3) target, NaN until filled
+    pos: np.ndarray
+
+    @property
+    def concrete(self) -> np.ndarray:
+        """Frames whose target is a world pose (not involving the torso-relative idle pose)."""
+        return (self.kind0 != IDLE) & ((self.kind1 != IDLE) | (self.u == 0))
+
+
+def _task_targets(plan: Plan, side: str, t: np.ndarray, obj_rot: np.ndarray, obj_pos: np.ndarray) -> _HandFrames:
+    hp = plan.hands[side]
+    times, kinds = np.asarray(hp.times), np.asarray(hp.kinds)
+    key_rot = np.full((len(times), 3, 3), np.nan)
+    key_pos = np.full((len(times), 3), np.nan)
+    for k, kind in enumerate(kinds):
+        if kind == HELD:
+            key_rot[k], key_pos[k] = world_pose(plan.object.at(times[k]), hp.grasp)
+        elif kind != IDLE:
+            key_rot[k], key_pos[k] = hp.poses[k]
+    k0, k1, u = segments(times, t)
+    hf = _HandFrames(k0, k1, u, kinds[k0], kinds[k1], key_rot, key_pos,
+                     np.full((len(t), 3, 3), np.nan), np.full((len(t), 3), np.nan))
+    held = (hf.kind0 == HELD) & (hf.kind1 == HELD)
+    free = hf.concrete & ~held
+    a = k0[free]
+    b = np.where(hf.kind1[free] == IDLE, a, k1[free])
+    s = minjerk(u[free])
+    hf.rot[free] = slerp(key_rot[a], key_rot[b], s)
+    hf.pos[free] = key_pos[a] + s[:, None] * (key_pos[b] - key_pos[a])
+    if held.any():
+        hf.rot[held] = obj_rot[held] @ hp.grasp.rot
+        hf.pos[held] = obj_pos[held] + obj_rot[held] @ hp.grasp.pos
+    return hf
+
+
+def _blend_with_idle(hf: _HandFrames, idle_rot: np.ndarray, idle_pos: np.ndarray) -> None:
+    """Fill the frames that involve the hanging pose: rest there, or reach/retract with the
+    vertical motion leading on the way out and trailing on the way back."""
+    still = (hf.kind0 == IDLE) & (hf.kind1 == IDLE)
+    hf.rot[still], hf.pos[still] = idle_rot[still], idle_pos[still]
+    for out, m in ((True, (hf.kind0 == IDLE) & (hf.kind1 != IDLE)),
+                   (False, (hf.kind0 != IDLE) & (hf.kind1 == IDLE) & (hf.u > 0))):
+        if not m.any():
+            continue
+        u = hf.u[m]
+        k = hf.k1[m] if out else hf.k0[m]
+        lead, trail = minjerk(u / (1 - LAG)), minjerk((u - LAG) / (1 - LAG))
+        if out:  # idle -> pose
+            start_r, start_p, end_r, end_p = idle_rot[m], idle_pos[m], hf.key_rot[k], hf.key_pos[k]
+            s_h, s_v = trail, lead
+        else:  # pose -> idle
+            start_r, start_p, end_r, end_p = hf.key_rot[k], hf.key_pos[k], idle_rot[m], idle_pos[m]
+            s_h, s_v = lead, trail
+        frac = np.stack([s_h, s_h, s_v], axis=-1)
+        hf.rot[m] = slerp(start_r, end_r, minjerk(u))
+        hf.pos[m] = start_p + frac * (end_p - start_p)
+
+
+def _spine_track(plan: Plan, hands: dict[str, _HandFrames], values, default: float, t: np.ndarray) -> np.ndarray:
+    """Interpolate a torso value keyed at every hand key time (``values(frame)`` where a
+    hand has a world target there, ``default`` elsewhere)."""
+    times = sorted({0.0, plan.duration, *(x for hp in plan.hands.values() for x in hp.times)})
+    track = Track()
+    active = np.any([hf.concrete for hf in hands.values()], axis=0)
+    for tk in times:
+        f = min(int(round(tk * FPS)), len(t) - 1)
+        track.key(tk, values(f) if active[f] else default)
+    return track.sample(t)
+
+
+def synthesize(plan: Plan) -> Motion:
+    sc = plan.scene
+    rest = sc.rest
+    T = int(round(plan.duration * FPS)) + 1
+    t = np.arange(T) / FPS
+    obj_rot, obj_pos = plan.object.sample(t)
+    hands = {s: _task_targets(plan, s, t, obj_rot, obj_pos) for s in SIDES}
+
+    # Torso: yaw toward the object, then the bend every world target needs.
+    psi = _spine_track(plan, hands, lambda f: sc.psi_toward(obj_pos[f]), 0.0, t)
+    need = np.zeros(T)
+    for s, hf in hands.items():
+        c = hf.concrete
+        need[c] = np.maximum(need[c], sc.required_bend(s, hf.pos[c], psi[c]) + THETA_MARGIN)
+    theta = np.maximum(_spine_track(plan, hands, lambda f: max(sc.theta0, need[f]), sc.theta0, t), need)
+    tor = sc.torso(theta, psi)
+
+    local = np.tile(np.eye(3), (T, sk.NUM_JOINTS, 1, 1))
+    local[:, 0] = ROOT_ROT
+    local[:, list(SPINE)] = tor.local[:, None]
+    for s, hf in hands.items():
+        _blend_with_idle(hf, *sc.idle_pose(s, tor))
+        arm = sc.arms[s]
+        l_sh, l_el, l_wr, _ = arm_ik(arm, tor.point(rest, arm.shoulder), tor.rot3, hf.pos, hf.rot,
+                                     tor.rot3 @ sc.pole[s])
+        local[:, arm.shoulder], local[:, arm.elbow], local[:, arm.wrist] = l_sh, l_el, l_wr
+        hand = sc.hands[s]
+        local[:, hand.fingers] = hand.finger_locals(plan.hands[s].curls.sample(t))
+    neck_head = look_at(rest, tor, obj_pos, plan.look.sample(t), plan.pitch.sample(t))
+    local[:, 12] = local[:, 15] = neck_head
+
+    transl = np.tile(sc.pelvis - rest[0], (T, 1))
+    g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(local), torch.from_numpy(rest),
+                                                      torch.from_numpy(transl)))
+
+    # The object follows the holding wrist; check that every holding wrist is where it must be.
+    holding = np.zeros((T, 2), dtype=bool)
+    for i, s in enumerate(SIDES):
+        hold = plan.hands[s].hold
+        if hold:
+            holding[int(round(hold[0] * FPS)): int(round(hold[1] * FPS)) + 1, i] = True
+    out_rot, out_pos = obj_rot.copy(), obj_pos.copy()
+    for s in reversed(plan.order):
+        m = holding[:, SIDES.index(s)]
+        gr = plan.hands[s].grasp
+        wrist = sc.arms[s].wrist
+        out_rot[m] = g[m, wrist] @ gr.rot.T
+        out_pos[m] = j[m, wrist] - out_rot[m] @ gr.pos
+    for s in plan.order:
+        m = holding[:, SIDES.index(s)]
+        err = np.linalg.norm(j[m, sc.arms[s].wrist] - hands[s].pos[m], axis=-1).max()
+        if err > TOLERANCE:
+            raise PlanRejected(f"{s} wrist misses the held object by {err * 1000:.1f} mm")
+
+    contact_object, contact_body = _contacts(plan, holding)
+    return Motion(local, transl, g, j, out_rot, out_pos, holding, contact_object, contact_body)
+
+
+def _contacts(plan: Plan, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """contact/object: per object vertex the code of the nearest holding-hand point within
+    GRAB's threshold; contact/body: each touching hand point's own code. Constant per set
+    of holding hands, since a holding hand is rigid relative to the object."""
+    T = len(holding)
+    n_points = plan.scene.model.proxy.num_points
+    c_obj = np.zeros((T, len(plan.shape_verts)), np.int8)
+    c_body = np.zeros((T, n_points), np.int8)
+    for combo in {tuple(r) for r in holding if r.any()}:
+        rows = np.all(holding == combo, axis=1)
+        dist = np.full(len(plan.shape_verts), np.inf)
+        codes = np.zeros(len(plan.shape_verts), np.int8)
+        body = np.zeros(n_points, np.int8)
+        for s, on in zip(SIDES, combo):
+            if not on:
+                continue
+            gr = plan.hands[s].grasp
+            nearer = gr.object_dist < dist
+            codes = np.where(nearer, gr.object_codes, codes)
+            dist = np.minimum(dist, gr.object_dist)
+            body[gr.hand.index] = gr.body_codes
+        c_obj[rows] = codes
+        c_body[rows] = body
+    return c_obj, c_body
