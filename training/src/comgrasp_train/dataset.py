@@ -67,6 +67,6 @@ def prepare_features(
         out.texts.append(describe(s.gender, s.intent, s.obj_name, s.contact, mention_hands))
         out.meta.append({
             "name": seq.name, "subject": seq.sbj_id, "gender": seq.gender, "object": seq.obj_name,
-            "intent": seq.intent, "object_mesh": seq.object_mesh, **hands_from_contact(s.contact),
+            "intent": seq.intent, "object_mesh": seq.object_mesh, "vtemp": seq.vtemp, **hands_from_contact(s.contact),
         })
     return out, summary

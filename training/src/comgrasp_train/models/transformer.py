@@ -212,10 +212,7 @@ class ComGraspTransformer(nn.Module):
     def loss(self, text_emb: Tensor, codes: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Summed (over streams) mean NLL. codes (B, T, 4): codes, then End, then Pad
         (Pad targets ignored); T <= block_size - 1. Inputs are codes[:, :-1]."""
-        logits = self(text_emb, codes[:, :-1])
-        per = [F.cross_entropy(lg.flatten(0, 1), codes[..., i].flatten(), ignore_index=pad)
-               for i, (lg, pad) in enumerate(zip(logits, self.cfg.pad_ids))]
-        return torch.stack(per).sum(), per
+        return stream_nll(self(text_emb, codes[:, :-1]), codes, self.cfg.pad_ids)
 
     def step(self, tokens: Tensor, pos: Tensor | int, text_emb: Tensor,
              cache_k: list[Tensor], cache_v: list[Tensor]):
@@ -250,6 +247,13 @@ class ComGraspTransformer(nn.Module):
         logits, new_k, new_v = self.step(tokens, pos, text_emb, cache.k, cache.v)
         cache.write(pos, new_k, new_v)
         return logits
+
+
+def stream_nll(logits: list[Tensor], codes: Tensor, pad_ids) -> tuple[Tensor, list[Tensor]]:
+    """Summed per-stream mean NLL of targets ``codes`` (B, T, 4); Pad targets ignored."""
+    per = [F.cross_entropy(lg.flatten(0, 1), codes[..., i].flatten(), ignore_index=pad)
+           for i, (lg, pad) in enumerate(zip(logits, pad_ids))]
+    return torch.stack(per).sum(), per
 
 
 def count_parameters(cfg: TransformerConfig) -> int:

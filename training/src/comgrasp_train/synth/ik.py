@@ -1,14 +1,14 @@
 """Kinematics for the SynthGrasp generator, vectorized over frames with numpy.
 
 * min-jerk timing and rotation helpers (scipy does the axis-angle conversions);
-* the torso chain in closed form as a function of a forward bend and a yaw, so the bend that
+* the torso chain in closed form as a function of a forward bow and a yaw, so the bow that
   brings a target within reach can be searched over a grid for every frame at once;
 * analytic two-bone arm IK with a pole vector, exact whenever the target is within reach;
 * head look-at.
 
 All rotations follow the skeleton's FK (`skeleton.py`): a local rotation acts in the
 rest-aligned frame, ``G_child = G_parent @ L_child``, and the rest pose has every global
-rotation equal to the identity (canonical frame); the world pose of the pelvis is
+rotation equal to the identity (canonical frame); the upright world pose of the pelvis is
 ``subjects.ROOT_ROT``.
 """
 
@@ -23,6 +23,7 @@ from .. import skeleton as sk
 
 SPINE = (3, 6, 9)  # spine1..3: each gets the same local rotation
 NECK, HEAD, SPINE3 = 12, 15, 9
+LEFT_HIP, RIGHT_HIP = 1, 2
 
 
 def minjerk(u: np.ndarray) -> np.ndarray:
@@ -81,9 +82,14 @@ def canonical_rot(yaw, pitch) -> np.ndarray:
 
 @dataclass
 class Torso:
-    """World pose of the torso for a bend ``theta`` (forward) and yaw ``psi`` (to the left),
-    both shared equally by spine1..3."""
+    """World pose of the upper body for a forward bow ``theta`` and a yaw ``psi`` (to the
+    left). ``hip_share`` of the bow is a hinge of the pelvis about the line through both hip
+    joints (the legs counter-rotate, so hips, knees and feet stay exactly in place); the rest
+    and the yaw are shared equally by spine1..3."""
 
+    pelvis_rot: np.ndarray  # (..., 3, 3) pelvis global rotation
+    pelvis_pos: np.ndarray  # (..., 3) pelvis position
+    hip_local: np.ndarray  # (..., 3, 3) local rotation of both hips (undoes the hinge)
     local: np.ndarray  # (..., 3, 3) local rotation of each spine joint
     rot3: np.ndarray  # (..., 3, 3) global rotation of spine3 (= collars, which stay at rest)
     pos3: np.ndarray  # (..., 3) spine3 position
@@ -93,14 +99,20 @@ class Torso:
         return self.pos3 + (self.rot3 @ (rest[j] - rest[SPINE3]))
 
 
-def torso(rest: np.ndarray, root_rot: np.ndarray, pelvis: np.ndarray, theta, psi) -> Torso:
-    local = canonical_rot(np.asarray(psi) / 3.0, np.asarray(theta) / 3.0)
-    g = np.broadcast_to(root_rot, local.shape)
-    pos = pelvis + root_rot @ (rest[SPINE[0]] - rest[0])
+def torso(rest: np.ndarray, root_rot: np.ndarray, pelvis: np.ndarray, theta, psi, hip_share: float) -> Torso:
+    """``pelvis`` is the world pelvis position of the upright pose."""
+    theta, psi = np.broadcast_arrays(np.asarray(theta, float), np.asarray(psi, float))
+    hinge = axis_angle([1.0, 0.0, 0.0], hip_share * theta)
+    hips = 0.5 * (rest[LEFT_HIP] + rest[RIGHT_HIP]) - rest[0]
+    pelvis_pos = pelvis + (hips - hinge @ hips) @ root_rot.T
+    local = canonical_rot(psi / 3.0, (1.0 - hip_share) * theta / 3.0)
+    g = root_rot @ hinge
+    pelvis_rot = g
+    pos = pelvis_pos + g @ (rest[SPINE[0]] - rest[0])
     for child, parent in ((SPINE[1], SPINE[0]), (SPINE[2], SPINE[1])):
         g = g @ local
         pos = pos + g @ (rest[child] - rest[parent])
-    return Torso(local, g @ local, pos)
+    return Torso(pelvis_rot, pelvis_pos, np.swapaxes(hinge, -1, -2), local, g @ local, pos)
 
 
 # ---- arms ---------------------------------------------------------------------------------

@@ -3,7 +3,8 @@
 Order per sequence (all frames at once):
 1. sample the object track and every hand's wrist target where it is a world pose or held
    (held = object pose x grasp transform);
-2. torso yaw toward the object and the forward bend that keeps those targets within reach;
+2. torso yaw toward the object and the forward bow (hip hinge + spine) that keeps those
+   targets within reach;
 3. the hanging (idle) wrist poses follow the torso; reach/retract blend between them and the
    task targets, rising before moving over the table and retreating before lowering;
 4. two-bone IK for both arms, finger curls, head look-at; FK of the whole skeleton;
@@ -12,7 +13,9 @@ Order per sequence (all frames at once):
    unless every holding wrist is exactly where the object needs it (< 0.1 mm);
 6. GRAB contact codes for the holding frames, from each grasp's object-frame codes.
 
-The pelvis and legs never move, so the feet neither slide nor leave the floor.
+The legs keep their rest pose in the world (the hip hinge turns the pelvis about the line
+through both hip joints and the hips counter-rotate), so the feet neither slide nor leave
+the floor.
 """
 
 from __future__ import annotations
@@ -23,11 +26,10 @@ import numpy as np
 import torch
 
 from .. import skeleton as sk
-from .ik import SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
+from .ik import LEFT_HIP, RIGHT_HIP, SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
 from .plan import FPS, HELD, IDLE, SIDES, Plan, PlanRejected, Track, segments, world_pose
-from .subjects import ROOT_ROT
 
-THETA_MARGIN = 0.03  # extra bend (rad) beyond the smallest one that reaches
+THETA_MARGIN = 0.03  # extra bow (rad) beyond the smallest one that reaches
 LAG = 0.3  # share of a reach during which the hand only rises (or, retracting, only retreats)
 TOLERANCE = 1e-4  # m: a holding wrist must be this close to where the object needs it
 
@@ -151,7 +153,8 @@ def synthesize(plan: Plan) -> Motion:
     tor = sc.torso(theta, psi)
 
     local = np.tile(np.eye(3), (T, sk.NUM_JOINTS, 1, 1))
-    local[:, 0] = ROOT_ROT
+    local[:, 0] = tor.pelvis_rot
+    local[:, [LEFT_HIP, RIGHT_HIP]] = tor.hip_local[:, None]
     local[:, list(SPINE)] = tor.local[:, None]
     for s, hf in hands.items():
         _blend_with_idle(hf, *sc.idle_pose(s, tor))
@@ -164,7 +167,7 @@ def synthesize(plan: Plan) -> Motion:
     neck_head = look_at(rest, tor, obj_pos, plan.look.sample(t), plan.pitch.sample(t))
     local[:, 12] = local[:, 15] = neck_head
 
-    transl = np.tile(sc.pelvis - rest[0], (T, 1))
+    transl = tor.pelvis_pos - rest[0]
     g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(local), torch.from_numpy(rest),
                                                       torch.from_numpy(transl)))
 

@@ -30,7 +30,7 @@ from .subjects import ROOT_ROT, SubjectModel, subject_model
 
 FPS = GRAB_FPS
 MAX_SECONDS = 12.0
-THETA_MAX = np.radians(60.0)  # largest forward bend of the spine (sum over spine1..3)
+THETA_MAX = np.radians(95.0)  # deepest forward bow (hip hinge + spine)
 REACH_LIMIT = 0.96  # fraction of the arm length a target may be from the shoulder
 IDLE, POSE, HELD = 0, 1, 2  # hand key kinds: arm hanging, a world wrist pose, following the object
 SIDES = ("left", "right")
@@ -145,7 +145,7 @@ class Scene:
     """A subject at a table, with the per-sequence style of its idle arms, poles and torso."""
 
     model: SubjectModel
-    pelvis: np.ndarray  # world pelvis position
+    pelvis: np.ndarray  # world pelvis position when upright
     table_height: float
     table_centre: np.ndarray  # world centre of the table's top surface
     hands: dict[str, Hand]
@@ -153,8 +153,9 @@ class Scene:
     pole: dict[str, np.ndarray]  # elbow pole direction in the spine3 frame (canonical)
     idle: dict[str, tuple[np.ndarray, np.ndarray]]  # hanging wrist pose in the spine3 frame
     relaxed: dict[str, np.ndarray]
-    theta0: float  # resting forward bend
+    theta0: float  # resting forward bow
     psi_gain: float  # how much the torso turns toward the object
+    hip_share: float  # share of the bow taken by the hips
 
     @property
     def rest(self) -> np.ndarray:
@@ -165,7 +166,7 @@ class Scene:
         return float(self.table_centre[1] - TABLE_SIZE[1] / 2)
 
     def torso(self, theta, psi) -> Torso:
-        return torso(self.rest, ROOT_ROT, self.pelvis, theta, psi)
+        return torso(self.rest, ROOT_ROT, self.pelvis, theta, psi, self.hip_share)
 
     def psi_toward(self, p: np.ndarray) -> float:
         """Torso yaw toward a point; none for points near the midline (e.g. the mouth)."""
@@ -174,9 +175,9 @@ class Scene:
         return float(np.clip(self.psi_gain * np.arctan2(-x, max(p[1] - self.pelvis[1], 0.15)), -0.35, 0.35))
 
     def required_bend(self, side: str, target: np.ndarray, psi: np.ndarray) -> np.ndarray:
-        """Smallest forward bend (per frame) that brings ``target`` within reach of the arm,
-        THETA_MAX where none does; linear between grid bends."""
-        grid = np.linspace(0.0, THETA_MAX, 13)
+        """Smallest forward bow (per frame) that brings ``target`` within reach of the arm,
+        THETA_MAX where none does; linear between grid values."""
+        grid = np.linspace(0.0, THETA_MAX, 20)
         arm = self.arms[side]
         shoulder = self.torso(grid[:, None], np.asarray(psi)[None, :]).point(self.rest, arm.shoulder)
         excess = np.linalg.norm(target[None] - shoulder, axis=-1) - REACH_LIMIT * arm.reach  # (G, T)
@@ -209,7 +210,7 @@ class Scene:
 def make_scene(model: SubjectModel, rng: np.random.Generator) -> Scene:
     pelvis = np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), model.pelvis_height])
     table_height = rng.uniform(0.70, 0.90)
-    centre = pelvis + np.array([rng.uniform(-0.1, 0.1), rng.uniform(0.18, 0.28) + TABLE_SIZE[1] / 2, 0.0])
+    centre = pelvis + np.array([rng.uniform(-0.1, 0.1), rng.uniform(0.2, 0.28) + TABLE_SIZE[1] / 2, 0.0])
     centre[2] = table_height
     rest = model.rest
     arms = {s: make_arm(rest, s) for s in SIDES}
@@ -224,7 +225,7 @@ def make_scene(model: SubjectModel, rng: np.random.Generator) -> Scene:
     g, j = (x[0].numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), torch.from_numpy(rest)))
     idle = {s: (g[arms[s].wrist], j[arms[s].wrist] - j[9]) for s in SIDES}  # spine3 is at rest: rotation I
     return Scene(model, pelvis, table_height, centre, {s: hand_model(model.spec.sbj_id, s) for s in SIDES},
-                 arms, pole, idle, relaxed, rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6))
+                 arms, pole, idle, relaxed, rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.6))
 
 
 @dataclass
@@ -279,16 +280,15 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
         else:
             if _boxy(obj):
                 direction = _snap_to_faces(direction, r_o)
-            z = rng.uniform(-0.35, 0.25) * hz
-            if on_table:  # keep the lower edge of the hand above the table
-                half_width = np.abs(hand.rest[hand.fingers[:, 0], 2] - hand.rest[hand.wrist, 2]).max() + 0.012
-                z = max(z, scene.table_height + half_width + 0.004 - p_o[2])
-            if z > hz - 0.01:
-                return None
-            target = np.array([0.0, 0.0, z])
+            target = np.array([0.0, 0.0, rng.uniform(-0.35, 0.25) * hz])
         normal = -direction
         rot_w = hand.orientation(normal, axis_angle(normal, rng.uniform(-0.25, 0.25)) @ UP)
         lam = 0.5
+        if on_table:  # raise the hand so that its lowest point clears the table top
+            low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
+            target[2] = max(target[2], scene.table_height + 0.003 - p_o[2] - low)
+        if target[2] > (obj.handle[2] + 0.02 if obj.handle is not None else hz - 0.01):
+            return None
     else:
         if _boxy(obj):
             direction = _snap_to_faces(direction, r_o)
@@ -394,7 +394,7 @@ class _Builder:
         """A random (x, y) on the table in front of the subject: on one side or centred."""
         sc = self.scene
         x = self.u(-0.05, 0.05) if where == "centre" else side_sign(where) * self.u(0.08, 0.32)
-        return sc.pelvis[0] + x, sc.near_edge + self.u(0.10, 0.26)
+        return sc.pelvis[0] + x, sc.near_edge + self.u(0.08, 0.22)
 
     def put_down(self, pose) -> tuple[np.ndarray, np.ndarray]:
         """Upright pose on the table near ``pose`` (a few cm away, slightly turned)."""

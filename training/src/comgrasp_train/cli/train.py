@@ -1,0 +1,196 @@
+"""`comgrasp-train`: train, sample, evaluate and export the ComGrasp model.
+
+    comgrasp-train train-vq  --data PREP --out RUN/vq  [--preset small] [--single] [--paper-decoder] [--iters N]
+    comgrasp-train train-gpt --data PREP --vq RUN/vq --out RUN/gpt [--preset small] [--iters N]
+    comgrasp-train generate  --vq RUN/vq --gpt RUN/gpt --text "A woman drinks from the mug" --out motion.npz
+    comgrasp-train evaluate  --data PREP --vq RUN/vq [--gpt RUN/gpt] --out RUN/eval/table.md
+    comgrasp-train export    --vq RUN/vq --gpt RUN/gpt --out BUNDLE
+
+Every run directory holds ``ckpt.pt`` (resumable: rerun the same command to continue) and
+``config.json``. Multi-GPU: ``torchrun --nproc_per_node N -m comgrasp_train.cli.train train-vq ...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+
+def _sampling(args):
+    from ..models.sampling import SamplingParams
+
+    return SamplingParams(temperature=args.temperature, top_k=args.top_k, min_len=args.min_len, max_len=args.max_len)
+
+
+def cmd_train_vq(args) -> int:
+    from ..models.configs import make_config
+    from ..train.vq_trainer import train_vq
+
+    cfg = make_config(args.preset, single=args.single, down_t=args.down_t, causal_decoder=not args.paper_decoder)
+    t = cfg.train
+    t = replace(t, total_iters=args.iters or t.total_iters, batch_size=args.batch or t.batch_size,
+                warmup_iters=min(t.warmup_iters, max(1, (args.iters or t.total_iters) // 10)),
+                lr=args.lr or t.lr)
+    cfg = replace(cfg, train=t)
+    m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
+                 ckpt_every=args.ckpt_every, progress=not args.quiet)
+    print(json.dumps(m))
+    return 0
+
+
+def cmd_train_gpt(args) -> int:
+    from ..models.gpt_configs import preset
+    from ..text_encoder import load_text_encoder
+    from ..train.gpt_trainer import GPTTrainConfig, TextConfig, train_gpt
+    from ..train.vq_trainer import load_vq
+
+    _, vq_cfg, _ = load_vq(Path(args.vq))
+    text = TextConfig(args.text_encoder, args.clip_checkpoint)
+    dim = load_text_encoder(text.backend, checkpoint=text.checkpoint).dim
+    cfg = preset(args.preset, codebook_sizes=tuple(c.codebook_size for c in vq_cfg.model.components), d_text=dim)
+    train = GPTTrainConfig(total_iters=args.iters, batch_size=args.batch, lr=args.lr or GPTTrainConfig.lr,
+                           warmup_iters=min(GPTTrainConfig.warmup_iters, max(1, args.iters // 10)))
+    m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
+                  device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet)
+    print(json.dumps(m))
+    return 0
+
+
+def cmd_generate(args) -> int:
+    import numpy as np
+    import torch
+
+    from ..inference import MotionModel
+    from ..representation import features_to_params
+    from ..skeleton import DEFAULT_REST_JOINTS
+
+    model = MotionModel.load(Path(args.vq), Path(args.gpt), args.device or "cpu")
+    frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rest = torch.from_numpy(DEFAULT_REST_JOINTS)
+    for k, x in enumerate(frames):
+        path = out if args.n == 1 else out.with_name(f"{out.stem}_{k}{out.suffix}")
+        p = features_to_params(x, rest)
+        np.savez(path, features=x, fps=model.fps, text=args.text, seed=args.seed, **p)
+        print(f"{path}: {len(x)} frames ({len(x) / model.fps:.1f} s)")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from ..evaluate import evaluate_generation, evaluate_reconstruction, summarize, summarize_repeats, write_report
+    from ..inference import MotionModel
+    from ..normalization import Normalizer
+    from ..train.vq_trainer import load_prepared, load_vq
+
+    fs, _ = load_prepared(Path(args.data), args.part)
+    vq, _, _ = load_vq(Path(args.vq), args.device or "cpu")
+    norm = Normalizer.load(Path(args.vq) / "stats.npz")
+    results = {"VQ reconstruction": summarize(evaluate_reconstruction(vq, norm, fs, limit=args.limit))}
+    if args.gpt:
+        model = MotionModel.load(Path(args.vq), Path(args.gpt), args.device or "cpu")
+        reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
+                                   limit=args.limit)
+        results[f"generation ({args.repeats} repeats)"] = summarize_repeats(reps)
+    write_report(results, Path(args.out))
+    print(Path(args.out).read_text())
+    return 0
+
+
+def cmd_export(args) -> int:
+    from ..export.bundle import export_trained_bundle
+
+    manifest = export_trained_bundle(Path(args.vq), Path(args.gpt), Path(args.out), _sampling(args), seed=args.seed)
+    print(f"wrote {args.out} ({len(manifest['files'])} files)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="comgrasp-train", description=__doc__.split("\n")[0])
+    p.add_argument("-q", "--quiet", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    def common(sp):
+        sp.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: CUDA when available)")
+        sp.add_argument("--seed", type=int, default=0)
+
+    def sampling(sp):
+        sp.add_argument("--temperature", type=float, default=1.0)
+        sp.add_argument("--top-k", type=int, default=0)
+        sp.add_argument("--min-len", type=int, default=2)
+        sp.add_argument("--max-len", type=int, default=None)
+
+    s = sub.add_parser("train-vq", help="train the component VQ-VAEs")
+    s.add_argument("--data", required=True, help="a `comgrasp-data prepare` output folder")
+    s.add_argument("--out", required=True)
+    s.add_argument("--preset", default="small", choices=("tiny", "small", "default", "big"))
+    s.add_argument("--single", action="store_true", help="one VQ-VAE over all 335 features (ablation)")
+    s.add_argument("--paper-decoder", action="store_true", help="non-causal decoder (no streaming)")
+    s.add_argument("--down-t", type=int, default=4)
+    s.add_argument("--iters", type=int, default=None)
+    s.add_argument("--batch", type=int, default=None)
+    s.add_argument("--lr", type=float, default=None)
+    s.add_argument("--ckpt-every", type=int, default=500)
+    common(s)
+    s.set_defaults(fn=cmd_train_vq)
+
+    s = sub.add_parser("train-gpt", help="train the coordinated Transformers on a VQ's codes")
+    s.add_argument("--data", required=True)
+    s.add_argument("--vq", required=True)
+    s.add_argument("--out", required=True)
+    s.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
+    s.add_argument("--text-encoder", default="minilm", choices=("minilm", "clip"))
+    s.add_argument("--clip-checkpoint", default=None, help="a Hugging Face CLIP text model folder")
+    s.add_argument("--iters", type=int, default=20000)
+    s.add_argument("--batch", type=int, default=64)
+    s.add_argument("--lr", type=float, default=None)
+    s.add_argument("--ckpt-every", type=int, default=500)
+    common(s)
+    s.set_defaults(fn=cmd_train_gpt)
+
+    s = sub.add_parser("generate", help="text -> motion (.npz with 335-D frames and SMPL-X parameters)")
+    s.add_argument("--vq", required=True)
+    s.add_argument("--gpt", required=True)
+    s.add_argument("--text", required=True)
+    s.add_argument("--out", required=True)
+    s.add_argument("--n", type=int, default=1)
+    sampling(s)
+    common(s)
+    s.set_defaults(fn=cmd_generate)
+
+    s = sub.add_parser("evaluate", help="metric suite on a test split -> Table I (Markdown + JSON)")
+    s.add_argument("--data", required=True)
+    s.add_argument("--vq", required=True)
+    s.add_argument("--gpt", default=None)
+    s.add_argument("--part", default="test")
+    s.add_argument("--repeats", type=int, default=3)
+    s.add_argument("--limit", type=int, default=None)
+    s.add_argument("--out", required=True)
+    sampling(s)
+    common(s)
+    s.set_defaults(fn=cmd_evaluate)
+
+    s = sub.add_parser("export", help="write a model bundle for the engine")
+    s.add_argument("--vq", required=True)
+    s.add_argument("--gpt", required=True)
+    s.add_argument("--out", required=True)
+    sampling(s)
+    common(s)
+    s.set_defaults(fn=cmd_export)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"comgrasp-train {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""Train the four coordinated Transformers on the codes of a trained VQ.
+
+The text encoder runs once over every unique description (they repeat across sequences),
+then training samples (text embedding, codes) batches. Writes ``<out>/ckpt.pt``
+(resumable) + ``config.json`` (transformer, training, VQ run, text encoder) and a log.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+
+from ..models.gpt_configs import TransformerConfig
+from ..models.transformer import ComGraspTransformer, stream_nll
+from ..models.vq_losses import make_scheduler
+from ..text_encoder import load_text_encoder
+from .runtime import load_checkpoint, restore, save_checkpoint, seed_everything, setup_runtime
+from .tokens import TokenBatcher, encode_feature_set
+from .vq_trainer import load_prepared, load_vq
+
+
+@dataclass(frozen=True)
+class GPTTrainConfig:
+    batch_size: int = 64
+    lr: float = 2e-4
+    weight_decay: float = 0.01
+    betas: tuple[float, float] = (0.9, 0.99)
+    warmup_iters: int = 500
+    total_iters: int = 100_000
+    grad_clip: float = 1.0
+
+    @staticmethod
+    def from_dict(d: dict) -> "GPTTrainConfig":
+        known = {f.name for f in fields(GPTTrainConfig)}
+        if set(d) - known:
+            raise ValueError(f"unknown GPTTrainConfig fields: {sorted(set(d) - known)}")
+        d = dict(d)
+        if "betas" in d:
+            d["betas"] = tuple(d["betas"])
+        return GPTTrainConfig(**d)
+
+
+@dataclass(frozen=True)
+class TextConfig:
+    backend: str = "minilm"  # "minilm" | "clip" (then checkpoint is required)
+    checkpoint: str | None = None
+    max_tokens: int | None = None
+
+
+def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, torch.Tensor]:
+    unique = sorted({t for variants in texts for t in variants})
+    out = {}
+    for i in range(0, len(unique), batch):
+        chunk = unique[i:i + batch]
+        for t, e in zip(chunk, encoder.encode(chunk)):
+            out[t] = e.float().cpu()
+    return out
+
+
+def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfig, train: GPTTrainConfig,
+              text: TextConfig = TextConfig(), *, seed: int = 0, device: str | None = None, resume: bool = True,
+              log_every: int = 50, ckpt_every: int = 1000, progress: bool = True) -> dict:
+    rt = setup_runtime(device)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    seed_everything(seed + rt.rank)
+    fs, norm = load_prepared(data_dir, "train")
+    vq, vq_cfg, _ = load_vq(vq_dir, rt.device)
+    books = tuple(c.codebook_size for c in vq_cfg.model.components)
+    if books != tuple(cfg.codebook_sizes):
+        raise ValueError(f"transformer codebook sizes {cfg.codebook_sizes} do not match the VQ's {books}")
+    encoder = load_text_encoder(text.backend, checkpoint=text.checkpoint, max_tokens=text.max_tokens)
+    if encoder.dim != cfg.d_text:
+        raise ValueError(f"transformer d_text {cfg.d_text} != text encoder dim {encoder.dim}")
+    tokens = encode_feature_set(vq, fs, norm, rt.device)
+    del vq
+    batcher = TokenBatcher(tokens, cfg, embed_texts(encoder, tokens.texts))
+
+    model = ComGraspTransformer(cfg).to(rt.device)
+    opt = torch.optim.AdamW(model.parameters(), lr=train.lr, betas=train.betas, weight_decay=train.weight_decay)
+    sched = make_scheduler(opt, train)
+    gen = torch.Generator().manual_seed(seed + 1000 * rt.rank)
+    ckpt_path = out_dir / "ckpt.pt"
+    step = 0
+    if resume and ckpt_path.is_file():
+        ckpt = load_checkpoint(ckpt_path, rt.device)
+        if TransformerConfig.from_dict(ckpt["config"]["transformer"]) != cfg:
+            raise ValueError(f"{ckpt_path} was trained with a different transformer config; use a new --out")
+        step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
+        gen.set_state(ckpt["extra"]["sampler_rng"])
+    net = model
+    if rt.distributed:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[rt.local_rank] if rt.device.type == "cuda" else None)
+
+    config = {"transformer": cfg.to_dict(), "train": asdict(train), "text": asdict(text), "vq_dir": str(vq_dir),
+              "data": str(data_dir), "seed": seed, "fps": fs.fps}
+    log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
+    bar = None
+    if progress and rt.is_main:
+        from tqdm import tqdm
+
+        bar = tqdm(total=train.total_iters, initial=step, desc="train-gpt", unit="it")
+    metrics: dict = {}
+    t0 = time.time()
+    while step < train.total_iters:
+        emb, codes = batcher.batch(train.batch_size, gen)
+        net.train()
+        opt.zero_grad(set_to_none=True)
+        codes = codes.to(rt.device)
+        # Through the (possibly DDP-wrapped) forward so gradients are synchronised.
+        loss, per = stream_nll(net(emb.to(rt.device), codes[:, :-1]), codes, cfg.pad_ids)
+        loss.backward()
+        if train.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(net.parameters(), train.grad_clip)
+        opt.step()
+        sched.step()
+        step += 1
+        if bar is not None:
+            bar.update(1)
+        if rt.is_main and (step % log_every == 0 or step == train.total_iters):
+            metrics = {"step": step, "loss": float(loss), "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
+            metrics.update({f"nll/{n}": float(v) for n, v in zip(("global", "body", "lhand", "rhand"), per)})
+            log.write(json.dumps(metrics) + "\n")
+            log.flush()
+            if bar is not None:
+                bar.set_postfix(loss=f"{metrics['loss']:.3f}")
+        if rt.is_main and (step % ckpt_every == 0 or step == train.total_iters):
+            save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
+                            extra={"sampler_rng": gen.get_state()})
+    if bar is not None:
+        bar.close()
+    if log is not None:
+        log.close()
+    return metrics
+
+
+def load_gpt(run_dir: Path, device="cpu"):
+    """(model in eval mode, TransformerConfig, checkpoint config dict) from a GPT run directory."""
+    ckpt = load_checkpoint(Path(run_dir) / "ckpt.pt", device)
+    cfg = TransformerConfig.from_dict(ckpt["config"]["transformer"])
+    model = ComGraspTransformer(cfg).to(device)
+    model.load_state_dict(ckpt["model"])
+    return model.eval(), cfg, ckpt["config"]

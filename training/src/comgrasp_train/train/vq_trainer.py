@@ -1,0 +1,109 @@
+"""Train the component VQ-VAEs (or the single-VQ ablation) on a prepared feature set.
+
+Reads ``<data>/features_train.npz`` + ``<data>/stats.npz`` (from ``comgrasp-data prepare``),
+writes ``<out>/ckpt.pt`` (resumable, every ``ckpt_every`` steps and at the end) with
+``config.json`` beside it, and ``<out>/log.jsonl`` (one line of metrics per log step).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from ..dataset import FeatureSet
+from ..models.configs import VQConfig
+from ..models.vq_losses import make_optimizer, make_scheduler, vq_training_step
+from ..models.vqvae import build_vq
+from ..normalization import Normalizer
+from ..representation import features_to_joints
+from .runtime import load_checkpoint, restore, save_checkpoint, seed_everything, setup_runtime
+from .windows import WindowSampler
+
+
+def load_prepared(data_dir: Path, part: str) -> tuple[FeatureSet, Normalizer]:
+    data_dir = Path(data_dir)
+    for f in (data_dir / f"features_{part}.npz", data_dir / "stats.npz"):
+        if not f.is_file():
+            raise FileNotFoundError(f"{f} is missing: run `comgrasp-data prepare ROOT --out {data_dir}` first")
+    return FeatureSet.load(data_dir / f"features_{part}.npz"), Normalizer.load(data_dir / "stats.npz")
+
+
+def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, device: str | None = None,
+             resume: bool = True, log_every: int = 50, ckpt_every: int = 1000, progress: bool = True) -> dict:
+    """Run (or resume) VQ training to ``cfg.train.total_iters``; returns the last metrics."""
+    rt = setup_runtime(device)
+    out_dir = Path(out_dir)
+    ckpt_path = out_dir / "ckpt.pt"
+    fs, norm = load_prepared(data_dir, "train")
+    seed_everything(seed + rt.rank)
+    sampler = WindowSampler(fs, norm, cfg.train.window_frames)
+    model = build_vq(cfg.model, rt.device)
+    opt = make_optimizer(model, cfg)
+    sched = make_scheduler(opt, cfg)
+    gen = torch.Generator().manual_seed(seed + 1000 * rt.rank)
+    step = 0
+    if resume and ckpt_path.is_file():
+        ckpt = load_checkpoint(ckpt_path, rt.device)
+        saved = VQConfig.from_dict(ckpt["config"]["vq"])
+        if saved.model != cfg.model:
+            raise ValueError(f"{ckpt_path} was trained with a different model config; use a new --out")
+        cfg = replace(cfg, model=saved.model)
+        step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
+        gen.set_state(ckpt["extra"]["sampler_rng"])
+    if rt.distributed:
+        model = torch.nn.parallel.DistributedDataParallel(model, device_ids=[rt.local_rank] if rt.device.type == "cuda" else None)
+
+    mean = torch.as_tensor(norm.mean, device=rt.device)
+    std = torch.as_tensor(norm.std, device=rt.device)
+
+    def denorm(x):
+        return x * std + mean
+
+    config = {"vq": cfg.to_dict(), "data": str(data_dir), "seed": seed, "fps": fs.fps}
+    metrics: dict = {}
+    bar = None
+    if progress and rt.is_main:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.train.total_iters, initial=step, desc="train-vq", unit="it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if rt.is_main:  # the run is self-contained: its statistics travel with its checkpoint
+        norm.save(out_dir / "stats.npz")
+    log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
+    t0 = time.time()
+    while step < cfg.train.total_iters:
+        x, rest = sampler.batch(cfg.train.batch_size, gen)
+        x, rest = x.to(rt.device), rest.to(rt.device)
+        rest_b = rest[None, :, None]  # broadcast against (P, B, T, 55, 3)
+        m = vq_training_step(model, opt, x, lambda f: features_to_joints(f, rest_b), cfg, denorm, sched)
+        step += 1
+        if bar is not None:
+            bar.update(1)
+        if rt.is_main and (step % log_every == 0 or step == cfg.train.total_iters):
+            metrics = {k: float(v) for k, v in m.items()}
+            metrics.update(step=step, lr=sched.get_last_lr()[0], seconds=time.time() - t0)
+            log.write(json.dumps(metrics) + "\n")
+            log.flush()
+            if bar is not None:
+                bar.set_postfix(loss=f"{metrics['loss']:.3f}", joint_mm=f"{1000 * metrics['joint'] / len(cfg.model.components):.1f}")
+        if rt.is_main and (step % ckpt_every == 0 or step == cfg.train.total_iters):
+            save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
+                            extra={"sampler_rng": gen.get_state()})
+    if bar is not None:
+        bar.close()
+    if log is not None:
+        log.close()
+    return metrics
+
+
+def load_vq(run_dir: Path, device: str | torch.device = "cpu"):
+    """(model in eval mode, VQConfig, checkpoint config dict) from a VQ run directory."""
+    ckpt = load_checkpoint(Path(run_dir) / "ckpt.pt", device)
+    cfg = VQConfig.from_dict(ckpt["config"]["vq"])
+    model = build_vq(cfg.model, device)
+    model.load_state_dict(ckpt["model"])
+    return model.eval(), cfg, ckpt["config"]
