@@ -395,27 +395,39 @@ class MiniLMTextEncoder(TextEncoder):
         bert = BertModel.from_pretrained(
             str(d), attn_implementation="eager", local_files_only=True, dtype=torch.float32
         ).eval()
+        self.model_dir = d
+        self.tokenizer_json_path = d / "tokenizer.json"
+        self._setup(bert, self.tokenizer_json_path.read_text(encoding="utf-8"), "all-MiniLM-L6-v2", max_tokens)
+
+    @classmethod
+    def from_bert(cls, bert: nn.Module, tokenizer_json: str, *, name: str,
+                  max_tokens: int = DEFAULT_MINILM_MAX_TOKENS) -> "MiniLMTextEncoder":
+        """The same encoder (BERT token states, mean pooling, L2) around an in-memory
+        ``BertModel`` (eager attention) and a WordPiece tokenizer JSON with [CLS]/[SEP]/
+        [PAD]/[UNK], e.g. the tiny random-weight encoder of the test bundle (export/tiny.py)."""
+        self = cls.__new__(cls)
+        TextEncoder.__init__(self)
+        self.model_dir = None
+        self.tokenizer_json_path = None
+        self._setup(bert.eval(), tokenizer_json, name, max_tokens)
+        return self
+
+    def _setup(self, bert: nn.Module, tokenizer_json: str, name: str, max_tokens: int) -> None:
         cfg = bert.config
         if not 2 <= max_tokens <= cfg.max_position_embeddings:
             raise ValueError(f"max_tokens must be in [2, {cfg.max_position_embeddings}], got {max_tokens}")
-        self.model_dir = d
         self.hf_model = bert
         self.network = BertTokenStates(bert).eval()
         self.input_names = BertTokenStates.input_names
         self.output_names = BertTokenStates.output_names
-        self.name = "all-MiniLM-L6-v2"
+        self.name = name
         self.hidden = self.dim = int(cfg.hidden_size)
         self.max_tokens = int(max_tokens)
-        self.tokenizer_json_path = d / "tokenizer.json"
-        src = json.loads(self.tokenizer_json_path.read_text(encoding="utf-8"))
-        vocab = src["model"]["vocab"]
+        vocab = json.loads(tokenizer_json)["model"]["vocab"]
         self.pad_token = "[PAD]"
         self.pad_id = int(vocab[self.pad_token])
         self.tokenizer_json = configure_tokenizer_json(
-            self.tokenizer_json_path.read_text(encoding="utf-8"),
-            max_tokens=self.max_tokens,
-            pad_id=self.pad_id,
-            pad_token=self.pad_token,
+            tokenizer_json, max_tokens=self.max_tokens, pad_id=self.pad_id, pad_token=self.pad_token
         )
         self._vocab = vocab
         self._make_tokenizer()

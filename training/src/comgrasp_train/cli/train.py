@@ -36,7 +36,7 @@ def cmd_train_vq(args) -> int:
                 lr=args.lr or t.lr)
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
-                 ckpt_every=args.ckpt_every, progress=not args.quiet)
+                 ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after)
     print(json.dumps(m))
     return 0
 
@@ -54,7 +54,8 @@ def cmd_train_gpt(args) -> int:
     train = GPTTrainConfig(total_iters=args.iters, batch_size=args.batch, lr=args.lr or GPTTrainConfig.lr,
                            warmup_iters=min(GPTTrainConfig.warmup_iters, max(1, args.iters // 10)))
     m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
-                  device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet)
+                  device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet,
+                  stop_after=args.stop_after)
     print(json.dumps(m))
     return 0
 
@@ -117,6 +118,11 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--device", default=None, help="cuda, cuda:1, cpu (default: CUDA when available)")
         sp.add_argument("--seed", type=int, default=0)
 
+    def pausable(sp):
+        sp.add_argument("--ckpt-every", type=int, default=500)
+        sp.add_argument("--stop-after", type=int, default=None,
+                        help="checkpoint and stop at this step (rerun without it to continue)")
+
     def sampling(sp):
         sp.add_argument("--temperature", type=float, default=1.0)
         sp.add_argument("--top-k", type=int, default=0)
@@ -133,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iters", type=int, default=None)
     s.add_argument("--batch", type=int, default=None)
     s.add_argument("--lr", type=float, default=None)
-    s.add_argument("--ckpt-every", type=int, default=500)
+    pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_vq)
 
@@ -147,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iters", type=int, default=20000)
     s.add_argument("--batch", type=int, default=64)
     s.add_argument("--lr", type=float, default=None)
-    s.add_argument("--ckpt-every", type=int, default=500)
+    pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_gpt)
 

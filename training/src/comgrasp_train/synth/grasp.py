@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from .. import skeleton as sk
 from ..objects.shapes import Shape
-from ..surface import LEFT_HAND_CODES, RIGHT_HAND_CODES, pose_points
+from ..surface import LEFT_HAND_CODES, RIGHT_HAND_CODES
 from .ik import axis_angle, unit
 from .subjects import SubjectModel
 
@@ -62,8 +62,10 @@ class Hand:
         self._cap_b = np.stack([c.b for c in caps])
         self.cap_radius = np.array([c.radius for c in caps])
         self._cap_joint = np.array([c.joint for c in caps])
-        self._torch = (torch.from_numpy(proxy.joint[self.index]), torch.from_numpy(proxy.rest_points[self.index]),
-                       torch.from_numpy(self.rest))
+        # Points grouped by the joint that carries them: (joint, hand point indices, offsets).
+        joint, pts = proxy.joint[self.index], proxy.rest_points[self.index]
+        self._groups = [(j, np.nonzero(joint == j)[0], pts[joint == j] - self.rest[j]) for j in np.unique(joint)]
+        self._rest_t = torch.from_numpy(self.rest)
 
     def finger_locals(self, curls: np.ndarray) -> np.ndarray:
         """(..., 5) curls in [0, 1] -> (..., 5, 3, 3, 3) local rotations of the finger joints."""
@@ -76,10 +78,12 @@ class Hand:
         curls = np.atleast_2d(curls)
         rot = np.tile(np.eye(3), (len(curls), sk.NUM_JOINTS, 1, 1))
         rot[:, self.fingers] = self.finger_locals(curls)
-        joint_t, rest_pts_t, rest_t = self._torch
-        g, j = sk.forward_kinematics(torch.from_numpy(rot), rest_t)
-        pts = pose_points(joint_t, rest_pts_t, rest_t, g, j).numpy() - self.rest[self.wrist]
-        g, j = g.numpy(), j.numpy() - self.rest[self.wrist]
+        g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), self._rest_t))
+        j = j - self.rest[self.wrist]
+        # surface.pose_points (p = G_j (p_rest - J_j) + J_j), one matrix product per joint.
+        pts = np.empty((len(curls), len(self.index), 3))
+        for jt, sel, offsets in self._groups:
+            pts[:, sel] = offsets @ np.swapaxes(g[:, jt], -1, -2) + j[:, jt, None]
         cj = self._cap_joint
         a = np.einsum("bkij,kj->bki", g[:, cj], self._cap_a - self.rest[cj]) + j[:, cj]
         b = np.einsum("bkij,kj->bki", g[:, cj], self._cap_b - self.rest[cj]) + j[:, cj]
@@ -115,15 +119,38 @@ class Obstacles:
     cap_r: np.ndarray | None = None
 
     def sdf(self, p: np.ndarray) -> np.ndarray:
-        d = np.full(p.shape[:-1], np.inf)
+        d = self.capsule_sdf(p)
         for n, off in self.planes:
             d = np.minimum(d, p @ n - off)
-        if self.cap_a is not None:
-            for a, b, r in zip(self.cap_a, self.cap_b, self.cap_r):
-                ba = b - a
-                h = np.clip(((p - a) @ ba) / (ba @ ba), 0.0, 1.0)
-                d = np.minimum(d, np.linalg.norm(p - a - h[..., None] * ba, axis=-1) - r)
         return d
+
+    def capsule_sdf(self, p: np.ndarray) -> np.ndarray:
+        """Exact near the capsules; farther than 2 cm from their bounding box, the distance
+        to the box (a lower bound, which is all sphere tracing needs)."""
+        if self.cap_a is None:
+            return np.full(p.shape[:-1], np.inf)
+        ends = np.concatenate([self.cap_a, self.cap_b])
+        lo, hi = ends.min(0) - self.cap_r.max(), ends.max(0) + self.cap_r.max()
+        d = np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=-1)
+        near = d < 0.02
+        q = p[near]
+        exact = np.full(len(q), np.inf)
+        for a, b, r in zip(self.cap_a, self.cap_b, self.cap_r):
+            ba = b - a
+            h = np.clip(((q - a) @ ba) / (ba @ ba), 0.0, 1.0)
+            exact = np.minimum(exact, np.linalg.norm(q - a - h[:, None] * ba, axis=-1) - r)
+        d[near] = exact
+        return d
+
+    def plane_hit(self, p: np.ndarray, direction: np.ndarray) -> float:
+        """How far the points can move along ``direction`` before one comes within GAP of a
+        plane (exact, so a hand sliding along the table costs no tracing steps)."""
+        s = np.inf
+        for n, off in self.planes:
+            rate = float(direction @ n)
+            if rate < 0:
+                s = min(s, float((p @ n - off - GAP).min()) / -rate)
+        return s
 
 
 def table_obstacle(obj_rot: np.ndarray, obj_pos: np.ndarray, table_height: float) -> tuple[np.ndarray, float]:
@@ -163,17 +190,11 @@ def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, tar
 
     pos = target - 0.3 * approach - rot @ hand.anchor(lam)
     pts = hand.open_points @ rot.T + pos
-    s, dist = 0.0, float(clearance(pts).min())
-    if dist < GAP:
+    if obstacles.sdf(pts).min() < GAP:
         return None
-    for _ in range(100):  # sphere tracing: the SDFs are distance bounds, so never overshoots
-        if dist - GAP < 2e-5:
-            break
-        s += dist - GAP
-        if s > 0.6:
-            return None
-        dist = float(clearance(pts + s * approach).min())
-    else:
+    s = min(_trace(lambda p: np.minimum(shape.sdf(p), obstacles.capsule_sdf(p)), pts, approach),
+            obstacles.plane_hit(pts, approach))
+    if not np.isfinite(s):
         return None
     pos = pos + s * approach
     curls = _close_fingers(hand, rot, pos, clearance)
@@ -190,6 +211,21 @@ def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, tar
     object_codes = np.where(touching, hand.code[np.minimum(nearest, len(pts) - 1)], 0).astype(np.int8)
     body_codes = np.where(sdf <= CONTACT_THRESHOLD, hand.code, 0).astype(np.int8)
     return Grasp(hand, rot, pos, curls, approach, pts, a, b, dist_v, object_codes, body_codes)
+
+
+def _trace(sdf, pts: np.ndarray, direction: np.ndarray, max_travel: float = 0.6) -> float:
+    """Sphere tracing: how far the points can move along ``direction`` until the nearest is
+    GAP from the surface (never overshoots, since the SDFs are distance bounds); inf if
+    they pass it."""
+    s = 0.0
+    for _ in range(200):
+        step = float(sdf(pts + s * direction).min()) - GAP
+        if step < 2e-5:
+            return s
+        s += step
+        if s > max_travel:
+            return np.inf
+    return np.inf
 
 
 def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> np.ndarray:

@@ -63,7 +63,8 @@ def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, t
 
 def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfig, train: GPTTrainConfig,
               text: TextConfig = TextConfig(), *, seed: int = 0, device: str | None = None, resume: bool = True,
-              log_every: int = 50, ckpt_every: int = 1000, progress: bool = True) -> dict:
+              log_every: int = 50, ckpt_every: int = 1000, progress: bool = True,
+              stop_after: int | None = None) -> dict:
     rt = setup_runtime(device)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -106,7 +107,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         bar = tqdm(total=train.total_iters, initial=step, desc="train-gpt", unit="it")
     metrics: dict = {}
     t0 = time.time()
-    while step < train.total_iters:
+    end = min(train.total_iters, stop_after or train.total_iters)
+    while step < end:
         emb, codes = batcher.batch(train.batch_size, gen)
         net.train()
         opt.zero_grad(set_to_none=True)
@@ -121,14 +123,14 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         step += 1
         if bar is not None:
             bar.update(1)
-        if rt.is_main and (step % log_every == 0 or step == train.total_iters):
+        if rt.is_main and (step % log_every == 0 or step == end):
             metrics = {"step": step, "loss": float(loss), "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
             metrics.update({f"nll/{n}": float(v) for n, v in zip(("global", "body", "lhand", "rhand"), per)})
             log.write(json.dumps(metrics) + "\n")
             log.flush()
             if bar is not None:
                 bar.set_postfix(loss=f"{metrics['loss']:.3f}")
-        if rt.is_main and (step % ckpt_every == 0 or step == train.total_iters):
+        if rt.is_main and (step % ckpt_every == 0 or step == end):
             save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
                             extra={"sampler_rng": gen.get_state()})
     if bar is not None:

