@@ -107,9 +107,12 @@ def simplify_onnx(path: str | Path) -> None:
     tmp.unlink()
 
 
-def check_decoder_onnx(vq: ComponentVQ, path: str | Path, tokens: np.ndarray) -> dict[str, float]:
-    """Max abs differences on ``tokens`` (B, P, N): PyTorch streaming vs offline decode, and
-    the ONNX graph (onnxruntime, step by step) vs PyTorch streaming. Normalized features."""
+def check_decoder_onnx(vq: ComponentVQ, path: str | Path, tokens: np.ndarray
+                       ) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Decode ``tokens`` (B, P, N) three ways: PyTorch offline (whole sequence), PyTorch
+    streaming step, the ONNX graph step by step (onnxruntime). Returns the max abs
+    differences {stream_vs_offline, onnx_vs_torch} and the (B, N*F, 335) normalized frames
+    {offline, stream, onnx}."""
     from ..models.streaming import StreamingDecoder
 
     t = torch.as_tensor(np.asarray(tokens, dtype=np.int64))
@@ -119,8 +122,9 @@ def check_decoder_onnx(vq: ComponentVQ, path: str | Path, tokens: np.ndarray) ->
     sd = StreamingDecoder(vq, batch_size=t.shape[0])
     stream = np.concatenate([sd.step(t[:, :, i]).numpy() for i in range(t.shape[-1])], 1)
     got = OnnxDecoderRunner(path, vq).decode(t.numpy())
-    return {"stream_vs_offline": float(np.abs(stream - offline).max()),
-            "onnx_vs_torch": float(np.abs(got - stream).max())}
+    diffs = {"stream_vs_offline": float(np.abs(stream - offline).max()),
+             "onnx_vs_torch": float(np.abs(got - stream).max())}
+    return diffs, {"offline": offline, "stream": stream, "onnx": got}
 
 
 class OnnxDecoderRunner:
