@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import io
 import json
-import warnings
 
 import pytest
 import torch
@@ -286,23 +285,18 @@ def test_training_step_and_streaming_on_cuda():
 
 
 def test_streaming_step_exports_to_static_onnx(tmp_path):
-    """The step graph has static shapes and explicit state in/out, and matches PyTorch."""
+    """The step graph has static shapes and explicit state in/out, and matches PyTorch
+    (exported by the bundle exporter, export/decoder_graph.py)."""
     pytest.importorskip("onnx")
-    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxruntime")
+    from comgrasp_train.export.decoder_graph import OnnxDecoderRunner, export_decoder_onnx, initial_state
+
     vq = randomized(ComponentVQ(make_config("tiny").model))
-    step = DecoderStep(vq).eval()
-    state = step.initial_state(1)
     path = tmp_path / "vq_step.onnx"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(step, (state, torch.zeros(1, 4, dtype=torch.long)), str(path), dynamo=False,
-                          input_names=["state", "tokens"], output_names=["frames", "next_state"], opset_version=17)
-    sess = ort.InferenceSession(str(path))
+    spec = export_decoder_onnx(vq, path)
+    assert spec["inputs"][0] == ("state", "int64", (1, 4, vq.context_tokens - 1))
     n = vq.context_tokens + 3
     tokens = torch.stack([torch.randint(0, p.comp.codebook_size, (1, n)) for p in vq.parts.values()], 1)
-    st, frames = state.numpy(), []
-    for i in range(n):
-        f, st = sess.run(None, {"state": st, "tokens": tokens[:, :, i].numpy()})
-        frames.append(torch.from_numpy(f))
+    frames = OnnxDecoderRunner(path, initial_state(vq)).decode(tokens.numpy())
     with torch.no_grad():
-        assert (torch.cat(frames, 1) - vq.decode(tokens)).abs().max().item() <= 1e-4
+        assert (torch.from_numpy(frames) - vq.decode(tokens)).abs().max().item() <= 1e-4

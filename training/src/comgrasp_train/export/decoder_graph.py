@@ -42,8 +42,9 @@ OPSET = 17
 INPUT_NAMES = ("state", "tokens")
 OUTPUT_NAMES = ("frames", "next_state")
 # Dynamic control flow, scatters and resampling have no place in a static conv/attention stack.
-FORBIDDEN_OPS = frozenset({"ScatterND", "ScatterElements", "Scatter", "NonZero", "Loop", "If",
-                           "Resize", "Range"})
+FORBIDDEN_OPS = frozenset({"ScatterND", "ScatterElements", "Scatter", "NonZero", "Loop", "If", "Resize"})
+# Static-shape arithmetic that ``simplify`` must have folded away.
+SHAPE_OPS = frozenset({"Shape", "ConstantOfShape", "Range"})
 STREAM_TOLERANCE = 1e-4  # DESIGN §3: chunked == offline decoding on normalized features
 
 
@@ -65,7 +66,7 @@ def export_decoder_onnx(vq: ComponentVQ, path: str | Path, batch: int = 1, simpl
     """Write the decoder step graph (opset 17, static shapes) and return its ``io_spec``.
 
     Exports a CPU float32 eval copy (the caller's model is untouched). Raises if the graph
-    contains FORBIDDEN_OPS.
+    contains FORBIDDEN_OPS (or, simplified, SHAPE_OPS).
     """
     import onnx
 
@@ -80,7 +81,8 @@ def export_decoder_onnx(vq: ComponentVQ, path: str | Path, batch: int = 1, simpl
                           output_names=list(OUTPUT_NAMES), opset_version=OPSET, do_constant_folding=True)
     if simplify:
         simplify_onnx(path)
-    bad = sorted({n.op_type for n in onnx.load(str(path)).graph.node} & FORBIDDEN_OPS)
+    forbidden = FORBIDDEN_OPS | SHAPE_OPS if simplify else FORBIDDEN_OPS
+    bad = sorted({n.op_type for n in onnx.load(str(path)).graph.node} & forbidden)
     if bad:
         raise RuntimeError(f"decoder graph contains ops unsuitable for tract: {bad}")
     return io_spec(vq, batch)
@@ -121,23 +123,25 @@ def check_decoder_onnx(vq: ComponentVQ, path: str | Path, tokens: np.ndarray
         offline = vq.decode(t).numpy()
     sd = StreamingDecoder(vq, batch_size=t.shape[0])
     stream = np.concatenate([sd.step(t[:, :, i]).numpy() for i in range(t.shape[-1])], 1)
-    got = OnnxDecoderRunner(path, vq).decode(t.numpy())
+    got = OnnxDecoderRunner(path, initial_state(vq, t.shape[0])).decode(t.numpy())
     diffs = {"stream_vs_offline": float(np.abs(stream - offline).max()),
              "onnx_vs_torch": float(np.abs(got - stream).max())}
     return diffs, {"offline": offline, "stream": stream, "onnx": got}
 
 
 class OnnxDecoderRunner:
-    """Feeds an exported decoder graph one token step at a time, keeping the state."""
+    """Feeds an exported decoder graph one token step at a time, keeping the state.
+    ``initial`` is the (B, P, K-1) state of a new sequence (``initial_state`` or the
+    manifest's ``decoder.initial_state``)."""
 
-    def __init__(self, path: str | Path, vq: ComponentVQ, threads: int = 1):
+    def __init__(self, path: str | Path, initial, threads: int = 1):
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        self.initial = initial_state(vq, self.session.get_inputs()[0].shape[0])
+        self.initial = np.asarray(initial, dtype=np.int64)
         self.reset()
 
     def reset(self) -> None:

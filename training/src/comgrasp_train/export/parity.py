@@ -116,7 +116,7 @@ def _onnx_generation(step_path, cfg, emb: np.ndarray, params: SamplingParams, se
         return out
 
     gen = run_sampling_loop(step_fn, cfg, 1, params, [seed])
-    return gen, [np.stack([s[i] for s in seen]) for i in range(len(STREAMS))]
+    return gen, [np.stack([s[i] for s in seen]) for i in range(len(STREAMS))] if seen else []
 
 
 def write_step_parity(w: ParityWriter, gpt, encoder, step_path: str | Path, params: SamplingParams,
@@ -156,7 +156,7 @@ def write_step_parity(w: ParityWriter, gpt, encoder, step_path: str | Path, para
                                 f"step case {k}: codes sampled with the default sampling params, seed {seed}")
         files["greedy_tokens"] = w.add(f"{d}_greedy_tokens.npy", gseq.reshape(-1, len(STREAMS)), 0.0,
                                        f"step case {k}: codes with temperature 0 (greedy)")
-        cases.append({"prompt": prompt, "seed": int(seed), "sampling": _params_dict(params, cfg.l_max),
+        cases.append({"prompt": prompt, "seed": int(seed), "sampling": sampling_dict(params, cfg.l_max),
                       "length": length, "greedy_length": int(ref_greedy.lengths[0]), "logit_steps": n,
                       "files": files})
         codes.append(seq)
@@ -173,7 +173,8 @@ def write_decode_parity(w: ParityWriter, vq, decoder_path: str | Path, normalize
     tokens = seq.T[None]  # (1, P, n)
     diffs, frames = check_decoder_onnx(vq, decoder_path, tokens)
     if diffs["stream_vs_offline"] > TOL_FRAMES:
-        raise ParityError(f"streaming decode differs from offline decode by {diffs['stream_vs_offline']:.3g} > {TOL_FRAMES}")
+        raise ParityError(f"streaming decode differs from offline decode by "
+                          f"{diffs['stream_vs_offline']:.3g} > {TOL_FRAMES}")
     if diffs["onnx_vs_torch"] > TOL_FRAMES:
         raise ParityError(f"decoder.onnx differs from PyTorch by {diffs['onnx_vs_torch']:.3g} > {TOL_FRAMES}")
     offline, stream = frames["offline"][0], frames["stream"][0]
@@ -199,10 +200,12 @@ def write_rng_parity(w: ParityWriter, seed: int, n: int = 8) -> dict:
     uni = np.array([float(b.next_uniform()[0]) for _ in range(n)], dtype=np.float64)
     return {"seed": int(seed), "files": {
         "u64": w.add("parity/rng/u64.npy", u64, 0.0, f"first {n} SplitMix64 next_u64 outputs, seed {seed}"),
-        "uniform": w.add("parity/rng/uniform.npy", uni, 0.0, f"first {n} uniforms (next_u64 >> 11) * 2^-53, seed {seed}")}}
+        "uniform": w.add("parity/rng/uniform.npy", uni, 0.0,
+                         f"first {n} uniforms (next_u64 >> 11) * 2^-53, seed {seed}")}}
 
 
-def _params_dict(params: SamplingParams, l_max: int) -> dict:
+def sampling_dict(params: SamplingParams, l_max: int) -> dict:
+    """The sampling parameters as plain JSON numbers (max_len resolved against L_max)."""
     return {"temperature": float(params.temperature), "top_k": int(params.top_k),
             "min_len": int(params.min_len), "max_len": int(params.resolved_max_len(l_max))}
 

@@ -134,11 +134,14 @@ class Obstacles:
         d = np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0), axis=-1)
         near = d < 0.02
         q = p[near]
-        exact = np.full(len(q), np.inf)
-        for a, b, r in zip(self.cap_a, self.cap_b, self.cap_r):
-            ba = b - a
-            h = np.clip(((q - a) @ ba) / (ba @ ba), 0.0, 1.0)
-            exact = np.minimum(exact, np.linalg.norm(q - a - h[:, None] * ba, axis=-1) - r)
+        ba = self.cap_b - self.cap_a
+        inv = 1.0 / (ba * ba).sum(-1)
+        exact = np.empty(len(q))
+        for i in range(0, len(q), 4096):
+            pa = q[i:i + 4096, None, :] - self.cap_a
+            h = np.clip(np.einsum("nkj,kj->nk", pa, ba) * inv, 0.0, 1.0)
+            diff = pa - h[..., None] * ba
+            exact[i:i + 4096] = (np.sqrt(np.einsum("nkj,nkj->nk", diff, diff)) - self.cap_r).min(axis=1)
         d[near] = exact
         return d
 
@@ -231,9 +234,11 @@ def _trace(sdf, pts: np.ndarray, direction: np.ndarray, max_travel: float = 0.6)
 def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> np.ndarray:
     """Per finger, the largest curl on the way from open at which it still keeps ``GAP``:
     the first touch on a grid of curls, refined by bisection."""
-    pts = hand.pose(np.repeat(_CURL_GRID[:, None], 5, axis=1))[0] @ rot.T + pos
-    d = clearance(pts)  # (G, Ph)
-    dmin = np.stack([d[:, m].min(axis=1) for m in hand.finger_mask], axis=1)  # (G, 5)
+    on_finger = hand.finger_mask.any(axis=0)
+    masks = hand.finger_mask[:, on_finger]
+    pts = hand.pose(np.repeat(_CURL_GRID[:, None], 5, axis=1))[0][:, on_finger] @ rot.T + pos
+    d = clearance(pts)  # (G, finger points)
+    dmin = np.stack([d[:, m].min(axis=1) for m in masks], axis=1)  # (G, 5)
     hit = dmin < GAP
     first = np.where(hit.any(axis=0), hit.argmax(axis=0), len(_CURL_GRID))
     lo = _CURL_GRID[np.clip(first - 1, 0, None)]
@@ -242,9 +247,8 @@ def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> n
     free = (first > 0) & (first < len(_CURL_GRID))
     for _ in range(10):
         mid = np.where(free, 0.5 * (lo + hi), lo)
-        pm = hand.pose(mid)[0][0] @ rot.T + pos
-        dm = clearance(pm)
-        ok = np.array([dm[m].min() >= GAP for m in hand.finger_mask])
+        dm = clearance(hand.pose(mid)[0][0, on_finger] @ rot.T + pos)
+        ok = np.array([dm[m].min() >= GAP for m in masks])
         lo = np.where(free & ok, mid, lo)
         hi = np.where(free & ~ok, mid, hi)
     return lo

@@ -5,8 +5,8 @@ Order per sequence (all frames at once):
    (held = object pose x grasp transform);
 2. torso yaw toward the object and the forward bow (hip hinge + spine) that keeps those
    targets within reach;
-3. the hanging (idle) wrist poses follow the torso; reach/retract blend between them and the
-   task targets, rising before moving over the table and retreating before lowering;
+3. the hanging (idle) wrist poses follow the shoulders; reach/retract blend between them and
+   the task targets, rising before moving over the table and retreating before lowering;
 4. two-bone IK for both arms, finger curls, head look-at; FK of the whole skeleton;
 5. while a hand holds, the object pose is recomputed from that hand's FK wrist and the grasp
    transform (the first-gripping hand carries it when both hold); the plan is rejected
@@ -124,9 +124,9 @@ def _blend_with_idle(hf: _HandFrames, idle_rot: np.ndarray, idle_pos: np.ndarray
 
 
 def _spine_track(plan: Plan, hands: dict[str, _HandFrames], values, default: float, t: np.ndarray) -> np.ndarray:
-    """Interpolate a torso value keyed at every hand key time (``values(frame)`` where a
-    hand has a world target there, ``default`` elsewhere)."""
-    times = sorted({0.0, plan.duration, *(x for hp in plan.hands.values() for x in hp.times)})
+    """Interpolate a torso value keyed at every hand and object key time (``values(frame)``
+    where a hand has a world target there, ``default`` elsewhere)."""
+    times = sorted({0.0, plan.duration, *plan.object.pos.times, *(x for hp in plan.hands.values() for x in hp.times)})
     track = Track()
     active = np.any([hf.concrete for hf in hands.values()], axis=0)
     for tk in times:
@@ -157,7 +157,7 @@ def synthesize(plan: Plan) -> Motion:
     local[:, [LEFT_HIP, RIGHT_HIP]] = tor.hip_local[:, None]
     local[:, list(SPINE)] = tor.local[:, None]
     for s, hf in hands.items():
-        _blend_with_idle(hf, *sc.idle_pose(s, tor))
+        _blend_with_idle(hf, *sc.idle_pose(s, tor, psi))
         arm = sc.arms[s]
         l_sh, l_el, l_wr, _ = arm_ik(arm, tor.point(rest, arm.shoulder), tor.rot3, hf.pos, hf.rot,
                                      tor.rot3 @ sc.pole[s])

@@ -151,7 +151,7 @@ class Scene:
     hands: dict[str, Hand]
     arms: dict[str, Arm]
     pole: dict[str, np.ndarray]  # elbow pole direction in the spine3 frame (canonical)
-    idle: dict[str, tuple[np.ndarray, np.ndarray]]  # hanging wrist pose in the spine3 frame
+    idle: dict[str, tuple[np.ndarray, np.ndarray]]  # hanging wrist rotation and offset from the shoulder (canonical)
     relaxed: dict[str, np.ndarray]
     theta0: float  # resting forward bow
     psi_gain: float  # how much the torso turns toward the object
@@ -189,9 +189,16 @@ class Scene:
         interp = grid[kk - 1] + (grid[kk] - grid[kk - 1]) * e0 / np.maximum(e0 - e1, 1e-12)
         return np.where(k == 0, 0.0, np.where(k >= len(grid), THETA_MAX, interp))
 
-    def idle_pose(self, side: str, tor: Torso) -> tuple[np.ndarray, np.ndarray]:
-        rot, pos = self.idle[side]
-        return tor.rot3 @ rot, tor.pos3 + tor.rot3 @ pos
+    def idle_pose(self, side: str, tor: Torso, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The free arm hangs from its shoulder with gravity, turned with the torso's yaw but
+        not its bow; its wrist stays 12 cm behind the table edge (a smooth limit), so a deep bow
+        does not swing it backward or under the table."""
+        rot, offset = self.idle[side]
+        heading = axis_angle(UP, psi) @ ROOT_ROT
+        pos = tor.point(self.rest, self.arms[side].shoulder) + heading @ offset
+        limit, k = self.near_edge - 0.12, 0.02
+        pos[..., 1] -= k * np.logaddexp(0.0, (pos[..., 1] - limit) / k)
+        return heading @ rot, pos
 
     def mouth(self, pitch: float) -> np.ndarray:
         """World mouth position with the torso at rest and the head pitched by ``pitch``."""
@@ -223,7 +230,7 @@ def make_scene(model: SubjectModel, rng: np.random.Generator) -> Scene:
         pole[s] = unit(np.array([sign * rng.uniform(0.5, 0.9), -rng.uniform(0.3, 0.6), -1.0]))
         relaxed[s] = np.concatenate([rng.uniform(0.15, 0.35, 4), rng.uniform(0.05, 0.2, 1)])
     g, j = (x[0].numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), torch.from_numpy(rest)))
-    idle = {s: (g[arms[s].wrist], j[arms[s].wrist] - j[9]) for s in SIDES}  # spine3 is at rest: rotation I
+    idle = {s: (g[arms[s].wrist], j[arms[s].wrist] - j[arms[s].shoulder]) for s in SIDES}
     return Scene(model, pelvis, table_height, centre, {s: hand_model(model.spec.sbj_id, s) for s in SIDES},
                  arms, pole, idle, relaxed, rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.6))
 
@@ -268,13 +275,13 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
               direction: np.ndarray, rng: np.random.Generator, obstacles: Obstacles,
               on_table: bool) -> Grasp | None:
     """One grasp attempt on the upright object at ``pose``. ``style`` 'side': the palm on the
-    side facing ``direction`` (horizontal, from the object toward the palm), thumb up; 'top':
-    the palm on top, fingers along ``direction``."""
+    side facing ``direction`` (horizontal, from the object toward the palm), thumb up; 'top'
+    ('bottom'): the palm on top (underneath), fingers along ``direction``."""
     hand = scene.hands[side]
     r_o, p_o = pose
     hz = obj.half_height
     if style == "side":
-        if obj.handle is not None:
+        if obj.handle is not None and on_table:  # in the air (taken over) the handle is taken
             target = np.asarray(obj.handle, float)
             direction = r_o @ unit(target * np.array([1.0, 1.0, 0.0]))
         else:
@@ -287,17 +294,17 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
         if on_table:  # raise the hand so that its lowest point clears the table top
             low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
             target[2] = max(target[2], scene.table_height + 0.003 - p_o[2] - low)
-        if target[2] > (obj.handle[2] + 0.02 if obj.handle is not None else hz - 0.01):
+        if target[2] > (obj.handle[2] + 0.02 if obj.handle is not None and on_table else hz - 0.01):
             return None
-    else:
+    else:  # top, or bottom (palm up under an object held in the air)
         if _boxy(obj):
             direction = _snap_to_faces(direction, r_o)
-        normal = -UP
+        normal = -UP if style == "top" else UP
         thumb = np.cross(direction, normal) if side == "right" else np.cross(normal, direction)
         rot_w = hand.orientation(normal, thumb)
-        pitch = rng.uniform(0.0, 0.3) * min(1.0, hz / 0.05)
+        pitch = rng.uniform(0.0, 0.3) * min(1.0, hz / 0.05)  # fingers tip toward the palm side
         rot_w = axis_angle(thumb, pitch if side == "right" else -pitch) @ rot_w
-        target = np.array([0.0, 0.0, hz])
+        target = np.array([0.0, 0.0, hz if style == "top" else -hz])
         lam = float(np.interp(obj.half_extents[:2].max(), [0.025, 0.06], [0.9, 0.6]))
     return make_grasp(hand, obj.shape, verts, r_o.T @ rot_w, target, r_o.T @ normal, lam, obstacles)
 
@@ -410,13 +417,15 @@ class _Builder:
                         "top": unit(np.array([0.3 * side_sign(s), 1.0, 0.0]))} for s in sides}
             if obj.handle is not None:  # turn the handle toward the (single) hand
                 yaw = np.arctan2(base[sides[0]]["side"][1], base[sides[0]]["side"][0]) + self.u(-0.3, 0.3)
+            elif len(sides) == 2:  # faces toward both hands
+                yaw = self.u(-0.25, 0.25)
             else:
                 yaw = self.u(0.0, 2 * np.pi)
             pose = sc.on_table(obj, *self.table_spot(where), yaw)
             table = table_obstacle(*pose, sc.table_height)
             obstacles = Obstacles((table,))
             grasps = {}
-            styles = grasp_styles(obj, self.rng)
+            styles = ["side"] if len(sides) == 2 else grasp_styles(obj, self.rng)  # two hands: at the sides
             for s in sides:
                 g = _first_grasp(sc, s, obj, self.plan.shape_verts, pose, self.rng, base[s],
                                  0.15 if where == "centre" else 0.4, obstacles, True, styles)
@@ -480,8 +489,9 @@ class _Builder:
         p_pass = np.array([sc.pelvis[0] + u(-0.04, 0.04), sc.pelvis[1] + u(0.30, 0.42),
                            self.shoulder_height() - u(0.22, 0.35)])
         t_arrive = self.key(t + u(0.6, 0.9), r_pass, p_pass)
-        base = {"side": unit(np.array([side_sign(taker), -0.6, 0.0])), "top": unit(np.array([0.3 * side_sign(taker), 1.0, 0.0]))}
-        styles = ["side", "top"] if self.rng.random() < 0.6 else ["top", "side"]
+        forward = unit(np.array([0.3 * side_sign(taker), 1.0, 0.0]))
+        base = {"side": unit(np.array([side_sign(taker), -0.6, 0.0])), "top": forward, "bottom": forward}
+        styles = [("side", "top", "bottom")[i] for i in self.rng.permutation(3)]
         g_taker = _first_grasp(sc, taker, obj, self.plan.shape_verts, (r_pass, p_pass), self.rng, base, 0.3,
                                grasps[giver].obstacles(), False, styles)
         if g_taker is None or not self.reachable(taker, g_taker, (r_pass, p_pass)):

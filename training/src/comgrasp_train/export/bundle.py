@@ -1,0 +1,346 @@
+"""Model bundle export (DESIGN §4): the directory, and its ``manifest.json``, that the Rust
+engine loads. This docstring is the manifest's schema; ``export.verify`` checks a bundle
+against it the way the engine does.
+
+Files (paths relative to the bundle root, "/" separated)::
+
+    manifest.json        this schema
+    tokenizer.json       Hugging Face tokenizers JSON, fixed right padding to max_tokens
+    text_encoder.onnx    token states only (pooling is done by the engine)
+    step.onnx            one decode step of the 4 coordinated Transformers, explicit KV cache
+    decoder.onnx         one token step of the 4 streaming VQ decoders
+    objects/<name>.obj   catalogue meshes, object frame, metres
+    parity/...           PyTorch reference vectors + parity/index.json (export/parity.py)
+
+manifest.json (JSON; every list is a JSON array, every shape a list of ints, dtypes are
+"int64" | "float32"; stream/component order is always global, body, lhand, rhand)::
+
+    format            "comgrasp-bundle"
+    version           1 (a reader refuses any other value)
+    fps               float, frames per second of the decoded motion
+    frames_per_token  int F (16): frames one token decodes to
+    l_max             int, longest sequence in tokens (block_size - 2)
+    frame_dim         335
+    layout            [{name, start, stop, component}]: the 335-D fields (DESIGN §2), in order
+    components        [{name, index, slice: [start, stop], codebook_size J, end_id (= J),
+                        pad_id (= J + 1), vocab_size (= J + 2)}]; ids of the Transformer's
+                        vocabulary; the slices tile 0..335
+    normalization     {mean: [335], std: [335], dtype, rule}: features = normalized * std + mean;
+                        contact channels have mean 0, std 1
+    text_encoder      the fragment of export/text_encoder_export.py (files, max_tokens, hidden,
+                        dim, inputs/outputs [{name, dtype, shape}], pool_output, pooling,
+                        normalize, eps, pad_id, tokenizer settings, sha256, parity)
+    transformer       {file, opset, batch, n_layers, n_heads, widths[4], head_dims[4], d_text,
+                        block_size, cache_slots (= block_size = l_max + 2), inputs, outputs
+                        ([{name, dtype, shape}] in graph order, see export/step_graph.py),
+                        cache_init, cache_update, steps}
+    decoder           {file, opset, batch, frames_per_token, context_tokens K (tokens one chunk
+                        depends on, the newest included), state_tokens (K - 1),
+                        state_pad_ids[4] (= codebook sizes), initial_state (the (1, 4, K-1)
+                        state of a new sequence, nested lists), inputs, outputs,
+                        output_is_normalized: true, contact_channels [240, 334],
+                        contact_is_probability: true, contact_threshold 0.5}
+    skeleton          {joint_names[55], parents[55] (-1 = root), rest_joints [55][3], units, frame}
+    objects           [{name, aliases[], mesh, centre[3] (bounding-box centre in the object
+                        frame), half_extents[3]}]
+    sampling          {temperature, top_k, min_len, max_len (int), seed, rng, stop}: defaults
+                        for models/sampling.py's rule
+    parity            {index, tolerances, max_abs_diff, tokens_match}: onnxruntime vs PyTorch
+                        as measured at export
+    files             {path: {sha256, bytes}} for every file of the bundle but manifest.json
+    provenance        {exporter versions, configs {vq, transformer}, and what the caller gave:
+                        commands, data, git, training metrics, ...}
+
+Every graph is checked against PyTorch in onnxruntime before the manifest is written.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..layout import COMPONENT_SLICES, CONTACT_CHANNELS, FIELDS, FRAME_DIM
+from ..models.gpt_configs import STREAMS, TransformerConfig
+from ..models.sampling import SamplingParams
+from ..models.vqvae import ComponentVQ
+from ..objects.catalogue import CATALOGUE
+from ..skeleton import DEFAULT_REST_JOINTS, JOINT_NAMES, NUM_JOINTS, PARENTS
+from . import decoder_graph, step_graph
+from .parity import DEFAULT_STEP_PROMPTS, sampling_dict, write_parity
+from .text_encoder_export import DEFAULT_PARITY_PROMPTS, export_text_encoder, sha256_file
+
+FORMAT = "comgrasp-bundle"
+VERSION = 1
+MANIFEST = "manifest.json"
+STEP_FILE = "step.onnx"
+DECODER_FILE = "decoder.onnx"
+OBJECTS_DIR = "objects"
+CONTACT_THRESHOLD = 0.5
+
+
+def file_table(root: str | Path) -> dict[str, dict]:
+    """{relative path: {sha256, bytes}} of every file under root except manifest.json."""
+    root = Path(root)
+    return {p.relative_to(root).as_posix(): {"sha256": sha256_file(p), "bytes": p.stat().st_size}
+            for p in sorted(root.rglob("*")) if p.is_file() and p.relative_to(root).as_posix() != MANIFEST}
+
+
+def io_list(entries) -> list[dict]:
+    """(name, dtype, shape) tuples -> the manifest's [{name, dtype, shape}]."""
+    return [{"name": n, "dtype": d, "shape": [int(x) for x in s]} for n, d, s in entries]
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def validate_inputs(*, vq, vq_config, gpt, gpt_config: TransformerConfig, text_encoder, normalizer,
+                    fps: float, sampling: SamplingParams, rest_joints: np.ndarray,
+                    objects: Sequence[str], expected_frames_per_token: int | None) -> None:
+    """Everything that must agree before a byte is written; a clear ValueError otherwise."""
+    if not isinstance(vq, ComponentVQ) or tuple(vq.names) != STREAMS:
+        raise ValueError(f"the bundle needs the component VQ ({list(STREAMS)}), got "
+                         f"{getattr(vq, 'names', type(vq).__name__)}")
+    if not vq.cfg.causal_decoder:
+        raise ValueError("the bundle needs the causal (streaming) decoder: ModelConfig.causal_decoder=True")
+    if vq_config is not None and vq_config.model != vq.cfg:
+        raise ValueError("vq_config.model differs from the VQ model's config")
+    if gpt.cfg != gpt_config:
+        raise ValueError("gpt_config differs from the Transformer's config")
+    books = [p.comp.codebook_size for p in vq.parts.values()]
+    if books != list(gpt_config.codebook_sizes):
+        raise ValueError(f"VQ codebook sizes {books} != Transformer codebook_sizes "
+                         f"{list(gpt_config.codebook_sizes)} (order {list(STREAMS)})")
+    if expected_frames_per_token is not None and vq.frames_per_token != expected_frames_per_token:
+        raise ValueError(f"frames_per_token is {vq.frames_per_token}, expected {expected_frames_per_token}")
+    if text_encoder.dim != gpt_config.d_text:
+        raise ValueError(f"text encoder width {text_encoder.dim} != Transformer d_text {gpt_config.d_text}")
+    mean, std = np.asarray(normalizer.mean), np.asarray(normalizer.std)
+    if mean.shape != (FRAME_DIM,) or std.shape != (FRAME_DIM,):
+        raise ValueError(f"normalizer mean/std must be ({FRAME_DIM},), got {mean.shape}/{std.shape}")
+    if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise ValueError("normalizer mean/std must be finite with std > 0")
+    c = list(CONTACT_CHANNELS)
+    if not (np.all(mean[c] == 0) and np.all(std[c] == 1)):
+        raise ValueError(f"contact channels {c} must have mean 0 and std 1 (they stay probabilities)")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    sampling.resolved_max_len(gpt_config.l_max)  # raises ValueError on min/max/L_max mismatch
+    rest = np.asarray(rest_joints)
+    if rest.shape != (NUM_JOINTS, 3) or not np.isfinite(rest).all():
+        raise ValueError(f"rest joints must be a finite ({NUM_JOINTS}, 3) array, got {rest.shape}")
+    unknown = [o for o in objects if o not in CATALOGUE]
+    if unknown or len(set(objects)) != len(objects):
+        raise ValueError(f"objects must be distinct catalogue names; unknown: {unknown}")
+
+
+# ----------------------------------------------------------------------------- sections
+
+
+def layout_section() -> list[dict]:
+    return [{"name": f.name, "start": f.start, "stop": f.stop, "component": f.component} for f in FIELDS]
+
+
+def components_section(cfg: TransformerConfig) -> list[dict]:
+    return [{"name": s, "index": i, "slice": [COMPONENT_SLICES[s].start, COMPONENT_SLICES[s].stop],
+             "codebook_size": j, "end_id": e, "pad_id": p, "vocab_size": v}
+            for i, (s, j, e, p, v) in enumerate(zip(STREAMS, cfg.codebook_sizes, cfg.end_ids,
+                                                    cfg.pad_ids, cfg.vocab_sizes))]
+
+
+def transformer_section(cfg: TransformerConfig, spec: dict) -> dict:
+    return {
+        "file": STEP_FILE, "opset": step_graph.OPSET, "batch": 1,
+        "n_layers": cfg.n_layers, "n_heads": cfg.n_heads, "widths": list(cfg.widths),
+        "head_dims": list(cfg.head_dims), "d_text": cfg.d_text, "block_size": cfg.block_size,
+        "cache_slots": cfg.block_size, "inputs": io_list(spec["inputs"]), "outputs": io_list(spec["outputs"]),
+        "cache_init": "zeros",
+        "cache_update": "write new_k/new_v row 0 at slot pos: cache_k_<s>[:, :, :, pos, :] = new_k_<s>[:, :, :, 0, :]",
+        "steps": "pos 0: condition step (text_emb used; tokens ignored but must be valid ids, e.g. the pad ids); "
+                 "pos k >= 1: tokens = the codes sampled at step k-1; the logits of pos k sample code k",
+    }
+
+
+def decoder_section(vq: ComponentVQ, spec: dict) -> dict:
+    k = vq.context_tokens
+    return {
+        "file": DECODER_FILE, "opset": decoder_graph.OPSET, "batch": 1,
+        "frames_per_token": vq.frames_per_token, "context_tokens": k, "state_tokens": k - 1,
+        "state_pad_ids": [p.pad_id for p in vq.parts.values()],
+        "initial_state": decoder_graph.initial_state(vq, 1).tolist(),
+        "inputs": io_list(spec["inputs"]), "outputs": io_list(spec["outputs"]),
+        "output_is_normalized": True, "contact_channels": list(CONTACT_CHANNELS),
+        "contact_is_probability": True, "contact_threshold": CONTACT_THRESHOLD,
+    }
+
+
+def skeleton_section(rest_joints: np.ndarray) -> dict:
+    return {"joint_names": list(JOINT_NAMES), "parents": list(PARENTS),
+            "rest_joints": np.asarray(rest_joints, dtype=np.float64).tolist(), "units": "m",
+            "frame": "SMPL-X canonical rest pose: y up, +z forward, subject's left +x"}
+
+
+def write_objects(root: Path, names: Sequence[str], max_edge: float) -> list[dict]:
+    """objects/<name>.obj (no normals, 6 digits) and their catalogue entries. The centre is
+    the bounding-box centre of the catalogue's contact-resolution mesh, as training uses."""
+    import trimesh
+
+    (root / OBJECTS_DIR).mkdir(parents=True, exist_ok=True)
+    out = []
+    for name in names:
+        spec = CATALOGUE[name]
+        rel = f"{OBJECTS_DIR}/{name}.obj"
+        text = trimesh.exchange.obj.export_obj(spec.shape.mesh(max_edge), include_normals=False,
+                                               include_texture=False, digits=6)
+        (root / rel).write_text(text, encoding="utf-8")
+        lo, hi = spec.shape.mesh().bounds
+        out.append({"name": name, "aliases": list(spec.aliases), "mesh": rel,
+                    "centre": [float(x) for x in (lo + hi) / 2.0],
+                    "half_extents": [float(x) for x in spec.half_extents]})
+    return out
+
+
+def sampling_section(params: SamplingParams, seed: int, l_max: int) -> dict:
+    return {**sampling_dict(params, l_max), "seed": int(seed), "rng": "splitmix64",
+            "stop": "at the first step k where any stream samples its end_id; length = k"}
+
+
+def git_info(repo: str | Path = ".") -> dict | None:
+    """{commit, dirty} of the repository holding ``repo`` (for provenance), None outside git."""
+    import subprocess
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain"))}
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def exporter_versions() -> dict:
+    import onnx
+    import onnxruntime
+    import tokenizers
+    import transformers
+
+    return {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
+            "transformers": transformers.__version__, "tokenizers": tokenizers.__version__,
+            "numpy": np.__version__}
+
+
+# ----------------------------------------------------------------------------- export
+
+
+def _staging_dir(out: Path) -> Path:
+    """A fresh sibling directory; refuses to replace anything but an empty dir or a bundle."""
+    if out.exists() and any(out.iterdir()):
+        try:
+            ok = json.loads((out / MANIFEST).read_text(encoding="utf-8")).get("format") == FORMAT
+        except (OSError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{out} exists, is not empty and is not a bundle; refusing to overwrite it")
+    tmp = out.parent / f".{out.name}.partial"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_config: TransformerConfig,
+                  text_encoder, normalizer, fps: float = 30.0, sampling: SamplingParams = SamplingParams(),
+                  seed: int = 0, rest_joints: np.ndarray = DEFAULT_REST_JOINTS, objects: Sequence[str] = (),
+                  provenance: dict | None = None, expected_frames_per_token: int | None = 16,
+                  object_max_edge: float = 0.05, parity_prompts: Sequence[str] = DEFAULT_STEP_PROMPTS,
+                  text_parity_prompts: Sequence[str] = DEFAULT_PARITY_PROMPTS) -> dict:
+    """Write the bundle to ``out_dir`` (replacing an older bundle there) and return its manifest.
+
+    vq / vq_config: the component VQ-VAEs (causal decoder) and their VQConfig; gpt / gpt_config:
+    the coordinated Transformers; text_encoder: a ``TextEncoder`` whose dim is d_text;
+    normalizer: the training statistics; sampling + seed: the engine's defaults; rest_joints:
+    (55, 3) skeleton; objects: catalogue names; provenance: what the caller knows (commands,
+    data, ``git_info()``, training metrics), to which the configs and the exporter's package
+    versions are added. Raises ValueError before writing anything when the parts disagree,
+    ParityError when an exported graph disagrees with PyTorch. Staged in a sibling directory
+    and moved into place only when every check passed.
+    """
+    objects = list(objects)
+    if not parity_prompts or not text_parity_prompts:
+        raise ValueError("a bundle needs parity prompts for the step graph and the text encoder")
+    validate_inputs(vq=vq, vq_config=vq_config, gpt=gpt, gpt_config=gpt_config, text_encoder=text_encoder,
+                    normalizer=normalizer, fps=fps, sampling=sampling, rest_joints=rest_joints,
+                    objects=objects, expected_frames_per_token=expected_frames_per_token)
+    prov = {"exporter": exporter_versions(),
+            "configs": {"vq": vq_config.to_dict() if vq_config is not None else None,
+                        "transformer": gpt_config.to_dict()},
+            **(provenance or {})}
+    json.dumps(prov)  # fail early on anything that is not JSON
+    out = Path(out_dir)
+    tmp = _staging_dir(out)
+    try:
+        text = export_text_encoder(text_encoder, tmp, parity_prompts=text_parity_prompts, fragment_name=None)
+        text.pop("export_seconds", None)  # a timing would make the manifest non-reproducible
+        step_spec = step_graph.export_step_onnx(gpt, tmp / STEP_FILE, batch=1)
+        dec_spec = decoder_graph.export_decoder_onnx(vq, tmp / DECODER_FILE, batch=1)
+        objs = write_objects(tmp, objects, object_max_edge)
+        parity = write_parity(tmp, gpt=gpt, vq=vq, encoder=text_encoder, normalizer=normalizer,
+                              step_path=tmp / STEP_FILE, decoder_path=tmp / DECODER_FILE,
+                              params=sampling, seed=seed, prompts=parity_prompts)
+        parity["max_abs_diff"].update({
+            "text_embedding": text["parity"]["onnxruntime_embedding_max_abs_diff"],
+            "text_states": text["parity"]["onnxruntime_states_max_abs_diff"]})
+        manifest = {
+            "format": FORMAT, "version": VERSION, "fps": float(fps),
+            "frames_per_token": vq.frames_per_token, "l_max": gpt_config.l_max, "frame_dim": FRAME_DIM,
+            "layout": layout_section(), "components": components_section(gpt_config),
+            "normalization": {"mean": [float(x) for x in np.asarray(normalizer.mean, np.float32)],
+                              "std": [float(x) for x in np.asarray(normalizer.std, np.float32)],
+                              "dtype": "float32", "rule": "features = normalized * std + mean"},
+            "text_encoder": text, "transformer": transformer_section(gpt_config, step_spec),
+            "decoder": decoder_section(vq, dec_spec), "skeleton": skeleton_section(rest_joints),
+            "objects": objs, "sampling": sampling_section(sampling, seed, gpt_config.l_max),
+            "parity": parity, "files": file_table(tmp), "provenance": prov,
+        }
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return manifest
+
+
+def _last_metrics(run_dir: Path) -> dict | None:
+    log = run_dir / "log.jsonl"
+    lines = log.read_text().splitlines() if log.is_file() else []
+    return json.loads(lines[-1]) if lines else None
+
+
+def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str | Path,
+                          sampling: SamplingParams = SamplingParams(), *, seed: int = 0,
+                          objects: Sequence[str] | None = None) -> dict:
+    """``comgrasp-train export``: the bundle of a VQ run and a GPT run (their ``ckpt.pt``,
+    ``config.json``, ``stats.npz``, ``log.jsonl``), every catalogue object unless ``objects``
+    says otherwise. The run configs, data paths, last logged metrics, the command line and
+    the git state go into the provenance."""
+    import sys
+
+    from ..inference import MotionModel
+    from ..models.configs import VQConfig
+
+    vq_dir, gpt_dir = Path(vq_dir), Path(gpt_dir)
+    model = MotionModel.load(vq_dir, gpt_dir, "cpu")
+    runs = {k: json.loads((d / "config.json").read_text()) for k, d in (("vq", vq_dir), ("gpt", gpt_dir))}
+    provenance = {
+        "commands": [" ".join(sys.argv)], "runs": {"vq": str(vq_dir), "gpt": str(gpt_dir)}, "run_configs": runs,
+        "data": {k: r.get("data") for k, r in runs.items()}, "git": git_info(Path(__file__).parent),
+        "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
+    }
+    return export_bundle(out_dir, vq=model.vq, vq_config=VQConfig.from_dict(runs["vq"]["vq"]), gpt=model.gpt,
+                         gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
+                         fps=model.fps, sampling=sampling, seed=seed,
+                         objects=list(CATALOGUE) if objects is None else objects, provenance=provenance)
