@@ -156,9 +156,9 @@ class Obstacles:
         return s
 
 
-def table_obstacle(obj_rot: np.ndarray, obj_pos: np.ndarray, table_height: float) -> tuple[np.ndarray, float]:
-    """The table top (world z <= table_height) as an object-frame half-space."""
-    return obj_rot[2].copy(), float(table_height - obj_pos[2])
+def floor_plane(obj_rot: np.ndarray, obj_pos: np.ndarray, height: float) -> tuple[np.ndarray, float]:
+    """The world half-space below ``height`` (the table top) as an object-frame half-space."""
+    return obj_rot[2].copy(), float(height - obj_pos[2])
 
 
 @dataclass

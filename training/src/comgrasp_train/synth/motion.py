@@ -6,7 +6,8 @@ Order per sequence (all frames at once):
 2. torso yaw toward the object and the forward bow (hip hinge + spine) that keeps those
    targets within reach;
 3. the hanging (idle) wrist poses follow the shoulders; reach/retract blend between them and
-   the task targets, rising before moving over the table and retreating before lowering;
+   the task targets, rising before moving out and lifted wherever the hand would touch the
+   table;
 4. two-bone IK for both arms, finger curls, head look-at; FK of the whole skeleton;
 5. while a hand holds, the object pose is recomputed from that hand's FK wrist and the grasp
    transform (the first-gripping hand carries it when both hold); the plan is rejected
@@ -27,10 +28,13 @@ import torch
 
 from .. import skeleton as sk
 from .ik import LEFT_HIP, RIGHT_HIP, SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
+from ..objects.catalogue import TABLE_SIZE
 from .plan import FPS, HELD, IDLE, SIDES, Plan, PlanRejected, Track, segments, world_pose
 
 THETA_MARGIN = 0.03  # extra bow (rad) beyond the smallest one that reaches
-LAG = 0.3  # share of a reach during which the hand only rises (or, retracting, only retreats)
+LAG = 0.4  # share of a reach during which the hand only rises (retracting: only lowers)
+ARC = 0.06  # m the hand's path rises above the straight line midway through reaching out
+TABLE_CLEARANCE = 0.01  # m a reaching hand keeps above the table top
 TOLERANCE = 1e-4  # m: a holding wrist must be this close to where the object needs it
 
 
@@ -100,27 +104,44 @@ def _task_targets(plan: Plan, side: str, t: np.ndarray, obj_rot: np.ndarray, obj
     return hf
 
 
-def _blend_with_idle(hf: _HandFrames, idle_rot: np.ndarray, idle_pos: np.ndarray) -> None:
-    """Fill the frames that involve the hanging pose: rest there, or reach/retract with the
-    vertical motion leading on the way out and trailing on the way back."""
+def _blend_with_idle(hf: _HandFrames, idle_rot: np.ndarray, idle_pos: np.ndarray) -> np.ndarray:
+    """Fill the frames that involve the hanging pose: rest there, or reach out / retract.
+    Reaching, the hand rises beside the body before it moves out on an arc (``ARC`` higher
+    midway); retracting is the reverse. Returns the frames it filled."""
     still = (hf.kind0 == IDLE) & (hf.kind1 == IDLE)
     hf.rot[still], hf.pos[still] = idle_rot[still], idle_pos[still]
+    filled = still.copy()
     for out, m in ((True, (hf.kind0 == IDLE) & (hf.kind1 != IDLE)),
                    (False, (hf.kind0 != IDLE) & (hf.kind1 == IDLE) & (hf.u > 0))):
         if not m.any():
             continue
-        u = hf.u[m]
+        u = hf.u[m] if out else 1.0 - hf.u[m]  # 0 at the hanging pose, 1 at the target
         k = hf.k1[m] if out else hf.k0[m]
-        lead, trail = minjerk(u / (1 - LAG)), minjerk((u - LAG) / (1 - LAG))
-        if out:  # idle -> pose
-            start_r, start_p, end_r, end_p = idle_rot[m], idle_pos[m], hf.key_rot[k], hf.key_pos[k]
-            s_h, s_v = trail, lead
-        else:  # pose -> idle
-            start_r, start_p, end_r, end_p = hf.key_rot[k], hf.key_pos[k], idle_rot[m], idle_pos[m]
-            s_h, s_v = lead, trail
-        frac = np.stack([s_h, s_h, s_v], axis=-1)
-        hf.rot[m] = slerp(start_r, end_r, minjerk(u))
-        hf.pos[m] = start_p + frac * (end_p - start_p)
+        s_v, s_h = minjerk(u / (1 - LAG)), minjerk((u - LAG) / (1 - LAG))
+        pos = idle_pos[m] + np.stack([s_h, s_h, s_v], axis=-1) * (hf.key_pos[k] - idle_pos[m])
+        pos[:, 2] += 4.0 * ARC * s_h * (1.0 - s_h)
+        hf.rot[m] = slerp(idle_rot[m], hf.key_rot[k], minjerk(u))
+        hf.pos[m] = pos
+        filled |= m
+    return filled
+
+
+def _clear_table(hf: _HandFrames, hand, curls: np.ndarray, sc, frames: np.ndarray) -> None:
+    """Lift the wrist target wherever a hand capsule would dip into the table top (the lift
+    is a max of continuous functions of time, so the path stays continuous)."""
+    reach = 0.22  # farther than this from the table top, no part of the hand can touch it
+    gap = np.maximum(np.abs(hf.pos[:, :2] - sc.table_centre[:2]) - np.array(TABLE_SIZE[:2]) / 2, 0.0)
+    near = (gap.max(axis=1) < reach) & (hf.pos[:, 2] < sc.table_height + reach)
+    idx = np.nonzero(frames & near)[0]
+    if not len(idx):
+        return
+    _, a, b = hand.pose(curls[idx])
+    ends = np.einsum("nij,nkj->nki", hf.rot[idx], np.concatenate([a, b], axis=1)) + hf.pos[idx, None]
+    r = np.tile(hand.cap_radius, 2)
+    half = np.array(TABLE_SIZE[:2]) / 2 + r[:, None]
+    over = (np.abs(ends[..., :2] - sc.table_centre[:2]) < half).all(-1)
+    need = np.where(over, sc.table_height + TABLE_CLEARANCE - (ends[..., 2] - r), 0.0).max(axis=1)
+    hf.pos[idx, 2] += np.maximum(need, 0.0)
 
 
 def _spine_track(plan: Plan, hands: dict[str, _HandFrames], values, default: float, t: np.ndarray) -> np.ndarray:
@@ -157,13 +178,14 @@ def synthesize(plan: Plan) -> Motion:
     local[:, [LEFT_HIP, RIGHT_HIP]] = tor.hip_local[:, None]
     local[:, list(SPINE)] = tor.local[:, None]
     for s, hf in hands.items():
-        _blend_with_idle(hf, *sc.idle_pose(s, tor, psi))
+        curls = plan.hands[s].curls.sample(t)
+        _clear_table(hf, sc.hands[s], curls, sc, _blend_with_idle(hf, *sc.idle_pose(s, tor, psi)))
         arm = sc.arms[s]
         l_sh, l_el, l_wr, _ = arm_ik(arm, tor.point(rest, arm.shoulder), tor.rot3, hf.pos, hf.rot,
                                      tor.rot3 @ sc.pole[s])
         local[:, arm.shoulder], local[:, arm.elbow], local[:, arm.wrist] = l_sh, l_el, l_wr
         hand = sc.hands[s]
-        local[:, hand.fingers] = hand.finger_locals(plan.hands[s].curls.sample(t))
+        local[:, hand.fingers] = hand.finger_locals(curls)
     neck_head = look_at(rest, tor, obj_pos, plan.look.sample(t), plan.pitch.sample(t))
     local[:, 12] = local[:, 15] = neck_head
 

@@ -24,7 +24,7 @@ import torch
 from .. import skeleton as sk
 from ..grab.format import GRAB_FPS
 from ..objects.catalogue import TABLE_SIZE, ObjectSpec
-from .grasp import Grasp, Hand, Obstacles, edge_point, make_grasp, table_obstacle
+from .grasp import Grasp, Hand, Obstacles, edge_point, make_grasp, floor_plane
 from .ik import Arm, Torso, axis_angle, head_pose, make_arm, minjerk, slerp, torso, unit
 from .subjects import ROOT_ROT, SubjectModel, subject_model
 
@@ -152,6 +152,7 @@ class Scene:
     arms: dict[str, Arm]
     pole: dict[str, np.ndarray]  # elbow pole direction in the spine3 frame (canonical)
     idle: dict[str, tuple[np.ndarray, np.ndarray]]  # hanging wrist rotation and offset from the shoulder (canonical)
+    idle_front: dict[str, float]  # how far the hanging hand reaches forward of its wrist
     relaxed: dict[str, np.ndarray]
     theta0: float  # resting forward bow
     psi_gain: float  # how much the torso turns toward the object
@@ -191,13 +192,19 @@ class Scene:
 
     def idle_pose(self, side: str, tor: Torso, psi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The free arm hangs from its shoulder with gravity, turned with the torso's yaw but
-        not its bow; its wrist stays 12 cm behind the table edge (a smooth limit), so a deep bow
-        does not swing it backward or under the table."""
+        not its bow; the hand stays 2 cm behind the table edge (smooth limits), so a deep bow
+        swings it neither backward nor under the table."""
         rot, offset = self.idle[side]
         heading = axis_angle(UP, psi) @ ROOT_ROT
-        pos = tor.point(self.rest, self.arms[side].shoulder) + heading @ offset
-        limit, k = self.near_edge - 0.12, 0.02
+        shoulder = tor.point(self.rest, self.arms[side].shoulder)
+        pos = shoulder + heading @ offset
+        k = 0.02  # smoothness of the limits (m)
+        limit = self.near_edge - self.idle_front[side] - 0.02
         pos[..., 1] -= k * np.logaddexp(0.0, (pos[..., 1] - limit) / k)
+        # Pulled back, the hand rises as far as needed to stay within reach.
+        reach2 = (0.95 * self.arms[side].reach) ** 2 - ((pos - shoulder)[..., :2] ** 2).sum(-1)
+        low = shoulder[..., 2] - np.sqrt(np.maximum(reach2, 0.0))
+        pos[..., 2] += k * np.logaddexp(0.0, (low - pos[..., 2]) / k)
         return heading @ rot, pos
 
     def mouth(self, pitch: float) -> np.ndarray:
@@ -231,8 +238,10 @@ def make_scene(model: SubjectModel, rng: np.random.Generator) -> Scene:
         relaxed[s] = np.concatenate([rng.uniform(0.15, 0.35, 4), rng.uniform(0.05, 0.2, 1)])
     g, j = (x[0].numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), torch.from_numpy(rest)))
     idle = {s: (g[arms[s].wrist], j[arms[s].wrist] - j[arms[s].shoulder]) for s in SIDES}
-    return Scene(model, pelvis, table_height, centre, {s: hand_model(model.spec.sbj_id, s) for s in SIDES},
-                 arms, pole, idle, relaxed, rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.6))
+    hands = {s: hand_model(model.spec.sbj_id, s) for s in SIDES}
+    front = {s: float((hands[s].pose(relaxed[s])[0][0] @ idle[s][0].T)[:, 2].max()) for s in SIDES}
+    return Scene(model, pelvis, table_height, centre, hands, arms, pole, idle, front, relaxed,
+                 rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.6))
 
 
 @dataclass
@@ -272,16 +281,18 @@ def _turn(v: np.ndarray, angle: float) -> np.ndarray:
 
 
 def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose, style: str,
-              direction: np.ndarray, rng: np.random.Generator, obstacles: Obstacles,
-              on_table: bool) -> Grasp | None:
+              direction: np.ndarray, rng: np.random.Generator, obstacles: Obstacles, floor: float,
+              handle: bool) -> Grasp | None:
     """One grasp attempt on the upright object at ``pose``. ``style`` 'side': the palm on the
-    side facing ``direction`` (horizontal, from the object toward the palm), thumb up; 'top'
-    ('bottom'): the palm on top (underneath), fingers along ``direction``."""
+    side facing ``direction`` (horizontal, from the object toward the palm), thumb up, at the
+    handle if ``handle``; 'top': the palm on top, fingers along ``direction``. The hand stays
+    above the world height ``floor`` (the table top, or for a hand-over the object's bottom,
+    so that the receiving hand can put it down); ``obstacles`` must include that plane."""
     hand = scene.hands[side]
     r_o, p_o = pose
     hz = obj.half_height
     if style == "side":
-        if obj.handle is not None and on_table:  # in the air (taken over) the handle is taken
+        if handle:
             target = np.asarray(obj.handle, float)
             direction = r_o @ unit(target * np.array([1.0, 1.0, 0.0]))
         else:
@@ -291,20 +302,20 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
         normal = -direction
         rot_w = hand.orientation(normal, axis_angle(normal, rng.uniform(-0.25, 0.25)) @ UP)
         lam = 0.5
-        if on_table:  # raise the hand so that its lowest point clears the table top
-            low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
-            target[2] = max(target[2], scene.table_height + 0.003 - p_o[2] - low)
-        if target[2] > (obj.handle[2] + 0.02 if obj.handle is not None and on_table else hz - 0.01):
+        # Raise the hand so that its lowest point clears the floor.
+        low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
+        target[2] = max(target[2], floor + 0.003 - p_o[2] - low)
+        if target[2] > (obj.handle[2] + 0.02 if handle else hz + 0.01):  # a low object: the hand's lower half
             return None
-    else:  # top, or bottom (palm up under an object held in the air)
+    else:
         if _boxy(obj):
             direction = _snap_to_faces(direction, r_o)
-        normal = -UP if style == "top" else UP
+        normal = -UP
         thumb = np.cross(direction, normal) if side == "right" else np.cross(normal, direction)
         rot_w = hand.orientation(normal, thumb)
-        pitch = rng.uniform(0.0, 0.3) * min(1.0, hz / 0.05)  # fingers tip toward the palm side
+        pitch = rng.uniform(0.0, 0.3) * min(1.0, hz / 0.05)  # fingers tip down
         rot_w = axis_angle(thumb, pitch if side == "right" else -pitch) @ rot_w
-        target = np.array([0.0, 0.0, hz if style == "top" else -hz])
+        target = np.array([0.0, 0.0, hz])
         lam = float(np.interp(obj.half_extents[:2].max(), [0.025, 0.06], [0.9, 0.6]))
     return make_grasp(hand, obj.shape, verts, r_o.T @ rot_w, target, r_o.T @ normal, lam, obstacles)
 
@@ -408,9 +419,9 @@ class _Builder:
         r, p = pose
         return axis_angle(UP, self.u(-0.2, 0.2)) @ r, p + np.array([self.u(-0.04, 0.04), self.u(-0.04, 0.04), 0.0])
 
-    def table_grasps(self, sides: tuple[str, ...], where: str):
-        """Place the object on the table and grasp it with ``sides``; retried (closer and
-        with other draws) until every grasp is found and within reach."""
+    def table_grasps(self, sides: tuple[str, ...], where: str, styles: list[str] | None = None):
+        """Place the object on the table and grasp it with ``sides`` (the given styles, else
+        the object's); retried with other draws until every grasp is found and in reach."""
         sc, obj = self.scene, self.obj
         for _ in range(8):
             base = {s: {"side": unit(np.array([side_sign(s), -0.35 if where == "centre" else -1.0, 0.0])),
@@ -422,13 +433,15 @@ class _Builder:
             else:
                 yaw = self.u(0.0, 2 * np.pi)
             pose = sc.on_table(obj, *self.table_spot(where), yaw)
-            table = table_obstacle(*pose, sc.table_height)
+            table = floor_plane(*pose, sc.table_height)
             obstacles = Obstacles((table,))
             grasps = {}
-            styles = ["side"] if len(sides) == 2 else grasp_styles(obj, self.rng)  # two hands: at the sides
+            if styles is None:
+                styles = ["side"] if len(sides) == 2 else grasp_styles(obj, self.rng)  # two hands: at the sides
             for s in sides:
                 g = _first_grasp(sc, s, obj, self.plan.shape_verts, pose, self.rng, base[s],
-                                 0.15 if where == "centre" else 0.4, obstacles, True, styles)
+                                 0.15 if where == "centre" else 0.4, obstacles, sc.table_height,
+                                 obj.handle is not None, styles)
                 if g is None or not self.reachable(s, g, pose):
                     break
                 grasps[s] = g
@@ -478,7 +491,9 @@ class _Builder:
     def passing(self) -> None:
         giver, taker = self.mode.split(">")
         sc, obj, u = self.scene, self.obj, self.u
-        pose0, grasps = self.table_grasps((giver,), giver)
+        # A small object taken from the top would leave the taker no room: take it low at the side.
+        styles = ["side", "top"] if obj.half_height <= 0.03 else None
+        pose0, grasps = self.table_grasps((giver,), giver, styles)
         t0 = u(0.3, 0.7)
         self.plan.look.key(t0 + 0.3, 1.0)
         t = grasp_in(self.plan.hands[giver], t0, grasps[giver], pose0, self.rng)
@@ -489,11 +504,13 @@ class _Builder:
         p_pass = np.array([sc.pelvis[0] + u(-0.04, 0.04), sc.pelvis[1] + u(0.30, 0.42),
                            self.shoulder_height() - u(0.22, 0.35)])
         t_arrive = self.key(t + u(0.6, 0.9), r_pass, p_pass)
-        forward = unit(np.array([0.3 * side_sign(taker), 1.0, 0.0]))
-        base = {"side": unit(np.array([side_sign(taker), -0.6, 0.0])), "top": forward, "bottom": forward}
-        styles = [("side", "top", "bottom")[i] for i in self.rng.permutation(3)]
+        base = {"side": unit(np.array([side_sign(taker), -0.6, 0.0])),
+                "top": unit(np.array([0.3 * side_sign(taker), 1.0, 0.0]))}
+        styles = ["side", "top"] if self.rng.random() < 0.5 else ["top", "side"]
+        bottom = p_pass[2] - obj.half_height  # the taker puts it down: its hand stays above
         g_taker = _first_grasp(sc, taker, obj, self.plan.shape_verts, (r_pass, p_pass), self.rng, base, 0.3,
-                               grasps[giver].obstacles(), False, styles)
+                               grasps[giver].obstacles((floor_plane(r_pass, p_pass, bottom),)), bottom,
+                               False, styles)
         if g_taker is None or not self.reachable(taker, g_taker, (r_pass, p_pass)):
             raise PlanRejected(f"no {taker} grasp to take {obj.name} over")
         t_taken = grasp_in(self.plan.hands[taker], t_arrive - u(0.6, 0.9), g_taker, (r_pass, p_pass), self.rng,
@@ -628,12 +645,12 @@ class _Builder:
         return self.key(t + u(0.7, 1.0), *end), end
 
 
-def _first_grasp(scene, side, obj, verts, pose, rng, base, spread, obstacles, on_table, styles) -> Grasp | None:
+def _first_grasp(scene, side, obj, verts, pose, rng, base, spread, obstacles, floor, handle, styles) -> Grasp | None:
     """A few randomized attempts per style around the style's base direction."""
     for style in styles:
         for _ in range(4):
             g = try_grasp(scene, side, obj, verts, pose, style, _turn(base[style], rng.uniform(-spread, spread)),
-                          rng, obstacles, on_table)
+                          rng, obstacles, floor, handle)
             if g is not None:
                 return g
     return None

@@ -1,0 +1,414 @@
+//! Load-time checks of a bundle, the Rust twin of `export/verify.py`: every problem is an
+//! `Error::Bundle` naming the file and what is wrong, found before any stream starts.
+//!
+//! Order: parse the manifest (format and version first, so a newer bundle reports its
+//! version rather than an unknown field); check it for internal consistency (layout,
+//! component ids, shapes implied by the widths, skeleton, sampling, ...); check the files
+//! (listed, present, size, SHA-256, nothing unlisted); then the graphs are loaded and their
+//! real inputs/outputs compared with the manifest (`model::graph`), and the parity index is
+//! checked against the `.npy` headers.
+//!
+//! Two decisions that differ from the Python verifier's `strict` mode:
+//! * Files and directories whose name starts with '.' are ignored when looking for
+//!   unlisted files (`.DS_Store`, editor swap files); every other unlisted file is an
+//!   error, because it means the directory mixes two exports.
+//! * `parity/` is optional: a shipped bundle may leave the test vectors out. When the
+//!   `parity/` directory is absent, the manifest's `parity/...` entries are not required;
+//!   when it is present, every listed parity file must be there and verify.
+use std::collections::BTreeSet;
+use std::fs;
+use std::io::Read;
+use std::path::{Component as PathComponent, Path, PathBuf};
+
+use sha2::{Digest, Sha256};
+
+use super::manifest::*;
+use super::npy;
+use crate::error::{Error, Result};
+
+/// The directory holding the optional parity vectors.
+pub const PARITY_DIR: &str = "parity";
+
+fn ensure(cond: bool, path: &Path, msg: impl FnOnce() -> String) -> Result<()> {
+    if cond { Ok(()) } else { Err(Error::bundle(path, msg())) }
+}
+
+/// Reads and parses `dir/manifest.json`: format and version first, then the schema.
+pub fn read_manifest(dir: &Path) -> Result<Manifest> {
+    ensure(dir.is_dir(), dir, || "not a directory".into())?;
+    let path = dir.join(MANIFEST_FILE);
+    let text = match fs::read(&path) {
+        Ok(b) => String::from_utf8(b).map_err(|_| Error::bundle(&path, "not UTF-8 text"))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(Error::bundle(&path, "missing: the directory is not a model bundle"))
+        }
+        Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
+    };
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
+    let format = value.get("format").and_then(|v| v.as_str());
+    ensure(format == Some(FORMAT), &path, || {
+        format!("format is {}, expected {FORMAT:?}", value.get("format").map_or("missing".into(), |v| v.to_string()))
+    })?;
+    let version = value.get("version").and_then(|v| v.as_u64());
+    ensure(version == Some(VERSION), &path, || {
+        format!("unsupported bundle version {} (this engine reads version {VERSION})",
+                value.get("version").map_or("missing".into(), |v| v.to_string()))
+    })?;
+    // Parse again from the text, so schema errors carry a line and column.
+    serde_json::from_str::<Manifest>(&text)
+        .map_err(|e| Error::bundle(&path, format!("does not match the version {VERSION} schema: {e}")))
+}
+
+/// Internal consistency of the manifest (no file is read).
+pub fn check_manifest(dir: &Path, m: &Manifest) -> Result<()> {
+    let mp = dir.join(MANIFEST_FILE);
+    let p = mp.as_path();
+    ensure(m.fps.is_finite() && m.fps > 0.0, p, || format!("fps must be finite and > 0, got {}", m.fps))?;
+    ensure(m.frames_per_token >= 1, p, || "frames_per_token must be >= 1".into())?;
+    ensure(m.l_max >= 1, p, || "l_max must be >= 1".into())?;
+    ensure(m.frame_dim == FRAME_DIM, p, || format!("frame_dim {} != {FRAME_DIM}", m.frame_dim))?;
+    check_layout(p, m)?;
+    check_normalization(p, m)?;
+    check_text_encoder(p, m)?;
+    check_transformer(p, m)?;
+    check_decoder(p, m)?;
+    check_skeleton_objects_sampling(p, m)?;
+    for (what, rel) in [
+        ("text_encoder files.onnx", &m.text_encoder.files.onnx),
+        ("text_encoder files.tokenizer", &m.text_encoder.files.tokenizer),
+        ("transformer file", &m.transformer.file),
+        ("decoder file", &m.decoder.file),
+        ("parity index", &m.parity.index),
+    ] {
+        ensure(m.files.contains_key(rel.as_str()), p, || format!("{what} names {rel:?}, which is not in the files table"))?;
+    }
+    for o in &m.objects {
+        ensure(m.files.contains_key(&o.mesh), p, || format!("object {} names mesh {:?}, which is not in the files table", o.name, o.mesh))?;
+    }
+    for (name, sha) in &m.text_encoder.sha256 {
+        let listed = m.files.get(name).map(|f| f.sha256.as_str());
+        ensure(listed == Some(sha.as_str()), p, || {
+            format!("text_encoder sha256 of {name} is {sha}, the files table says {listed:?}")
+        })?;
+    }
+    Ok(())
+}
+
+fn check_layout(p: &Path, m: &Manifest) -> Result<()> {
+    let mut pos = 0;
+    for f in &m.layout {
+        ensure(f.start == pos && f.stop > f.start, p, || {
+            format!("layout field {}: [{}, {}) does not continue at {pos}", f.name, f.start, f.stop)
+        })?;
+        pos = f.stop;
+    }
+    ensure(pos == FRAME_DIM, p, || format!("layout fields end at {pos}, not {FRAME_DIM}"))?;
+    let names: Vec<&str> = m.components.iter().map(|c| c.name.as_str()).collect();
+    ensure(names == STREAMS, p, || format!("components are {names:?}, expected {STREAMS:?}"))?;
+    let mut pos = 0;
+    for (i, c) in m.components.iter().enumerate() {
+        let [a, b] = c.slice;
+        ensure(c.index == i && a == pos && b > a, p, || {
+            format!("component {}: slice {:?} / index {} do not tile the frame at {pos}", c.name, c.slice, c.index)
+        })?;
+        let fields: Vec<(usize, usize)> =
+            m.layout.iter().filter(|f| f.component == c.name).map(|f| (f.start, f.stop)).collect();
+        ensure(fields.first().map(|f| f.0) == Some(a) && fields.last().map(|f| f.1) == Some(b), p, || {
+            format!("component {}: slice {:?} disagrees with its layout fields {fields:?}", c.name, c.slice)
+        })?;
+        let j = c.codebook_size;
+        ensure(j >= 1 && (c.end_id, c.pad_id, c.vocab_size) == (j, j + 1, j + 2), p, || {
+            format!("component {}: codebook_size {j} needs end_id {j}, pad_id {}, vocab_size {}; got {}, {}, {}",
+                    c.name, j + 1, j + 2, c.end_id, c.pad_id, c.vocab_size)
+        })?;
+        // Token ids travel as i64 (and as u32-friendly indices); keep them far from overflow.
+        ensure(j < (1 << 31), p, || format!("component {}: codebook_size {j} is absurd", c.name))?;
+        pos = b;
+    }
+    ensure(pos == FRAME_DIM, p, || format!("component slices end at {pos}, not {FRAME_DIM}"))
+}
+
+fn check_normalization(p: &Path, m: &Manifest) -> Result<()> {
+    let n = &m.normalization;
+    ensure(n.mean.len() == FRAME_DIM && n.std.len() == FRAME_DIM, p, || {
+        format!("normalization mean/std have {}/{} values, need {FRAME_DIM}", n.mean.len(), n.std.len())
+    })?;
+    ensure(n.mean.iter().all(|v| v.is_finite()) && n.std.iter().all(|v| v.is_finite() && *v > 0.0), p, || {
+        "normalization: mean/std must be finite with std > 0".into()
+    })?;
+    ensure(CONTACT_CHANNELS.iter().all(|&c| n.mean[c] == 0.0 && n.std[c] == 1.0), p, || {
+        format!("normalization: contact channels {CONTACT_CHANNELS:?} need mean 0, std 1")
+    })
+}
+
+fn io(name: &str, dtype: Dtype, shape: &[usize]) -> IoSpec {
+    IoSpec { name: name.into(), dtype, shape: shape.to_vec(), value: None }
+}
+
+/// Compares declared IO lists with the ones the other manifest fields imply.
+fn same_io(p: &Path, what: &str, declared: &[IoSpec], implied: &[IoSpec]) -> Result<()> {
+    let strip = |v: &[IoSpec]| v.iter().map(|s| (s.name.clone(), s.dtype, s.shape.clone())).collect::<Vec<_>>();
+    let (d, i) = (strip(declared), strip(implied));
+    if d == i {
+        return Ok(());
+    }
+    let first = d.iter().zip(&i).position(|(a, b)| a != b).unwrap_or(d.len().min(i.len()));
+    let show = |v: &Vec<(String, Dtype, Vec<usize>)>| {
+        v.get(first).map_or("nothing".to_string(), |(n, t, s)| format!("{n} {t} {s:?}"))
+    };
+    Err(Error::bundle(p, format!(
+        "{what} #{first}: the manifest declares {}, but the other manifest fields imply {} ({} declared, {} implied)",
+        show(&d), show(&i), d.len(), i.len())))
+}
+
+fn check_text_encoder(p: &Path, m: &Manifest) -> Result<()> {
+    let t = &m.text_encoder;
+    let tt = t.max_tokens;
+    ensure(tt >= 2, p, || format!("text_encoder max_tokens {tt} is too small"))?;
+    ensure(t.dim >= 1, p, || "text_encoder dim must be >= 1".into())?;
+    let known = ["input_ids", "attention_mask", "token_type_ids", "position_ids"];
+    let mut seen = BTreeSet::new();
+    for e in &t.inputs {
+        ensure(known.contains(&e.name.as_str()) && seen.insert(e.name.as_str()), p, || {
+            format!("text_encoder input {:?} is unknown or repeated (known: {known:?})", e.name)
+        })?;
+        ensure(e.dtype == Dtype::Int64 && e.shape == [1, tt], p, || {
+            format!("text_encoder input {} is {} {:?}, needs int64 [1, max_tokens {tt}]", e.name, e.dtype, e.shape)
+        })?;
+    }
+    ensure(seen.contains("input_ids") && seen.contains("attention_mask"), p, || {
+        "text_encoder inputs must include input_ids and attention_mask".into()
+    })?;
+    let pooled = t.outputs.iter().find(|o| o.name == t.pool_output)
+        .ok_or_else(|| Error::bundle(p, format!("text_encoder pool_output {:?} is not among its outputs", t.pool_output)))?;
+    ensure(pooled.dtype == Dtype::Float32 && pooled.shape == [1, tt, t.dim], p, || {
+        format!("text_encoder {} is {} {:?}, needs float32 [1, {tt}, dim {}]", pooled.name, pooled.dtype, pooled.shape, t.dim)
+    })?;
+    for (what, v) in [("mean_eps", t.mean_eps), ("norm_eps", t.norm_eps)] {
+        ensure(v.is_finite() && v > 0.0, p, || format!("text_encoder {what} must be finite and > 0, got {v}"))?;
+    }
+    if t.pooling == Pooling::Eos {
+        let sel = t.eos_selection.ok_or_else(|| Error::bundle(p, "text_encoder pooling 'eos' needs eos_selection"))?;
+        ensure(sel != EosSelection::FirstEos || t.eos_id.is_some(), p, || {
+            "text_encoder eos_selection 'first_eos' needs eos_id".into()
+        })?;
+    }
+    Ok(())
+}
+
+fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
+    let tr = &m.transformer;
+    let (l, h, s) = (tr.n_layers, tr.n_heads, tr.cache_slots);
+    ensure(tr.batch == 1, p, || format!("transformer batch {} != 1", tr.batch))?;
+    ensure(l >= 1 && h >= 1, p, || "transformer n_layers and n_heads must be >= 1".into())?;
+    ensure(s == tr.block_size && s == m.l_max + 2, p, || {
+        format!("transformer cache_slots {s} / block_size {} must equal l_max + 2 = {}", tr.block_size, m.l_max + 2)
+    })?;
+    ensure(tr.d_text == m.text_encoder.dim, p, || {
+        format!("transformer d_text {} != text_encoder dim {}", tr.d_text, m.text_encoder.dim)
+    })?;
+    ensure(tr.widths.len() == N_STREAMS && tr.head_dims.len() == N_STREAMS, p, || {
+        format!("transformer widths/head_dims need {N_STREAMS} values")
+    })?;
+    let mut inputs = vec![io("tokens", Dtype::Int64, &[1, N_STREAMS]), io("pos", Dtype::Int64, &[1]),
+                          io("text_emb", Dtype::Float32, &[1, tr.d_text])];
+    let mut outputs = Vec::new();
+    let mut rows = Vec::new();
+    for (i, c) in m.components.iter().enumerate() {
+        let (w, d) = (tr.widths[i], tr.head_dims[i]);
+        ensure(d >= 1 && w == h * d, p, || {
+            format!("transformer stream {}: width {w} != n_heads {h} x head_dim {d}", c.name)
+        })?;
+        for kv in ["k", "v"] {
+            inputs.push(io(&format!("cache_{kv}_{}", c.name), Dtype::Float32, &[l, 1, h, s, d]));
+            rows.push(io(&format!("new_{kv}_{}", c.name), Dtype::Float32, &[l, 1, h, 1, d]));
+        }
+        outputs.push(io(&format!("logits_{}", c.name), Dtype::Float32, &[1, c.vocab_size]));
+    }
+    outputs.extend(rows);
+    same_io(p, "transformer input", &tr.inputs, &inputs)?;
+    same_io(p, "transformer output", &tr.outputs, &outputs)
+}
+
+fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
+    let d = &m.decoder;
+    ensure(d.batch == 1, p, || format!("decoder batch {} != 1", d.batch))?;
+    ensure(d.context_tokens >= 1 && d.state_tokens + 1 == d.context_tokens, p, || {
+        format!("decoder state_tokens {} != context_tokens {} - 1", d.state_tokens, d.context_tokens)
+    })?;
+    ensure(d.frames_per_token == m.frames_per_token, p, || {
+        format!("decoder frames_per_token {} != manifest frames_per_token {}", d.frames_per_token, m.frames_per_token)
+    })?;
+    let k1 = d.state_tokens;
+    same_io(p, "decoder input", &d.inputs, &[io("state", Dtype::Int64, &[1, N_STREAMS, k1]),
+                                            io("tokens", Dtype::Int64, &[1, N_STREAMS])])?;
+    same_io(p, "decoder output", &d.outputs, &[io("frames", Dtype::Float32, &[1, m.frames_per_token, FRAME_DIM]),
+                                              io("next_state", Dtype::Int64, &[1, N_STREAMS, k1])])?;
+    let books: Vec<i64> = m.components.iter().map(|c| c.codebook_size as i64).collect();
+    ensure(d.state_pad_ids == books, p, || {
+        format!("decoder state_pad_ids {:?} != codebook sizes {books:?}", d.state_pad_ids)
+    })?;
+    let expect: Vec<Vec<Vec<i64>>> = vec![books.iter().map(|&j| vec![j; k1]).collect()];
+    ensure(d.initial_state == expect, p, || {
+        "decoder initial_state is not the state_pad_ids repeated state_tokens times".into()
+    })?;
+    ensure(d.contact_channels == CONTACT_CHANNELS, p, || {
+        format!("decoder contact_channels {:?} != {CONTACT_CHANNELS:?}", d.contact_channels)
+    })?;
+    ensure(d.output_is_normalized && d.contact_is_probability, p, || {
+        "decoder must output normalized features with contact probabilities".into()
+    })?;
+    ensure(d.contact_threshold > 0.0 && d.contact_threshold < 1.0, p, || {
+        format!("decoder contact_threshold {} must be in (0, 1)", d.contact_threshold)
+    })
+}
+
+fn check_skeleton_objects_sampling(p: &Path, m: &Manifest) -> Result<()> {
+    let sk = &m.skeleton;
+    let par = &sk.parents;
+    ensure(sk.joint_names.len() == NUM_JOINTS && par.len() == NUM_JOINTS && sk.rest_joints.len() == NUM_JOINTS, p, || {
+        format!("skeleton: need {NUM_JOINTS} joint names, parents and rest joints; got {}, {}, {}",
+                sk.joint_names.len(), par.len(), sk.rest_joints.len())
+    })?;
+    ensure(par[0] == -1 && (1..NUM_JOINTS).all(|j| par[j] >= 0 && (par[j] as usize) < j), p, || {
+        "skeleton: parents must put the root first (-1) and every parent before its children".into()
+    })?;
+    ensure(sk.rest_joints.iter().flatten().all(|v| v.is_finite()), p, || "skeleton rest_joints must be finite".into())?;
+    let mut names = BTreeSet::new();
+    for o in &m.objects {
+        ensure(!o.name.is_empty() && names.insert(o.name.as_str()), p, || {
+            format!("object name {:?} is empty or repeated", o.name)
+        })?;
+        ensure(o.centre.iter().chain(&o.half_extents).all(|v| v.is_finite()), p, || {
+            format!("object {}: centre/half_extents must be finite", o.name)
+        })?;
+    }
+    let s = &m.sampling;
+    ensure(s.min_len <= s.max_len && s.max_len <= m.l_max && s.temperature.is_finite() && s.temperature >= 0.0, p, || {
+        format!("sampling defaults need 0 <= min_len {} <= max_len {} <= l_max {}, temperature {} finite >= 0",
+                s.min_len, s.max_len, m.l_max, s.temperature)
+    })?;
+    ensure(s.rng == "splitmix64", p, || format!("sampling rng {:?} is not \"splitmix64\"", s.rng))
+}
+
+/// A relative '/'-separated path that stays inside the bundle.
+fn safe_rel(rel: &str) -> bool {
+    !rel.is_empty()
+        && !rel.contains('\\')
+        && !rel.contains(':')
+        && Path::new(rel).components().all(|c| matches!(c, PathComponent::Normal(_)))
+}
+
+/// Lower-case hex SHA-256 of a file, streamed.
+pub fn sha256_file(path: &Path) -> Result<String> {
+    let mut f = fs::File::open(path).map_err(|e| Error::bundle(path, format!("cannot open: {e}")))?;
+    let mut h = Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| Error::bundle(path, format!("cannot read: {e}")))?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// Whether `parity/` exists (see the module doc).
+pub fn has_parity(dir: &Path) -> bool {
+    dir.join(PARITY_DIR).is_dir()
+}
+
+/// Every listed file is present with its size and SHA-256; nothing unlisted is present.
+pub fn check_files(dir: &Path, m: &Manifest) -> Result<()> {
+    let mp = dir.join(MANIFEST_FILE);
+    let parity = has_parity(dir);
+    for (rel, entry) in &m.files {
+        ensure(safe_rel(rel) && rel != MANIFEST_FILE, &mp, || format!("files table entry {rel:?} is not a path inside the bundle"))?;
+        let hex_ok = entry.sha256.len() == 64 && entry.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
+        ensure(hex_ok, &mp, || format!("files table entry {rel}: {:?} is not a lower-case hex SHA-256", entry.sha256))?;
+        if !parity && rel.starts_with("parity/") {
+            continue;
+        }
+        let path = dir.join(rel);
+        let meta = match fs::metadata(&path) {
+            Ok(meta) => meta,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(Error::bundle(&path, format!("listed in the manifest but missing (file {rel})")))
+            }
+            Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
+        };
+        ensure(meta.is_file(), &path, || format!("file {rel} is not a regular file"))?;
+        ensure(meta.len() == entry.bytes, &path, || {
+            format!("file {rel} has {} bytes, the manifest says {}", meta.len(), entry.bytes)
+        })?;
+        let got = sha256_file(&path)?;
+        ensure(got == entry.sha256, &path, || {
+            format!("file {rel}: SHA-256 {got} does not match the manifest's {} (corrupt or replaced file)", entry.sha256)
+        })?;
+    }
+    let mut found = Vec::new();
+    walk(dir, "", 0, &mut found)?;
+    let extra: Vec<String> = found.into_iter().filter(|r| r != MANIFEST_FILE && !m.files.contains_key(r)).collect();
+    ensure(extra.is_empty(), dir, || {
+        let shown: Vec<&String> = extra.iter().take(8).collect();
+        format!("{} file(s) not listed in the manifest: {shown:?}{}", extra.len(), if extra.len() > 8 { " ..." } else { "" })
+    })
+}
+
+/// Relative paths of the files under `dir`, skipping dot-names; symlinks to directories
+/// are not followed (they are reported as entries).
+fn walk(dir: &Path, prefix: &str, depth: usize, out: &mut Vec<String>) -> Result<()> {
+    ensure(depth < 16, dir, || "directory tree too deep".into())?;
+    let rd = fs::read_dir(dir).map_err(|e| Error::bundle(dir, format!("cannot list: {e}")))?;
+    for entry in rd {
+        let entry = entry.map_err(|e| Error::bundle(dir, format!("cannot list: {e}")))?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else {
+            return Err(Error::bundle(entry.path(), "file name is not UTF-8"));
+        };
+        if name.starts_with('.') {
+            continue;
+        }
+        let rel = if prefix.is_empty() { name.to_string() } else { format!("{prefix}/{name}") };
+        let ft = entry.file_type().map_err(|e| Error::bundle(entry.path(), format!("cannot stat: {e}")))?;
+        if ft.is_dir() {
+            walk(&entry.path(), &rel, depth + 1, out)?;
+        } else {
+            out.push(rel);
+        }
+    }
+    Ok(())
+}
+
+/// parity/index.json agrees with the manifest and with the `.npy` headers (when parity/
+/// is present).
+pub fn check_parity_index(dir: &Path, m: &Manifest) -> Result<()> {
+    if !has_parity(dir) {
+        return Ok(());
+    }
+    let path: PathBuf = dir.join(&m.parity.index);
+    let text = fs::read_to_string(&path).map_err(|e| Error::bundle(&path, format!("cannot read: {e}")))?;
+    let index: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
+    ensure(index.get("format").and_then(|v| v.as_str()) == Some("comgrasp-parity")
+           && index.get("version").and_then(|v| v.as_u64()) == Some(1), &path, || {
+        "not a version 1 comgrasp-parity index".into()
+    })?;
+    let files = index.get("files").and_then(|v| v.as_array())
+        .ok_or_else(|| Error::bundle(&path, "no files list"))?;
+    for e in files {
+        let rel = e.get("path").and_then(|v| v.as_str())
+            .ok_or_else(|| Error::bundle(&path, format!("entry without a path: {e}")))?;
+        ensure(m.files.contains_key(rel), &path, || format!("lists {rel:?}, which is not in the manifest's files table"))?;
+        let dtype = e.get("dtype").and_then(|v| v.as_str()).unwrap_or("?");
+        let shape: Option<Vec<usize>> = e.get("shape").and_then(|v| v.as_array())
+            .and_then(|a| a.iter().map(|x| x.as_u64().map(|x| x as usize)).collect());
+        let h = npy::read_header(&dir.join(rel))?;
+        ensure(h.dtype.numpy_name() == dtype && Some(&h.shape) == shape.as_ref(), &dir.join(rel), || {
+            format!("{} {:?} but parity/index.json says {dtype} {shape:?}", h.dtype.numpy_name(), h.shape)
+        })?;
+    }
+    Ok(())
+}

@@ -1,0 +1,279 @@
+//! Versioned configuration structs (SDL3 / sherpa-onnx style): each starts with
+//! `struct_size`, an `_init` function fills it and every default, fields are only ever
+//! appended, and the library reads only the first `struct_size` bytes. So a host compiled
+//! against an older header keeps working with a newer library (missing fields take their
+//! defaults), and a newer host works with an older library (unknown trailing fields are
+//! ignored).
+use std::ffi::{c_char, CStr};
+use std::mem::{size_of, MaybeUninit};
+use std::path::PathBuf;
+
+use super::panic::{boundary, Failure};
+use super::status::cg_status;
+use crate::engine::{EngineConfig, StreamConfig};
+use crate::frame::{cg_coordinate_system, CoordinateSystem};
+
+/// Settings of a new engine. Initialize with `cg_engine_config_init`, then change fields.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct cg_engine_config {
+    /// `sizeof(cg_engine_config)` of the header the host was compiled with (set by
+    /// `cg_engine_config_init`). Smaller than the first version's size:
+    /// `CG_ERR_INVALID_ARGUMENT`.
+    pub struct_size: u32,
+    /// Coordinate system of every frame (a `cg_coordinate_system` value; others give
+    /// `CG_ERR_INVALID_ARGUMENT`). Default `CG_COORDS_NATIVE`.
+    pub coordinate_system: cg_coordinate_system,
+    /// Path of the model bundle directory, NUL-terminated UTF-8. Borrowed only during
+    /// `cg_engine_create`. NULL selects the embedded default bundle, which this build does
+    /// not have yet (`CG_ERR_BUNDLE`). Default NULL.
+    pub bundle_path: *const c_char,
+    /// 1: fill `cg_frame.joint_positions` by forward kinematics; 0: leave them zero.
+    /// Default 0.
+    pub enable_fk: u32,
+    /// Frames each stream buffers before its worker waits for the host to poll,
+    /// 1..=65536. Default 256 (~8.5 s at 30 fps, ~1.6 KiB per frame).
+    pub ring_capacity: u32,
+    /// Most streams alive at once (started and not yet destroyed), 1..=1024; `cg_start`
+    /// returns `CG_ERR_LIMIT` beyond it. Default 16.
+    pub max_streams: u32,
+    /// Reserved, must be 0.
+    pub reserved: u32,
+}
+
+/// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
+pub const CG_USE_DEFAULT_SEED: u32 = 1 << 0;
+/// Set in `cg_stream_config.use_defaults`: ignore `temperature`.
+pub const CG_USE_DEFAULT_TEMPERATURE: u32 = 1 << 1;
+/// Set in `cg_stream_config.use_defaults`: ignore `top_k`.
+pub const CG_USE_DEFAULT_TOP_K: u32 = 1 << 2;
+/// Set in `cg_stream_config.use_defaults`: ignore `min_len`.
+pub const CG_USE_DEFAULT_MIN_LEN: u32 = 1 << 3;
+/// Set in `cg_stream_config.use_defaults`: ignore `max_len`.
+pub const CG_USE_DEFAULT_MAX_LEN: u32 = 1 << 4;
+/// All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
+pub const CG_USE_DEFAULT_ALL: u32 = 0x1f;
+
+/// Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets
+/// `use_defaults = CG_USE_DEFAULT_ALL`); to override a field, set it AND clear its bit:
+/// `cfg.seed = 42; cfg.use_defaults &= ~CG_USE_DEFAULT_SEED;`. Passing NULL instead of a
+/// config to `cg_start` means "all defaults".
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct cg_stream_config {
+    /// `sizeof(cg_stream_config)` of the host's header (set by `cg_stream_config_init`).
+    pub struct_size: u32,
+    /// Bitmask of `CG_USE_DEFAULT_*`: a set bit means "ignore this field, use the default".
+    pub use_defaults: u32,
+    /// Seed of the sampler's SplitMix64 generator; same seed + text + bundle = same motion.
+    pub seed: u64,
+    /// Softmax temperature, finite and >= 0; 0 = greedy (arg max).
+    pub temperature: f64,
+    /// Sample among the k most likely tokens only; 0 = no top-k filtering.
+    pub top_k: u32,
+    /// End is not allowed before this many token steps (16 frames each).
+    pub min_len: u32,
+    /// End is forced at this many token steps; 1..=the bundle's L_max.
+    pub max_len: u32,
+    /// Reserved, must be 0.
+    pub reserved: u32,
+}
+
+/// Size of the first published version of each struct: the smallest `struct_size`
+/// accepted. Freeze these at their current values when fields are appended.
+const ENGINE_CONFIG_V1_SIZE: usize = size_of::<cg_engine_config>();
+const STREAM_CONFIG_V1_SIZE: usize = size_of::<cg_stream_config>();
+
+impl Default for cg_engine_config {
+    fn default() -> Self {
+        let d = EngineConfig::default();
+        cg_engine_config {
+            struct_size: size_of::<cg_engine_config>() as u32,
+            coordinate_system: d.coordinate_system,
+            bundle_path: std::ptr::null(),
+            enable_fk: d.enable_fk as u32,
+            ring_capacity: d.ring_capacity as u32,
+            max_streams: d.max_streams as u32,
+            reserved: 0,
+        }
+    }
+}
+
+impl Default for cg_stream_config {
+    fn default() -> Self {
+        cg_stream_config {
+            struct_size: size_of::<cg_stream_config>() as u32,
+            use_defaults: CG_USE_DEFAULT_ALL,
+            seed: 0,
+            temperature: 1.0,
+            top_k: 0,
+            min_len: 0,
+            max_len: 0,
+            reserved: 0,
+        }
+    }
+}
+
+/// Copies the caller's struct (only its declared `struct_size` bytes) over our defaults.
+/// The result is returned as raw storage: the caller reads fields whose every bit pattern
+/// is valid directly, and validates enum fields from their raw integer first.
+///
+/// SAFETY: `src` is non-NULL and points to at least `struct_size` readable bytes (the
+/// caller's promise when it sets `struct_size`).
+unsafe fn read_versioned<T: Copy + Default>(src: *const T, min_size: usize, name: &str) -> Result<MaybeUninit<T>, Failure> {
+    let declared = unsafe { std::ptr::read_unaligned(src as *const u32) } as usize;
+    if declared < min_size {
+        return Err(Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("{name}.struct_size is {declared}, at least {min_size} expected; call {name}_init first"),
+        ));
+    }
+    let mut out = MaybeUninit::new(T::default());
+    let n = declared.min(size_of::<T>());
+    unsafe { std::ptr::copy_nonoverlapping(src as *const u8, out.as_mut_ptr() as *mut u8, n) };
+    Ok(out)
+}
+
+fn coordinate_system_from_raw(raw: u32) -> Option<CoordinateSystem> {
+    Some(match raw {
+        0 => cg_coordinate_system::CG_COORDS_NATIVE,
+        1 => cg_coordinate_system::CG_COORDS_GLTF,
+        2 => cg_coordinate_system::CG_COORDS_UNITY,
+        3 => cg_coordinate_system::CG_COORDS_UNREAL,
+        _ => return None,
+    })
+}
+
+/// Converts and validates a C engine config.
+///
+/// SAFETY: `cfg` is non-NULL and valid for `cfg.struct_size` bytes; `bundle_path`, if not
+/// NULL, is a NUL-terminated string.
+pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Result<EngineConfig, Failure> {
+    let raw = unsafe { read_versioned(cfg, ENGINE_CONFIG_V1_SIZE, "cg_engine_config")? };
+    let p = raw.as_ptr();
+    // The enum field is read as its raw integer: a C caller may have stored any value, and
+    // materializing an invalid enum in Rust would be undefined behaviour.
+    let coords_raw = unsafe { std::ptr::addr_of!((*p).coordinate_system).cast::<u32>().read() };
+    let coordinate_system = coordinate_system_from_raw(coords_raw).ok_or_else(|| {
+        Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("cg_engine_config.coordinate_system {coords_raw} is not a cg_coordinate_system value"),
+        )
+    })?;
+    // SAFETY: the remaining fields are integers and a raw pointer: any bit pattern is valid.
+    let (bundle_path, enable_fk, ring_capacity, max_streams, reserved) = unsafe {
+        (
+            std::ptr::addr_of!((*p).bundle_path).read(),
+            std::ptr::addr_of!((*p).enable_fk).read(),
+            std::ptr::addr_of!((*p).ring_capacity).read(),
+            std::ptr::addr_of!((*p).max_streams).read(),
+            std::ptr::addr_of!((*p).reserved).read(),
+        )
+    };
+    let invalid = |msg: String| Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, msg);
+    if enable_fk > 1 {
+        return Err(invalid(format!("cg_engine_config.enable_fk must be 0 or 1, got {enable_fk}")));
+    }
+    if reserved != 0 {
+        return Err(invalid("cg_engine_config.reserved must be 0".into()));
+    }
+    let bundle_path = if bundle_path.is_null() {
+        None
+    } else {
+        let s = unsafe { CStr::from_ptr(bundle_path) }.to_str().map_err(|_| {
+            Failure::new(cg_status::CG_ERR_INVALID_UTF8, "cg_engine_config.bundle_path is not valid UTF-8")
+        })?;
+        if s.is_empty() {
+            return Err(invalid("cg_engine_config.bundle_path is empty".into()));
+        }
+        Some(PathBuf::from(s))
+    };
+    Ok(EngineConfig {
+        bundle_path,
+        coordinate_system,
+        enable_fk: enable_fk == 1,
+        ring_capacity: ring_capacity as usize,
+        max_streams: max_streams as usize,
+        default_stream: StreamConfig::default(),
+    })
+}
+
+/// Converts a C stream config (NULL = all defaults).
+///
+/// SAFETY: `cfg` is NULL or valid for `cfg.struct_size` bytes.
+pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Result<StreamConfig, Failure> {
+    if cfg.is_null() {
+        return Ok(StreamConfig::default());
+    }
+    let raw = unsafe { read_versioned(cfg, STREAM_CONFIG_V1_SIZE, "cg_stream_config")? };
+    // SAFETY: every field is an integer or a float: any bit pattern is valid.
+    let c = unsafe { raw.assume_init() };
+    if c.reserved != 0 {
+        return Err(Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, "cg_stream_config.reserved must be 0"));
+    }
+    let set = |bit: u32| c.use_defaults & bit == 0;
+    Ok(StreamConfig {
+        seed: set(CG_USE_DEFAULT_SEED).then_some(c.seed),
+        temperature: set(CG_USE_DEFAULT_TEMPERATURE).then_some(c.temperature),
+        top_k: set(CG_USE_DEFAULT_TOP_K).then_some(c.top_k),
+        min_len: set(CG_USE_DEFAULT_MIN_LEN).then_some(c.min_len),
+        max_len: set(CG_USE_DEFAULT_MAX_LEN).then_some(c.max_len),
+    })
+}
+
+/// Fills `*cfg` with the defaults and the right `struct_size`. Call it before changing
+/// fields, so fields added in later versions get their defaults. Returns
+/// `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_config_init(cfg: *mut cg_engine_config) -> cg_status {
+    boundary("cg_engine_config_init", || {
+        if cfg.is_null() {
+            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_engine_config_init: cfg is NULL"));
+        }
+        unsafe { cfg.write_unaligned(cg_engine_config::default()) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Fills `*cfg` with the defaults (`use_defaults = CG_USE_DEFAULT_ALL`) and the right
+/// `struct_size`. Returns `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_stream_config_init(cfg: *mut cg_stream_config) -> cg_status {
+    boundary("cg_stream_config_init", || {
+        if cfg.is_null() {
+            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_stream_config_init: cfg is NULL"));
+        }
+        unsafe { cfg.write_unaligned(cg_stream_config::default()) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn old_and_new_struct_sizes() {
+        let mut c = cg_stream_config::default();
+        c.use_defaults = CG_USE_DEFAULT_ALL & !CG_USE_DEFAULT_SEED;
+        c.seed = 7;
+        let s = unsafe { stream_config_from_c(&c) }.unwrap();
+        assert_eq!(s, StreamConfig { seed: Some(7), ..Default::default() });
+        c.struct_size = 8;
+        assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+
+        let e = cg_engine_config::default();
+        assert!(unsafe { engine_config_from_c(&e) }.is_ok());
+        // What a C caller can write: the enum field as a plain integer, here out of range.
+        #[repr(C)]
+        struct FromC {
+            struct_size: u32,
+            coordinate_system: u32,
+            rest: [u64; 3],
+        }
+        assert_eq!(size_of::<FromC>(), size_of::<cg_engine_config>());
+        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 3] };
+        let r = unsafe { engine_config_from_c(&bad as *const FromC as *const cg_engine_config) };
+        assert_eq!(r.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+    }
+}

@@ -1,0 +1,192 @@
+//! Engine functions: create, destroy, start a stream.
+use std::ffi::c_char;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use super::config::{cg_engine_config, cg_stream_config, engine_config_from_c, stream_config_from_c};
+use super::handle::{cg_engine, cg_stream, EngineEntry, StreamEntry, ENGINES, STREAMS};
+use super::panic::{boundary, Failure, PoisonOnUnwind};
+use super::status::cg_status;
+use crate::engine::{Engine, MAX_TEXT_BYTES};
+use parking_lot::Mutex;
+
+fn null(what: &str) -> Failure {
+    Failure::new(cg_status::CG_ERR_NULL_POINTER, format_args!("{what} is NULL"))
+}
+
+fn lookup_engine(engine: *mut cg_engine) -> Result<Arc<EngineEntry>, Failure> {
+    if engine.is_null() {
+        return Err(null("engine"));
+    }
+    let entry = ENGINES.get(engine as usize).ok_or_else(|| {
+        Failure::new(cg_status::CG_ERR_INVALID_HANDLE, "engine is not a live cg_engine handle (destroyed, or not from cg_engine_create)")
+    })?;
+    if entry.poisoned.load(Ordering::SeqCst) {
+        return Err(Failure::new(cg_status::CG_ERR_PANIC, "engine is poisoned by an earlier internal panic; destroy it"));
+    }
+    Ok(entry)
+}
+
+/// Creates an engine: loads and verifies the model bundle named by `cfg->bundle_path` and
+/// prepares its graphs (takes a fraction of a second; do it once, not per stream).
+/// On success writes a new handle to `*out`; the caller owns it and must destroy it exactly
+/// once with `cg_engine_destroy`. On failure `*out` is left untouched.
+/// Errors: `CG_ERR_NULL_POINTER` (cfg or out NULL), `CG_ERR_INVALID_ARGUMENT` (bad field or
+/// struct_size), `CG_ERR_INVALID_UTF8` (bundle_path), `CG_ERR_BUNDLE`, `CG_ERR_IO`.
+/// Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_create(cfg: *const cg_engine_config, out: *mut *mut cg_engine) -> cg_status {
+    boundary("cg_engine_create", || {
+        if cfg.is_null() {
+            return Err(null("cfg"));
+        }
+        if out.is_null() {
+            return Err(null("out"));
+        }
+        let config = unsafe { engine_config_from_c(cfg)? };
+        let engine = Engine::new(config)?;
+        let entry = Arc::new(EngineEntry { engine, poisoned: AtomicBool::new(false) });
+        let handle = ENGINES
+            .insert(entry)
+            .ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many engine handles"))?;
+        unsafe { out.write(handle as *mut cg_engine) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Destroys an engine. Streams still generating are cancelled (they then report
+/// `CG_CANCELLED`) and this call waits until their workers have stopped (at most about one
+/// token step each), so no inference runs afterwards and the model memory is released.
+/// Stream handles stay valid and must still be destroyed with `cg_stream_destroy`; streams
+/// that had already finished keep their buffered frames. NULL is accepted and ignored
+/// (`CG_OK`). A stale or already destroyed handle gives `CG_ERR_INVALID_HANDLE`.
+/// Any thread; calls on this engine running concurrently on other threads finish safely
+/// (the engine is freed when the last of them returns).
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_destroy(engine: *mut cg_engine) -> cg_status {
+    boundary("cg_engine_destroy", || {
+        if engine.is_null() {
+            return Ok(cg_status::CG_OK);
+        }
+        let entry = ENGINES.remove(engine as usize).ok_or_else(|| {
+            Failure::new(cg_status::CG_ERR_INVALID_HANDLE, "engine is not a live cg_engine handle (already destroyed?)")
+        })?;
+        drop(entry); // Engine::drop: cancel running streams, wait for their workers.
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Writes the number of streams of this engine that are alive (started and not yet
+/// destroyed) to `*out`. Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_stream_count(engine: *mut cg_engine, out: *mut u32) -> cg_status {
+    boundary("cg_engine_stream_count", || {
+        if out.is_null() {
+            return Err(null("out"));
+        }
+        let entry = lookup_engine(engine)?;
+        let _poison = PoisonOnUnwind(&entry.poisoned);
+        let n = entry.engine.live_streams() as u32;
+        unsafe { out.write(n) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Bounded `strlen`: the length of a NUL-terminated string, or `None` if no NUL appears in
+/// the first `limit + 1` bytes (so an over-long or unterminated text is never scanned far).
+///
+/// SAFETY: `p` points to a NUL-terminated string or at least `limit + 1` readable bytes.
+unsafe fn bounded_strlen(p: *const c_char, limit: usize) -> Option<usize> {
+    (0..=limit).find(|&i| unsafe { *p.add(i) } == 0)
+}
+
+/// Starts generating motion for `text` (NUL-terminated UTF-8, 1..=`CG_MAX_TEXT_BYTES`
+/// bytes, not only whitespace) on a new worker thread and returns at once; poll the
+/// frames with `cg_poll_frame`. `cfg` may be NULL (all defaults). On success writes a new
+/// stream handle to `*out`; the caller owns it and must destroy it exactly once with
+/// `cg_stream_destroy` (which also stops the worker). `text` and `cfg` are only read during
+/// the call. Errors: `CG_ERR_NULL_POINTER` (engine, text or out NULL),
+/// `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_UTF8`, `CG_ERR_INVALID_ARGUMENT` (empty or
+/// over-long text, bad cfg), `CG_ERR_LIMIT` (`max_streams` streams alive), `CG_ERR_IO`.
+/// Any thread, concurrently with other calls on the same engine.
+#[no_mangle]
+pub unsafe extern "C" fn cg_start(
+    engine: *mut cg_engine,
+    text: *const c_char,
+    cfg: *const cg_stream_config,
+    out: *mut *mut cg_stream,
+) -> cg_status {
+    boundary("cg_start", || {
+        if text.is_null() {
+            return Err(null("text"));
+        }
+        let len = unsafe { bounded_strlen(text, MAX_TEXT_BYTES) }.ok_or_else(|| {
+            Failure::new(
+                cg_status::CG_ERR_INVALID_ARGUMENT,
+                format_args!("text is longer than CG_MAX_TEXT_BYTES ({MAX_TEXT_BYTES}) bytes"),
+            )
+        })?;
+        let bytes = unsafe { std::slice::from_raw_parts(text as *const u8, len) };
+        unsafe { start(engine, bytes, cfg, out) }
+    })
+}
+
+/// Same as `cg_start`, with the text given as `len` bytes of UTF-8 (no NUL needed; an
+/// embedded NUL is rejected as `CG_ERR_INVALID_ARGUMENT`). Convenient from C#
+/// (`fixed (byte* p = utf8)`) and other languages with counted strings. A NULL `text`
+/// gives `CG_ERR_NULL_POINTER` even when `len` is 0.
+#[no_mangle]
+pub unsafe extern "C" fn cg_start_utf8(
+    engine: *mut cg_engine,
+    text: *const u8,
+    len: usize,
+    cfg: *const cg_stream_config,
+    out: *mut *mut cg_stream,
+) -> cg_status {
+    boundary("cg_start_utf8", || {
+        if text.is_null() {
+            return Err(null("text"));
+        }
+        if len > MAX_TEXT_BYTES {
+            return Err(Failure::new(
+                cg_status::CG_ERR_INVALID_ARGUMENT,
+                format_args!("text is {len} bytes, longer than CG_MAX_TEXT_BYTES ({MAX_TEXT_BYTES})"),
+            ));
+        }
+        let bytes = unsafe { std::slice::from_raw_parts(text, len) };
+        if bytes.contains(&0) {
+            return Err(Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, "text contains a NUL byte"));
+        }
+        unsafe { start(engine, bytes, cfg, out) }
+    })
+}
+
+/// The common part of `cg_start` and `cg_start_utf8`, after the text bytes are bounded.
+unsafe fn start(
+    engine: *mut cg_engine,
+    bytes: &[u8],
+    cfg: *const cg_stream_config,
+    out: *mut *mut cg_stream,
+) -> Result<cg_status, Failure> {
+    if out.is_null() {
+        return Err(null("out"));
+    }
+    let entry = lookup_engine(engine)?;
+    let text = std::str::from_utf8(bytes).map_err(|e| {
+        Failure::new(cg_status::CG_ERR_INVALID_UTF8, format_args!("text is not valid UTF-8: {e}"))
+    })?;
+    let opts = unsafe { stream_config_from_c(cfg)? };
+    let stream = {
+        let _poison = PoisonOnUnwind(&entry.poisoned);
+        entry.engine.start(text, opts)?
+    };
+    let id = stream.id();
+    let canceller = stream.canceller();
+    let stream_entry = Arc::new(StreamEntry { id, canceller, stream: Mutex::new(stream), poisoned: AtomicBool::new(false) });
+    // If registration fails, dropping the entry stops and joins the worker.
+    let handle = STREAMS
+        .insert(stream_entry)
+        .ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many stream handles"))?;
+    unsafe { out.write(handle as *mut cg_stream) };
+    Ok(cg_status::CG_OK)
+}

@@ -1,0 +1,37 @@
+//! The C ABI (`include/comgrasp.h` is generated from this module by cbindgen).
+//!
+//! A thin layer over [`crate::engine::Engine`] and [`crate::stream::Stream`]: it validates
+//! every input, maps errors to [`cg_status`] codes with a thread-local message, and keeps
+//! panics inside the library. The rules every function follows:
+//!
+//! * **Panic boundary**: every body runs inside `catch_unwind` ([`panic`]); a panic returns
+//!   `CG_ERR_PANIC` and poisons the handle it happened on (later calls on it return
+//!   `CG_ERR_PANIC`; destroying it still works).
+//! * **Validated handles**: `cg_engine*` / `cg_stream*` are opaque tokens resolved through a
+//!   registry ([`handle`]), never dereferenced, so NULL, stale (destroyed), double-destroyed,
+//!   foreign or wrong-type handles give `CG_ERR_INVALID_HANDLE`/`CG_ERR_NULL_POINTER` instead
+//!   of undefined behaviour.
+//! * **Out-params last, written only on success.**
+//! * **Versioned configs**: structs start with `struct_size`; only the bytes the caller
+//!   declares are read, so the structs can grow by appending fields ([`config`]).
+//! * **Threads**: an engine may be used from any number of threads at once; a stream from
+//!   one thread at a time (concurrent use is detected and gives `CG_ERR_WRONG_STATE`),
+//!   except `cg_cancel`, which may be called from any thread at any time.
+#![deny(missing_docs)]
+
+pub mod panic;
+pub mod status;
+pub mod last_error;
+pub mod handle;
+pub mod version;
+pub mod config;
+pub mod engine;
+pub mod stream;
+
+pub use config::*;
+pub use engine::*;
+pub use handle::{cg_engine, cg_stream};
+pub use last_error::*;
+pub use status::*;
+pub use stream::*;
+pub use version::*;

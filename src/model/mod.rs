@@ -1,0 +1,10 @@
+//! The bundle's two token-level networks, run with tract: the 4-stream Transformer step
+//! with a Rust-owned KV cache ([`StepModel`] / [`StepState`]) and the streaming VQ decoder
+//! ([`DecoderModel`] / [`DecoderState`]). A model is loaded once per bundle and shared by
+//! every stream; each stream owns its states.
+mod decoder;
+pub(crate) mod graph;
+mod step;
+
+pub use decoder::{DecoderModel, DecoderState};
+pub use step::{StepModel, StepState};

@@ -1,0 +1,205 @@
+//! One decode step of the four coordinated Transformers (`step.onnx`) with a KV cache the
+//! engine owns.
+//!
+//! The graph (export/step_graph.py) takes `tokens (1,4)`, `pos (1,)`, `text_emb (1,d)` and
+//! per stream a full, fixed-size cache `cache_k_<s>`/`cache_v_<s>` of shape
+//! `(L, 1, H, S, D_s)`; it returns the four logits vectors and the new k/v rows
+//! `(L, 1, H, 1, D_s)` for slot `pos`, which this runner writes into the cache. The graph
+//! never sees a growing tensor, so tract runs it with static shapes.
+//!
+//! Allocation: the cache tensors, the small input tensors and the logits vectors live in
+//! [`StepState`] and are reused every step; tract gets cheap `Arc` clones of them and
+//! drops its references when the run ends, so they are updated in place. tract still
+//! allocates its own intermediates (and the 12 output tensors) inside a run.
+use std::sync::Arc;
+
+use parking_lot::Mutex;
+
+use tract_onnx::prelude::Tensor;
+
+use super::graph::{self, Plan, PlanState};
+use crate::bundle::manifest::{Manifest, N_STREAMS};
+use crate::error::{Error, Result};
+
+const TOKENS: usize = 0;
+const POS: usize = 1;
+const TEXT: usize = 2;
+const FIRST_CACHE: usize = 3;
+
+/// The loaded step graph; shared by all streams of an engine.
+pub struct StepModel {
+    plan: Plan,
+    n_layers: usize,
+    n_heads: usize,
+    slots: usize,
+    head_dims: [usize; N_STREAMS],
+    vocab: [usize; N_STREAMS],
+    d_text: usize,
+    /// Zeroed inputs and a spawned run state, cloned by `new_state` (made at load so that
+    /// creating a stream cannot fail).
+    template_inputs: Vec<Arc<Tensor>>,
+    template_run: Mutex<PlanState>,
+}
+
+/// One generation's KV cache, logits and tract run state. Create with
+/// [`StepModel::new_state`]; reuse for a new generation with [`StepState::reset`].
+pub struct StepState {
+    plan: Plan,
+    run: PlanState,
+    /// tokens, pos, text_emb, then cache_k/cache_v per stream, as the graph takes them.
+    inputs: Vec<Arc<Tensor>>,
+    logits: [Vec<f32>; N_STREAMS],
+    /// Slots 0..filled hold k/v rows.
+    filled: usize,
+}
+
+impl std::fmt::Debug for StepState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StepState").field("filled", &self.filled).finish_non_exhaustive()
+    }
+}
+
+impl std::fmt::Debug for StepModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StepModel").field("n_layers", &self.n_layers).field("n_heads", &self.n_heads)
+            .field("slots", &self.slots).field("head_dims", &self.head_dims).field("vocab", &self.vocab)
+            .finish_non_exhaustive()
+    }
+}
+
+impl StepModel {
+    /// Loads `transformer.file`; the manifest was verified (shapes follow from it).
+    pub fn load(dir: &std::path::Path, m: &Manifest) -> Result<StepModel> {
+        let t = &m.transformer;
+        let plan = graph::load(dir, &t.file, &t.inputs, &t.outputs)?;
+        let path = dir.join(&t.file);
+        let template_inputs = t.inputs.iter().map(graph::zeros).collect::<Result<Vec<_>>>()
+            .map_err(|e| Error::bundle(&path, e.to_string()))?;
+        let template_run = Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+        Ok(StepModel {
+            plan,
+            n_layers: t.n_layers,
+            n_heads: t.n_heads,
+            slots: t.cache_slots,
+            head_dims: std::array::from_fn(|i| t.head_dims[i]),
+            vocab: m.vocab_sizes(),
+            d_text: t.d_text,
+            template_inputs,
+            template_run,
+        })
+    }
+
+    /// Number of cache slots S (= L_max + 2): positions 0..S.
+    pub fn cache_slots(&self) -> usize {
+        self.slots
+    }
+
+    /// Width of the text embedding the step takes.
+    pub fn d_text(&self) -> usize {
+        self.d_text
+    }
+
+    /// Vocabulary sizes (logits lengths) of the four streams.
+    pub fn vocab_sizes(&self) -> [usize; N_STREAMS] {
+        self.vocab
+    }
+
+    /// A fresh state: zero cache, nothing filled.
+    pub fn new_state(&self) -> StepState {
+        StepState {
+            plan: Arc::clone(&self.plan),
+            run: self.template_run.lock().clone(),
+            inputs: self.template_inputs.iter().map(|t| Arc::new(Tensor::clone(t))).collect(),
+            logits: std::array::from_fn(|i| vec![0.0; self.vocab[i]]),
+            filled: 0,
+        }
+    }
+
+    /// Runs one step at position `pos` and returns the four logits vectors (global, body,
+    /// lhand, rhand), valid until the next call on `state`.
+    ///
+    /// `pos` 0 is the condition step: `text_emb` is projected into the condition token and
+    /// `tokens` must still be valid ids (feed the pad ids). At `pos` k >= 1 `tokens` are the
+    /// codes sampled at step k-1. `pos` may repeat an earlier position (the rows from
+    /// there on are overwritten) but never skip one: the cache must hold rows 0..pos.
+    pub fn step<'s>(&self, state: &'s mut StepState, tokens: [i64; N_STREAMS], pos: usize,
+                    text_emb: &[f32]) -> Result<[&'s [f32]; N_STREAMS]> {
+        if !Arc::ptr_eq(&state.plan, &self.plan) {
+            return Err(Error::WrongState("this StepState was created by another StepModel".into()));
+        }
+        if pos >= self.slots {
+            return Err(Error::InvalidArgument(format!("step position {pos} beyond the cache's {} slots", self.slots)));
+        }
+        if pos > state.filled {
+            return Err(Error::WrongState(format!("step position {pos} skips positions: cache holds 0..{}", state.filled)));
+        }
+        if text_emb.len() != self.d_text {
+            return Err(Error::InvalidArgument(format!("text embedding has {} values, the model takes {}", text_emb.len(), self.d_text)));
+        }
+        if !text_emb.iter().all(|v| v.is_finite()) {
+            return Err(Error::InvalidArgument("text embedding contains a non-finite value".into()));
+        }
+        for (s, (&t, &v)) in tokens.iter().zip(&self.vocab).enumerate() {
+            if t < 0 || t as u64 >= v as u64 {
+                return Err(Error::InvalidArgument(format!("token {t} of stream {s} outside the vocabulary 0..{v}")));
+            }
+        }
+        graph::slice_mut::<i64>(&mut state.inputs[TOKENS], "tokens")?.copy_from_slice(&tokens);
+        graph::slice_mut::<i64>(&mut state.inputs[POS], "pos")?[0] = pos as i64;
+        graph::slice_mut::<f32>(&mut state.inputs[TEXT], "text_emb")?.copy_from_slice(text_emb);
+
+        let out = graph::run(&mut state.run, &state.inputs, "step.onnx")?;
+        if out.len() != 3 * N_STREAMS {
+            return Err(Error::Inference(format!("step.onnx returned {} outputs, expected {}", out.len(), 3 * N_STREAMS)));
+        }
+        for s in 0..N_STREAMS {
+            let lg = graph::slice::<f32>(&out[s], "step.onnx logits", self.vocab[s])?;
+            state.logits[s].copy_from_slice(lg);
+        }
+        let (l, h, slots) = (self.n_layers, self.n_heads, self.slots);
+        for s in 0..N_STREAMS {
+            let d = self.head_dims[s];
+            for kv in 0..2 {
+                let row = graph::slice::<f32>(&out[N_STREAMS + 2 * s + kv], "step.onnx new k/v", l * h * d)?;
+                let cache = graph::slice_mut::<f32>(&mut state.inputs[FIRST_CACHE + 2 * s + kv], "kv cache")?;
+                // cache (L, 1, H, S, D)[.., .., .., pos, ..] = row (L, 1, H, 1, D)[.., .., .., 0, ..]
+                for lh in 0..l * h {
+                    let dst = (lh * slots + pos) * d;
+                    cache[dst..dst + d].copy_from_slice(&row[lh * d..(lh + 1) * d]);
+                }
+            }
+        }
+        drop(out);
+        state.filled = state.filled.max(pos + 1);
+        Ok(state.logits())
+    }
+}
+
+impl StepState {
+    /// Starts a new generation: zero cache, nothing filled (no allocation).
+    pub fn reset(&mut self) -> Result<()> {
+        for t in self.inputs.iter_mut() {
+            graph::fill_zero(t)?;
+        }
+        self.filled = 0;
+        Ok(())
+    }
+
+    /// The logits of the last step (zeros before the first).
+    pub fn logits(&self) -> [&[f32]; N_STREAMS] {
+        std::array::from_fn(|i| self.logits[i].as_slice())
+    }
+
+    /// Number of positions whose k/v rows are in the cache.
+    pub fn filled(&self) -> usize {
+        self.filled
+    }
+}
+
+#[allow(dead_code)]
+fn _assert_send() {
+    fn is_send<T: Send>() {}
+    fn is_send_sync<T: Send + Sync>() {}
+    is_send::<StepState>();
+    is_send_sync::<StepModel>();
+}
