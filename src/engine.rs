@@ -24,11 +24,14 @@ use crate::error::{Error, Result};
 use crate::frame::CoordinateSystem;
 use crate::stream::{ChunkSource, Stream, StreamShared};
 
-/// Longest accepted prompt, in UTF-8 bytes.
+/// Longest accepted prompt, in UTF-8 bytes. (C: `CG_MAX_TEXT_BYTES`.)
+/// cbindgen:ignore
 pub const MAX_TEXT_BYTES: usize = 4096;
 /// Largest accepted ring capacity, in frames (~1.6 KiB each).
+/// cbindgen:ignore
 pub const MAX_RING_CAPACITY: usize = 1 << 16;
 /// Largest accepted `max_streams`.
+/// cbindgen:ignore
 pub const MAX_STREAMS_LIMIT: usize = 1024;
 
 /// Engine-wide settings, fixed at creation.

@@ -19,7 +19,11 @@ pub const CG_HAND_JOINTS: usize = 15;
 pub const CG_NUM_JOINTS: usize = 55;
 
 /// One frame of generated motion. All positions in the engine's coordinate system
-/// (metres, or centimetres for Unreal).
+/// (metres, or centimetres for Unreal). Rotations are unit quaternions (x, y, z, w) with
+/// w >= 0. In a non-native coordinate system with basis change S and unit scale c (see
+/// cg_coordinate_system), positions are c * S * p and EVERY rotation, global and local
+/// alike, is S * R * S^T: a host's rest skeleton (and object meshes) must be transformed
+/// the same way (c * S * J) for its forward kinematics to match `joint_positions`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct cg_frame {

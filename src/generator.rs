@@ -1,14 +1,225 @@
 //! One generation: text → condition → token steps → decoded 16-frame chunks → assembled
-//! frames, as a [`ChunkSource`] driven by a stream's worker thread.
-//! (Pipeline wiring pending: the bundle, model and sampler modules are being written.)
+//! frames, as a [`ChunkSource`] driven by a stream's worker thread (one token step per
+//! `next_chunk` call, so a cancel is seen within one step).
+//!
+//! Per call, at step `k` (DESIGN §3, `sampler` docs):
+//! 1. first call only: `TextEncoder::embed(text)`; step 0's input is the condition token
+//!    (the graph projects the embedding) with the Pad ids as tokens;
+//! 2. `StepModel::step(tokens of step k-1, pos = k)` → logits → `TokenSampler::sample_step`;
+//! 3. if any stream sampled its End id, the sequence has `k` codes: stop;
+//! 4. else decode the four codes → F (= 16) normalized frames → `FrameAssembler::assemble`.
+//!
+//! **`is_last` policy: hold back one frame.** Whether a chunk is the last one is only known
+//! at the *next* step (when End is sampled there). Every chunk's first F-1 frames are
+//! emitted as soon as they are decoded; its final frame is held until the next step has
+//! decided, then emitted with the right `is_last` (1 if that step sampled End). So:
+//! * `is_last` is exact and set on a real frame (no marker frame, no frame patched after
+//!   it was handed out);
+//! * time to first frame is not delayed at all, and frame F-1 of each chunk arrives one
+//!   token step late, while the host is still playing the chunk's first F-1 frames
+//!   (~0.5 s at 30 fps versus a step of a few ms), so playback never waits for it;
+//! * when the step limit forces End (`k + 1 == max_len`), nothing is held: the final
+//!   chunk goes out whole, its last frame marked, without running the forced step;
+//! * if End is sampled at step 0 (possible only with `min_len = 0`) the stream has no
+//!   frames and ends directly (poll reports End without any frame).
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::assemble::FrameAssembler;
+use crate::bundle::{Bundle, N_STREAMS};
+use crate::engine::{EngineConfig, SourceFactory, StreamRequest};
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+use crate::model::{DecoderState, StepState};
+use crate::sampler::{SamplingParams, TokenSampler};
+
 pub use crate::stream::ChunkSource;
 
-use crate::engine::{EngineConfig, SourceFactory};
-use crate::error::{Error, Result};
-
-/// Loads the bundle named by the config and returns the factory that builds one
-/// generator per stream.
+/// Loads the bundle named by the config (verifying it) and returns the factory that builds
+/// one [`Generator`] per stream. Everything expensive (graph loading, the assembler) happens
+/// here, once per engine.
 pub fn source_factory(config: &EngineConfig) -> Result<SourceFactory> {
-    let path = config.bundle_path.clone().unwrap_or_default();
-    Err(Error::bundle(path, "bundle loading is not wired into the engine yet"))
+    let Some(path) = config.bundle_path.as_ref() else {
+        return Err(Error::bundle(
+            PathBuf::new(),
+            "no bundle_path given, and this build has no embedded default bundle",
+        ));
+    };
+    let bundle = Bundle::load(path)?;
+    let pipeline = Arc::new(Pipeline::new(bundle, config)?);
+    Ok(Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
+        Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?))
+    }))
+}
+
+/// What every stream of an engine shares: the bundle and the frame assembler.
+pub struct Pipeline {
+    bundle: Arc<Bundle>,
+    assembler: FrameAssembler,
+    end_ids: [usize; N_STREAMS],
+    pad_ids: [i64; N_STREAMS],
+}
+
+impl Pipeline {
+    /// Builds the assembler for the engine's coordinate system and FK setting.
+    pub fn new(bundle: Arc<Bundle>, config: &EngineConfig) -> Result<Pipeline> {
+        let m = &bundle.manifest;
+        let manifest_path = bundle.path(crate::bundle::manifest::MANIFEST_FILE);
+        let assembler = FrameAssembler::new(
+            &m.normalization.mean,
+            &m.normalization.std,
+            &m.skeleton.parents,
+            &m.skeleton.rest_joints,
+            config.coordinate_system,
+            config.enable_fk,
+            m.fps,
+        )
+        // Bad normalization or skeleton data is a bundle defect, not a caller error.
+        .map_err(|e| Error::bundle(&manifest_path, e.to_string()))?;
+        let pad_ids = m.pad_ids();
+        if pad_ids.iter().any(|&p| p < 0) {
+            return Err(Error::bundle(&manifest_path, "negative pad id"));
+        }
+        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle })
+    }
+
+    /// The bundle the pipeline runs.
+    pub fn bundle(&self) -> &Arc<Bundle> {
+        &self.bundle
+    }
+}
+
+/// One stream's generation state (KV cache, decoder context, sampler, held frame).
+pub struct Generator {
+    pipe: Arc<Pipeline>,
+    stream_id: u64,
+    text: String,
+    /// Computed on the worker by the first `next_chunk`.
+    text_emb: Option<Vec<f32>>,
+    sampler: TokenSampler,
+    max_len: usize,
+    /// KV cache, decoder context and the decode buffer: made by the first `next_chunk`,
+    /// on the worker, so `cg_start` never pays for allocating and zeroing them.
+    state: Option<State>,
+    /// Next step index k.
+    k: usize,
+    /// Codes sampled at step k-1 (the Pad ids before step 0).
+    prev: [i64; N_STREAMS],
+    /// The final frame of the previous chunk, waiting for the next step's verdict.
+    held: Option<Frame>,
+    next_frame: u64,
+    done: bool,
+}
+
+impl Generator {
+    /// Sets up one generation: resolves and validates the sampling settings (stream, then
+    /// engine, then bundle defaults). Cheap: no inference and no model state here.
+    pub fn new(pipe: Arc<Pipeline>, req: &StreamRequest<'_>) -> Result<Generator> {
+        let b = &pipe.bundle;
+        let d = &b.manifest.sampling;
+        let l_max = b.manifest.l_max as u32;
+        let c = req.config;
+        let default_max = if d.max_len == 0 { l_max } else { d.max_len as u32 };
+        let params = SamplingParams::new(
+            c.temperature.unwrap_or(d.temperature),
+            c.top_k.unwrap_or(d.top_k as u32),
+            c.min_len.unwrap_or(d.min_len as u32),
+            c.max_len.unwrap_or(default_max),
+            l_max,
+        )?;
+        if params.max_len == 0 {
+            return Err(Error::InvalidArgument("max_len must be at least 1".into()));
+        }
+        let pad_usize = pipe.pad_ids.map(|p| p as usize);
+        let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
+        Ok(Generator {
+            stream_id: req.stream_id,
+            text: req.text.to_owned(),
+            text_emb: None,
+            max_len: params.max_len as usize,
+            state: None,
+            k: 0,
+            prev: pipe.pad_ids,
+            held: None,
+            next_frame: 0,
+            done: false,
+            sampler,
+            pipe,
+        })
+    }
+
+    /// Runs step k and samples its codes; `None` when the sequence ends at k.
+    fn sample(&mut self) -> Result<Option<[i64; N_STREAMS]>> {
+        let b = &self.pipe.bundle;
+        if self.text_emb.is_none() {
+            self.text_emb = Some(b.text.embed(&self.text)?);
+        }
+        let emb = self.text_emb.as_deref().unwrap_or_default();
+        let state = self.state.get_or_insert_with(|| State::new(b));
+        let logits = b.step.step(&mut state.step, self.prev, self.k, emb)?;
+        let codes = self.sampler.sample_step(self.k, logits)?;
+        if codes.iter().zip(&self.pipe.end_ids).any(|(c, e)| c == e) {
+            return Ok(None);
+        }
+        Ok(Some(codes.map(|c| c as i64)))
+    }
+}
+
+/// The per-stream model state.
+struct State {
+    step: StepState,
+    decoder: DecoderState,
+    /// The normalized output of one decode (F x 335), reused.
+    normalized: Vec<f32>,
+}
+
+impl State {
+    fn new(b: &Bundle) -> State {
+        State { step: b.step.new_state(), decoder: b.decoder.new_state(), normalized: vec![0.0; b.decoder.chunk_len()] }
+    }
+}
+
+impl ChunkSource for Generator {
+    fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool> {
+        if self.done {
+            return Ok(false);
+        }
+        let codes = if self.k >= self.max_len { None } else { self.sample()? };
+        let Some(codes) = codes else {
+            // The previous chunk was the last one: release its held frame, marked.
+            self.done = true;
+            if let Some(mut f) = self.held.take() {
+                f.is_last = 1;
+                out.push(f);
+            }
+            return Ok(false);
+        };
+        if let Some(f) = self.held.take() {
+            out.push(f);
+        }
+        let b = &self.pipe.bundle;
+        let state = self.state.get_or_insert_with(|| State::new(b));
+        b.decoder.decode(&mut state.decoder, codes, &mut state.normalized)?;
+        // The step limit forces End at k + 1: this chunk is the last, nothing to hold.
+        let forced_last = self.k + 1 >= self.max_len;
+        let width = crate::bundle::manifest::FRAME_DIM;
+        let n = state.normalized.len() / width;
+        for (i, feats) in state.normalized.chunks_exact(width).enumerate() {
+            let mut frame = Frame::default();
+            let last_of_chunk = i + 1 == n;
+            self.pipe.assembler.assemble(feats, self.stream_id, self.next_frame, forced_last && last_of_chunk, &mut frame);
+            self.next_frame += 1;
+            if last_of_chunk && !forced_last {
+                self.held = Some(frame);
+            } else {
+                out.push(frame);
+            }
+        }
+        self.prev = codes;
+        self.k += 1;
+        if forced_last {
+            self.done = true;
+        }
+        Ok(!forced_last)
+    }
 }

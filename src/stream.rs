@@ -317,10 +317,6 @@ impl Stream {
         }
         self.cons = None;
     }
-
-    pub(crate) fn shared(&self) -> &Arc<StreamShared> {
-        &self.shared
-    }
 }
 
 impl Drop for Stream {

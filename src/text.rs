@@ -8,6 +8,7 @@
 //! * eos: `e = h[i]` with `i` the first `eos_id` token (`first_eos`) or the first position
 //!   of the largest id (`argmax_id`);
 //! * then, if `normalize`, `e / max(‖e‖₂, norm_eps)`.
+//!
 //! Sums are accumulated in f64 (PyTorch sums f32 in another order; f64 keeps the Rust
 //! result within rounding of the exact value, well inside the 1e-5 parity tolerance).
 //!
@@ -17,7 +18,7 @@
 //! padding written into tokenizer.json, so a prompt with more than `max_tokens` tokens
 //! is truncated (keeping the final special token) and [`TextEmbedding::truncated`] says so.
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 
 use tokenizers::Tokenizer;
@@ -249,7 +250,7 @@ impl TextEncoder {
 }
 
 /// Reads tokenizer.json and checks its padding/truncation settings against `max_tokens`.
-fn load_tokenizer(path: &PathBuf, max_tokens: usize) -> Result<Tokenizer> {
+fn load_tokenizer(path: &Path, max_tokens: usize) -> Result<Tokenizer> {
     let bytes = std::fs::read(path).map_err(|e| Error::bundle(path, format!("cannot read: {e}")))?;
     let tok = match catch_unwind(|| Tokenizer::from_bytes(&bytes)) {
         Ok(Ok(t)) => t,

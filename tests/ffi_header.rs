@@ -22,8 +22,10 @@ fn header_declares_and_documents_every_function() {
         "cg_engine_create", "cg_engine_destroy", "cg_engine_stream_count", "cg_start", "cg_start_utf8",
         "cg_poll_frame", "cg_stream_wait", "cg_cancel", "cg_stream_destroy", "cg_stream_id",
     ] {
-        let decl = format!(" {f}(");
-        let at = GENERATED.find(&decl).unwrap_or_else(|| panic!("{f} missing from the header"));
+        let at = [format!(" {f}("), format!("*{f}(")]
+            .iter()
+            .find_map(|d| GENERATED.find(d.as_str()))
+            .unwrap_or_else(|| panic!("{f} missing from the header"));
         // The line before the declaration must be a doc comment line.
         let before = GENERATED[..at].trim_end_matches(|c| c != '\n').trim_end();
         let last_line = before.lines().last().unwrap_or("");

@@ -247,7 +247,7 @@ fn decoder_chunks_match_pytorch_stream_and_offline() {
     }
 
     // Reset replays the same frames.
-    b.decoder.reset(&mut st).unwrap();
+    st.reset().unwrap();
     b.decoder.decode(&mut st, tokens[0], &mut chunk).unwrap();
     assert_eq!(&chunk[..], &all[..chunk.len()]);
 }

@@ -403,11 +403,13 @@ pub fn check_parity_index(dir: &Path, m: &Manifest) -> Result<()> {
             .ok_or_else(|| Error::bundle(&path, format!("entry without a path: {e}")))?;
         ensure(m.files.contains_key(rel), &path, || format!("lists {rel:?}, which is not in the manifest's files table"))?;
         let dtype = e.get("dtype").and_then(|v| v.as_str()).unwrap_or("?");
-        let shape: Option<Vec<usize>> = e.get("shape").and_then(|v| v.as_array())
-            .and_then(|a| a.iter().map(|x| x.as_u64().map(|x| x as usize)).collect());
+        let shape = e.get("shape").cloned().unwrap_or(serde_json::Value::Null);
         let h = npy::read_header(&dir.join(rel))?;
-        ensure(h.dtype.numpy_name() == dtype && Some(&h.shape) == shape.as_ref(), &dir.join(rel), || {
-            format!("{} {:?} but parity/index.json says {dtype} {shape:?}", h.dtype.numpy_name(), h.shape)
+        let same_shape = shape.as_array().is_some_and(|a| {
+            a.len() == h.shape.len() && a.iter().zip(&h.shape).all(|(x, &y)| x.as_u64() == Some(y as u64))
+        });
+        ensure(h.dtype.numpy_name() == dtype && same_shape, &dir.join(rel), || {
+            format!("the file is {} {:?} but parity/index.json says {dtype} {shape}", h.dtype.numpy_name(), h.shape)
         })?;
     }
     Ok(())

@@ -19,14 +19,14 @@
 //!   except `cg_cancel`, which may be called from any thread at any time.
 #![deny(missing_docs)]
 
-pub mod panic;
+pub mod version;
 pub mod status;
 pub mod last_error;
-pub mod handle;
-pub mod version;
 pub mod config;
+pub mod handle;
 pub mod engine;
 pub mod stream;
+pub mod panic;
 
 pub use config::*;
 pub use engine::*;

@@ -137,7 +137,7 @@ pub unsafe extern "C" fn cg_stream_destroy(stream: *mut cg_stream) -> cg_status 
 }
 
 /// Writes the stream's id (unique per engine, starting at 1; frames carry it as
-/// `stream_id`) to `*out`. One thread at a time per stream, or any thread (read-only).
+/// `stream_id`) to `*out`. Any thread (it only reads an immutable value).
 #[no_mangle]
 pub unsafe extern "C" fn cg_stream_id(stream: *mut cg_stream, out: *mut u64) -> cg_status {
     boundary("cg_stream_id", || {

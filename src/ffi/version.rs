@@ -10,7 +10,11 @@ use crate::frame::cg_frame;
 pub const CG_ABI_VERSION: u32 = 1;
 
 /// Longest accepted prompt, in UTF-8 bytes (excluding the terminating NUL).
-pub const CG_MAX_TEXT_BYTES: u32 = crate::engine::MAX_TEXT_BYTES as u32;
+pub const CG_MAX_TEXT_BYTES: u32 = 4096;
+// A literal above so cbindgen can emit it; kept equal to the engine's limit here.
+const _: () = assert!(CG_MAX_TEXT_BYTES as usize == crate::engine::MAX_TEXT_BYTES);
+// The frame layout is ABI: any change must bump CG_ABI_VERSION (and this number).
+const _: () = assert!(std::mem::size_of::<cg_frame>() == 1608);
 
 /// The library's `CG_ABI_VERSION`. A host compiled against a header with a different value
 /// must not use this library. Any thread.

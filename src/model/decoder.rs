@@ -32,6 +32,8 @@ pub struct DecoderState {
     run: PlanState,
     /// [state, tokens], as the graph takes them.
     inputs: [Arc<Tensor>; 2],
+    /// The model's initial state (shared, read-only), for `reset`.
+    initial: Arc<Tensor>,
     /// Tokens decoded so far.
     decoded: usize,
 }
@@ -89,6 +91,7 @@ impl DecoderModel {
             plan: Arc::clone(&self.plan),
             run: self.template_run.lock().clone(),
             inputs: [Arc::new(Tensor::clone(&self.initial)), Arc::new(Tensor::clone(&self.template_tokens))],
+            initial: Arc::clone(&self.initial),
             decoded: 0,
         }
     }
@@ -128,17 +131,12 @@ impl DecoderState {
     pub fn decoded(&self) -> usize {
         self.decoded
     }
-}
 
-impl DecoderModel {
-    /// Resets `state` to the start of a new sequence (no allocation).
-    pub fn reset(&self, state: &mut DecoderState) -> Result<()> {
-        if !Arc::ptr_eq(&state.plan, &self.plan) {
-            return Err(Error::WrongState("this DecoderState was created by another DecoderModel".into()));
-        }
-        let init = graph::slice::<i64>(&self.initial, "decoder initial state", N_STREAMS * self.state_tokens)?;
-        graph::slice_mut::<i64>(&mut state.inputs[0], "decoder state")?.copy_from_slice(init);
-        state.decoded = 0;
+    /// Starts a new sequence (no allocation).
+    pub fn reset(&mut self) -> Result<()> {
+        let init = graph::slice::<i64>(&self.initial, "decoder initial state", self.initial.len())?;
+        graph::slice_mut::<i64>(&mut self.inputs[0], "decoder state")?.copy_from_slice(init);
+        self.decoded = 0;
         Ok(())
     }
 }

@@ -30,8 +30,19 @@ fn datum(d: Dtype) -> DatumType {
     }
 }
 
+/// `float32 [1, 34]`, in the manifest's words where possible.
 fn describe(fact: &TypedFact) -> String {
-    format!("{:?} {:?}", fact.datum_type, fact.shape)
+    let dt = if fact.datum_type == f32::datum_type() {
+        "float32".to_string()
+    } else if fact.datum_type == i64::datum_type() {
+        "int64".to_string()
+    } else {
+        format!("{:?}", fact.datum_type)
+    };
+    match fact.shape.as_concrete() {
+        Some(s) => format!("{dt} {s:?}"),
+        None => format!("{dt} {:?} (not static)", fact.shape),
+    }
 }
 
 /// Loads `dir/rel` with tract, checks its inputs and outputs against the manifest's
@@ -40,7 +51,7 @@ pub(crate) fn load(dir: &Path, rel: &str, inputs: &[IoSpec], outputs: &[IoSpec])
     let path = dir.join(rel);
     match catch_unwind(AssertUnwindSafe(|| load_inner(&path, inputs, outputs))) {
         Ok(r) => r,
-        Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(&p)))),
+        Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref())))),
     }
 }
 
@@ -143,7 +154,7 @@ pub(crate) fn run(state: &mut PlanState, inputs: &[Arc<Tensor>], what: &str) -> 
     match catch_unwind(AssertUnwindSafe(|| state.run(values))) {
         Ok(Ok(out)) => Ok(out),
         Ok(Err(e)) => Err(Error::Inference(format!("{what}: {e:#}"))),
-        Err(p) => Err(Error::Inference(format!("{what}: tract panicked: {}", panic_text(&p)))),
+        Err(p) => Err(Error::Inference(format!("{what}: tract panicked: {}", panic_text(p.as_ref())))),
     }
 }
 
@@ -152,7 +163,7 @@ pub(crate) fn spawn(plan: &Plan, what: &str) -> Result<PlanState> {
     plan.spawn().map_err(|e| Error::Inference(format!("{what}: cannot create a run state: {e:#}")))
 }
 
-fn panic_text(p: &Box<dyn std::any::Any + Send>) -> String {
+fn panic_text(p: &(dyn std::any::Any + Send)) -> String {
     p.downcast_ref::<&str>().map(|s| s.to_string())
         .or_else(|| p.downcast_ref::<String>().cloned())
         .unwrap_or_else(|| "unknown panic".into())

@@ -120,8 +120,8 @@ impl StepModel {
     ///
     /// `pos` 0 is the condition step: `text_emb` is projected into the condition token and
     /// `tokens` must still be valid ids (feed the pad ids). At `pos` k >= 1 `tokens` are the
-    /// codes sampled at step k-1. `pos` may repeat an earlier position (the rows from
-    /// there on are overwritten) but never skip one: the cache must hold rows 0..pos.
+    /// codes sampled at step k-1. `pos` may go back to an earlier position (the rows
+    /// from there on are then recomputed) but never skip one: the cache must hold rows 0..pos.
     pub fn step<'s>(&self, state: &'s mut StepState, tokens: [i64; N_STREAMS], pos: usize,
                     text_emb: &[f32]) -> Result<[&'s [f32]; N_STREAMS]> {
         if !Arc::ptr_eq(&state.plan, &self.plan) {
@@ -170,7 +170,8 @@ impl StepModel {
             }
         }
         drop(out);
-        state.filled = state.filled.max(pos + 1);
+        // Rows after `pos` (from an earlier, longer run) are stale now.
+        state.filled = pos + 1;
         Ok(state.logits())
     }
 }

@@ -147,7 +147,7 @@ def generate_sequence(spec: SequenceSpec, root: str | Path, seed: int) -> dict:
 
 
 def _init_worker() -> None:
-    torch.set_num_threads(1)  # one process per core
+    torch.set_num_threads(1)  # one process per core; the tensors are small, threads only contend
 
 
 def generate_dataset(out_dir: Path, n_sequences: int, seed: int, workers: int = 2, progress: bool = True) -> dict:
@@ -165,9 +165,14 @@ def generate_dataset(out_dir: Path, n_sequences: int, seed: int, workers: int = 
     rows = []
     with tqdm(total=len(specs), disable=not progress, unit="seq", desc="SynthGrasp") as bar:
         if workers <= 1:
-            for spec in specs:
-                rows.append(job(spec))
-                bar.update()
+            threads = torch.get_num_threads()
+            _init_worker()
+            try:
+                for spec in specs:
+                    rows.append(job(spec))
+                    bar.update()
+            finally:
+                torch.set_num_threads(threads)
         else:
             with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
                 for row in pool.imap_unordered(job, specs):

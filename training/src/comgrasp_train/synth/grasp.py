@@ -72,26 +72,35 @@ class Hand:
         angles = np.asarray(curls)[..., :, None] * self.max_angles
         return axis_angle(self.axes[:, None, :], angles)
 
-    def pose(self, curls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Hand proxy points (B, Ph, 3) and capsule ends (B, K, 3) x2 in the wrist frame
-        (wrist at the origin, wrist rotation identity) for curls (B, 5)."""
+    def _fk(self, curls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Global rotations and positions (wrist frame) of all joints for curls (B, 5)."""
         curls = np.atleast_2d(curls)
         rot = np.tile(np.eye(3), (len(curls), sk.NUM_JOINTS, 1, 1))
         rot[:, self.fingers] = self.finger_locals(curls)
         g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), self._rest_t))
-        j = j - self.rest[self.wrist]
+        return g, j - self.rest[self.wrist]
+
+    def points(self, curls: np.ndarray) -> np.ndarray:
+        """Hand proxy points (B, Ph, 3) in the wrist frame (wrist at the origin, rotation
+        identity) for curls (B, 5)."""
+        g, j = self._fk(curls)
         # surface.pose_points (p = G_j (p_rest - J_j) + J_j), one matrix product per joint.
-        pts = np.empty((len(curls), len(self.index), 3))
+        pts = np.empty((len(g), len(self.index), 3))
         for jt, sel, offsets in self._groups:
             pts[:, sel] = offsets @ np.swapaxes(g[:, jt], -1, -2) + j[:, jt, None]
+        return pts
+
+    def capsules(self, curls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Both ends (B, K, 3) of every hand capsule in the wrist frame for curls (B, 5)."""
+        g, j = self._fk(curls)
         cj = self._cap_joint
         a = np.einsum("bkij,kj->bki", g[:, cj], self._cap_a - self.rest[cj]) + j[:, cj]
         b = np.einsum("bkij,kj->bki", g[:, cj], self._cap_b - self.rest[cj]) + j[:, cj]
-        return pts, a, b
+        return a, b
 
     @cached_property
     def open_points(self) -> np.ndarray:
-        return self.pose(np.zeros(5))[0][0]
+        return self.points(np.zeros(5))[0]
 
     def anchor(self, lam: float) -> np.ndarray:
         """A point on the palm surface (wrist frame): ``lam`` of the way from the wrist to the
@@ -202,8 +211,8 @@ def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, tar
     pos = pos + s * approach
     curls = _close_fingers(hand, rot, pos, clearance)
 
-    pts, a, b = hand.pose(curls)
-    pts, a, b = pts[0] @ rot.T + pos, a[0] @ rot.T + pos, b[0] @ rot.T + pos
+    pts = hand.points(curls)[0] @ rot.T + pos
+    a, b = (x[0] @ rot.T + pos for x in hand.capsules(curls))
     sdf = shape.sdf(pts)
     if sdf.min() > GAP + 1e-4 or clearance(pts).min() < GAP - 1e-5:
         return None
@@ -236,7 +245,7 @@ def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> n
     the first touch on a grid of curls, refined by bisection."""
     on_finger = hand.finger_mask.any(axis=0)
     masks = hand.finger_mask[:, on_finger]
-    pts = hand.pose(np.repeat(_CURL_GRID[:, None], 5, axis=1))[0][:, on_finger] @ rot.T + pos
+    pts = hand.points(np.repeat(_CURL_GRID[:, None], 5, axis=1))[:, on_finger] @ rot.T + pos
     d = clearance(pts)  # (G, finger points)
     dmin = np.stack([d[:, m].min(axis=1) for m in masks], axis=1)  # (G, 5)
     hit = dmin < GAP
@@ -247,7 +256,7 @@ def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> n
     free = (first > 0) & (first < len(_CURL_GRID))
     for _ in range(10):
         mid = np.where(free, 0.5 * (lo + hi), lo)
-        dm = clearance(hand.pose(mid)[0][0, on_finger] @ rot.T + pos)
+        dm = clearance(hand.points(mid)[0, on_finger] @ rot.T + pos)
         ok = np.array([dm[m].min() >= GAP for m in masks])
         lo = np.where(free & ok, mid, lo)
         hi = np.where(free & ~ok, mid, hi)

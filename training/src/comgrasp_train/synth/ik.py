@@ -150,13 +150,15 @@ def make_arm(rest: np.ndarray, side: str) -> Arm:
 
 
 def arm_ik(arm: Arm, shoulder: np.ndarray, parent_rot: np.ndarray, target_pos: np.ndarray,
-           target_rot: np.ndarray, pole: np.ndarray, twist_share: float = 0.5):
+           target_rot: np.ndarray, pole: np.ndarray, swivel: float = 1.2, twist_share: float = 0.5):
     """Two-bone IK: local rotations (shoulder, elbow, wrist) that put the wrist at
-    ``target_pos`` with global rotation ``target_rot``; the elbow goes toward ``pole``.
+    ``target_pos`` with global rotation ``target_rot``.
 
-    Half (``twist_share``) of the wrist's twist about the forearm moves into the elbow, the
-    way forearm pronation is shared in SMPL-X. Returns the three (..., 3, 3) locals and the
-    reach shortfall (m), 0 when the target is reachable.
+    The elbow goes toward ``pole``, swivelled about the shoulder-wrist line (by up to
+    ``swivel`` rad, smoothly) toward where the forearm would line up with the hand, which
+    keeps the wrist from bending far. Half (``twist_share``) of the wrist's twist about the
+    forearm moves into the elbow, the way forearm pronation is shared in SMPL-X. Returns the
+    three (..., 3, 3) locals and the reach shortfall (m), 0 when the target is reachable.
     """
     a, b = arm.upper, arm.fore
     d_vec = target_pos - shoulder
@@ -166,6 +168,11 @@ def arm_ik(arm: Arm, shoulder: np.ndarray, parent_rot: np.ndarray, target_pos: n
     x = (a * a - b * b + dc * dc) / (2.0 * dc)
     h = np.sqrt(np.maximum(a * a - x * x, 0.0))
     p_perp = unit(pole - (pole * u_t).sum(-1, keepdims=True) * u_t)
+    # The elbow direction that aligns the forearm with the hand is away from the hand's axis.
+    along = target_rot @ arm.f0
+    best = -(along - (along * u_t).sum(-1, keepdims=True) * u_t)
+    turn = swivel * (np.cross(p_perp, best) * u_t).sum(-1)  # |best| sin(angle): smooth, fades out
+    p_perp = unit(p_perp * np.cos(turn)[..., None] + np.cross(u_t, p_perp) * np.sin(turn)[..., None])
     elbow = shoulder + x[..., None] * u_t + h[..., None] * p_perp
     wrist = shoulder + dc[..., None] * u_t
     u = (elbow - shoulder) / a

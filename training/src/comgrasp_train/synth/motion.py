@@ -36,6 +36,7 @@ LAG = 0.4  # share of a reach during which the hand only rises (retracting: only
 ARC = 0.06  # m the hand's path rises above the straight line midway through reaching out
 TABLE_CLEARANCE = 0.01  # m a reaching hand keeps above the table top
 TOLERANCE = 1e-4  # m: a holding wrist must be this close to where the object needs it
+BODY_TOLERANCE = 0.01  # m the carried object may press into the body proxy (e.g. a wrist)
 
 
 @dataclass
@@ -135,7 +136,7 @@ def _clear_table(hf: _HandFrames, hand, curls: np.ndarray, sc, frames: np.ndarra
     idx = np.nonzero(frames & near)[0]
     if not len(idx):
         return
-    _, a, b = hand.pose(curls[idx])
+    a, b = hand.capsules(curls[idx])
     ends = np.einsum("nij,nkj->nki", hf.rot[idx], np.concatenate([a, b], axis=1)) + hf.pos[idx, None]
     r = np.tile(hand.cap_radius, 2)
     half = np.array(TABLE_SIZE[:2]) / 2 + r[:, None]
@@ -212,8 +213,26 @@ def synthesize(plan: Plan) -> Motion:
         if err > TOLERANCE:
             raise PlanRejected(f"{s} wrist misses the held object by {err * 1000:.1f} mm")
 
+    _check_body_clear(plan, g, j, out_rot, out_pos, holding)
     contact_object, contact_body = _contacts(plan, holding)
     return Motion(local, transl, g, j, out_rot, out_pos, holding, contact_object, contact_body)
+
+
+def _check_body_clear(plan: Plan, g: np.ndarray, j: np.ndarray, obj_rot: np.ndarray, obj_pos: np.ndarray,
+                      holding: np.ndarray) -> None:
+    """Reject the plan if the carried object cuts into the body (arms, torso, head) by more
+    than BODY_TOLERANCE: the object's SDF at points along each body capsule's axis, less its
+    radius, on every 6th held frame."""
+    rest = plan.scene.rest
+    a, b, r, joint = plan.scene.model.body_capsules
+    f = np.nonzero(holding.any(axis=1))[0][::6]
+    along = np.linspace(0.0, 1.0, 6)[:, None]
+    axis = a[None] * (1 - along[..., None]) + b[None] * along[..., None]  # (6, K, 3) rest points
+    posed = np.einsum("tkij,skj->tski", g[f][:, joint], axis - rest[joint]) + j[f][:, joint][:, None]
+    local = np.einsum("tji,tskj->tski", obj_rot[f], posed - obj_pos[f][:, None, None])
+    depth = (r - plan.obj.shape.sdf(local)).max()
+    if depth > BODY_TOLERANCE:
+        raise PlanRejected(f"{plan.obj.name} cuts {depth * 1000:.0f} mm into the body")
 
 
 def _contacts(plan: Plan, holding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

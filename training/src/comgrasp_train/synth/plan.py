@@ -239,7 +239,7 @@ def make_scene(model: SubjectModel, rng: np.random.Generator) -> Scene:
     g, j = (x[0].numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), torch.from_numpy(rest)))
     idle = {s: (g[arms[s].wrist], j[arms[s].wrist] - j[arms[s].shoulder]) for s in SIDES}
     hands = {s: hand_model(model.spec.sbj_id, s) for s in SIDES}
-    front = {s: float((hands[s].pose(relaxed[s])[0][0] @ idle[s][0].T)[:, 2].max()) for s in SIDES}
+    front = {s: float((hands[s].points(relaxed[s])[0] @ idle[s][0].T)[:, 2].max()) for s in SIDES}
     return Scene(model, pelvis, table_height, centre, hands, arms, pole, idle, front, relaxed,
                  rng.uniform(0.0, 0.06), rng.uniform(0.3, 0.6), rng.uniform(0.45, 0.6))
 
@@ -284,8 +284,8 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
               direction: np.ndarray, rng: np.random.Generator, obstacles: Obstacles, floor: float,
               handle: bool) -> Grasp | None:
     """One grasp attempt on the upright object at ``pose``. ``style`` 'side': the palm on the
-    side facing ``direction`` (horizontal, from the object toward the palm), thumb up, at the
-    handle if ``handle``; 'top': the palm on top, fingers along ``direction``. The hand stays
+    side facing ``direction`` (horizontal, from the object toward the palm), at the handle if
+    ``handle``; 'top': the palm on top, fingers along ``direction``. The hand stays
     above the world height ``floor`` (the table top, or for a hand-over the object's bottom,
     so that the receiving hand can put it down); ``obstacles`` must include that plane."""
     hand = scene.hands[side]
@@ -300,12 +300,25 @@ def try_grasp(scene: Scene, side: str, obj: ObjectSpec, verts: np.ndarray, pose,
                 direction = _snap_to_faces(direction, r_o)
             target = np.array([0.0, 0.0, rng.uniform(-0.35, 0.25) * hz])
         normal = -direction
-        rot_w = hand.orientation(normal, axis_angle(normal, rng.uniform(-0.25, 0.25)) @ UP)
         lam = 0.5
-        # Raise the hand so that its lowest point clears the floor.
-        low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
-        target[2] = max(target[2], floor + 0.003 - p_o[2] - low)
-        if target[2] > (obj.handle[2] + 0.02 if handle else hz + 0.01):  # a low object: the hand's lower half
+        # Thumb up, then rolled about the palm normal toward continuing the line from the
+        # shoulder (so the wrist need not bend sideways), as far as the floor lets the hand.
+        upright = hand.orientation(normal, UP)
+        shoulder = scene.torso(scene.theta0, 0.0).point(scene.rest, scene.arms[side].shoulder)
+        reach = p_o + r_o @ target - shoulder
+        reach -= (reach @ normal) * normal
+        fingers = upright @ hand.canonical[:, 0]
+        roll = np.arctan2(np.cross(fingers, reach) @ normal, fingers @ reach)
+        jitter = rng.uniform(-0.2, 0.2)
+        highest = obj.handle[2] + 0.02 if handle else hz + 0.01  # a low object: the hand's lower half
+        for share in (0.6, 0.3, 0.0):
+            rot_w = axis_angle(normal, share * roll + jitter) @ upright
+            low = ((hand.open_points - hand.anchor(lam)) @ rot_w.T)[:, 2].min()
+            z = max(target[2], floor + 0.003 - p_o[2] - low)  # the hand's lowest point clears the floor
+            if z <= highest:
+                target[2] = z
+                break
+        else:
             return None
     else:
         if _boxy(obj):
@@ -336,33 +349,29 @@ def world_pose(obj_pose, grasp: Grasp) -> tuple[np.ndarray, np.ndarray]:
     return r_o @ grasp.rot, p_o + r_o @ grasp.pos
 
 
-def object_for_wrist(rot: np.ndarray, wrist: np.ndarray, grasp: Grasp) -> np.ndarray:
-    """Object position that puts the holding wrist at ``wrist`` for object rotation ``rot``."""
-    return wrist - rot @ grasp.pos
-
-
 # ---- episodes and intents -----------------------------------------------------------------
 
 
-def grasp_in(hp: HandPlan, t: float, grasp: Grasp, obj_pose, rng: np.random.Generator,
+def grasp_in(hp: HandPlan, t: float, grasp: Grasp, obj_pose, rng: np.random.Generator, tempo: float,
              not_before: float = 0.0) -> float:
     """Reach from the idle pose to a pre-grasp pose, approach and close the grip (the hand
-    moves the last few mm while the fingers close). Keys from ``t``; the approach starts no
-    earlier than ``not_before``. Returns the time the grip is closed (the hold starts)."""
+    moves the last few mm while the fingers close). Keys from ``t``, durations scaled by
+    ``tempo``; the approach starts no earlier than ``not_before``. Returns the time the grip
+    is closed (the hold starts)."""
     r_c, p_c = world_pose(obj_pose, grasp)
     app = obj_pose[0] @ grasp.approach
     hp.key(t, IDLE)
-    t = max(t + rng.uniform(0.8, 1.15), not_before)
+    t = max(t + tempo * rng.uniform(0.8, 1.15), not_before)
     hp.key(t, POSE, (r_c, p_c - rng.uniform(0.06, 0.10) * app + rng.uniform(0.0, 0.04) * UP), _FINGERS_PRESHAPE)
-    t += rng.uniform(0.25, 0.4)
+    t += tempo * rng.uniform(0.25, 0.4)
     hp.key(t, POSE, (r_c, p_c - _PRECONTACT * app), _FINGERS_OPEN)
-    t = snap(t + rng.uniform(0.2, 0.3))
+    t = snap(t + tempo * rng.uniform(0.2, 0.3))
     hp.key(t, HELD, curls=grasp.curls)
     hp.grasp, hp.hold = grasp, (t, t)
     return t
 
 
-def grasp_out(hp: HandPlan, t: float, obj_pose, rng: np.random.Generator) -> float:
+def grasp_out(hp: HandPlan, t: float, obj_pose, rng: np.random.Generator, tempo: float) -> float:
     """Open the grip (backing off the last few mm), retract and hang the arm, from ``t`` with
     the object at ``obj_pose``. Returns the time the arm hangs again."""
     g = hp.grasp
@@ -371,11 +380,11 @@ def grasp_out(hp: HandPlan, t: float, obj_pose, rng: np.random.Generator) -> flo
     t = snap(t)
     hp.key(t, HELD, curls=g.curls)
     hp.hold = (hp.hold[0], t)
-    t += rng.uniform(0.2, 0.3)
+    t += tempo * rng.uniform(0.2, 0.3)
     hp.key(t, POSE, (r_c, p_c - _PRECONTACT * app), _FINGERS_OPEN)
-    t += rng.uniform(0.25, 0.4)
+    t += tempo * rng.uniform(0.25, 0.4)
     hp.key(t, POSE, (r_c, p_c - rng.uniform(0.06, 0.10) * app + rng.uniform(0.0, 0.04) * UP), _FINGERS_PRESHAPE)
-    t += rng.uniform(0.8, 1.15)
+    t += tempo * rng.uniform(0.8, 1.15)
     hp.key(t, IDLE)
     return t
 
@@ -393,6 +402,11 @@ class _Builder:
         self.plan.look.key(0.0, 0.0)
         self.plan.pitch.key(0.0, 0.0)
         self.u = rng.uniform
+        self.tempo = rng.uniform(0.75, 1.15)  # a slow or brisk performer
+
+    def d(self, lo: float, hi: float) -> float:
+        """A random phase duration (s) at this sequence's tempo."""
+        return self.tempo * self.u(lo, hi)
 
     # -- helpers
 
@@ -400,13 +414,26 @@ class _Builder:
         self.plan.object.key(t, rot, pos)
         return snap(t)
 
-    def holding(self) -> list[Grasp]:
-        return [hp.grasp for hp in self.plan.hands.values() if hp.grasp is not None]
-
     def reachable(self, side: str, grasp: Grasp, obj_pose, margin: float = 0.1) -> bool:
+        """Within reach with a bow short of the deepest, and the wrist still in front of the
+        shoulder (a bow over a spot close to the body would reach back for it)."""
+        sc = self.scene
         wrist = world_pose(obj_pose, grasp)[1]
-        psi = np.array([self.scene.psi_toward(obj_pose[1])])
-        return bool(self.scene.required_bend(side, wrist[None], psi)[0] <= THETA_MAX - margin)
+        psi = sc.psi_toward(obj_pose[1])
+        theta = sc.required_bend(side, wrist[None], np.array([psi]))[0]
+        shoulder = sc.torso(theta, psi).point(sc.rest, sc.arms[side].shoulder)
+        return bool(theta <= THETA_MAX - margin and wrist[1] - shoulder[1] >= 0.05)
+
+    def comfortable(self, rot: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """``rot`` turned about the vertical so that the (first) holding hand points roughly
+        along its arm's line toward ``target``: the wrist then need not bend far."""
+        hp = next(hp for hp in self.plan.hands.values() if hp.grasp is not None)
+        sc = self.scene
+        shoulder = sc.torso(sc.theta0, 0.0).point(sc.rest, sc.arms[hp.side].shoulder)
+        have = rot @ hp.grasp.rot @ hp.grasp.hand.canonical[:, 0]
+        want = target - shoulder
+        angle = np.arctan2(have[0] * want[1] - have[1] * want[0], have[:2] @ want[:2])
+        return axis_angle(UP, 0.8 * angle) @ rot
 
     def table_spot(self, where: str) -> tuple[float, float]:
         """A random (x, y) on the table in front of the subject: on one side or centred."""
@@ -418,6 +445,13 @@ class _Builder:
         """Upright pose on the table near ``pose`` (a few cm away, slightly turned)."""
         r, p = pose
         return axis_angle(UP, self.u(-0.2, 0.2)) @ r, p + np.array([self.u(-0.04, 0.04), self.u(-0.04, 0.04), 0.0])
+
+    def lower(self, t: float, pose) -> tuple[float, tuple[np.ndarray, np.ndarray]]:
+        """Object keys that bring the held object over its spot on the table, then set it
+        down there (so it does not sweep along the bowing chest); returns (time, pose)."""
+        r, p = pose
+        t = self.key(t + self.d(0.6, 1.0), r, p + self.u(0.06, 0.12) * UP)
+        return self.key(t + self.d(0.35, 0.55), r, p), pose
 
     def table_grasps(self, sides: tuple[str, ...], where: str, styles: list[str] | None = None):
         """Place the object on the table and grasp it with ``sides`` (the given styles, else
@@ -476,15 +510,17 @@ class _Builder:
     def one_or_both(self, manipulate) -> None:
         sides = SIDES if self.mode == "both" else (self.mode,)
         pose0, grasps = self.table_grasps(sides, "centre" if self.mode == "both" else self.mode)
-        t0 = self.u(0.3, 0.7)
+        t0 = self.d(0.3, 0.7)
         self.plan.look.key(t0 + 0.3, 1.0)
-        closed = [grasp_in(self.plan.hands[s], t0 + (self.u(0.0, 0.15) if i else 0.0), grasps[s], pose0, self.rng)
+        closed = [grasp_in(self.plan.hands[s], t0 + (self.d(0.0, 0.15) if i else 0.0), grasps[s], pose0, self.rng,
+                           self.tempo)
                   for i, s in enumerate(sides)]
-        t = self.key(max(closed) + self.u(0.02, 0.1), *pose0)
+        t = self.key(max(closed) + self.d(0.02, 0.1), *pose0)
         t, pose_end = manipulate(t, pose0)
-        t += self.u(0.05, 0.15)
+        t += self.d(0.05, 0.15)
         self.plan.look.key(t, 1.0)
-        ends = [grasp_out(self.plan.hands[s], t + (self.u(0.0, 0.1) if i else 0.0), pose_end, self.rng)
+        ends = [grasp_out(self.plan.hands[s], t + (self.d(0.0, 0.1) if i else 0.0), pose_end, self.rng,
+                           self.tempo)
                 for i, s in enumerate(sides)]
         self.finish(max(ends))
 
@@ -494,16 +530,16 @@ class _Builder:
         # A small object taken from the top would leave the taker no room: take it low at the side.
         styles = ["side", "top"] if obj.half_height <= 0.03 else None
         pose0, grasps = self.table_grasps((giver,), giver, styles)
-        t0 = u(0.3, 0.7)
+        t0 = self.d(0.3, 0.7)
         self.plan.look.key(t0 + 0.3, 1.0)
-        t = grasp_in(self.plan.hands[giver], t0, grasps[giver], pose0, self.rng)
+        t = grasp_in(self.plan.hands[giver], t0, grasps[giver], pose0, self.rng, self.tempo)
         r0, p0 = pose0
         self.key(t, r0, p0)
-        t = self.key(t + u(0.4, 0.7), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
-        r_pass = axis_angle(UP, u(-0.3, 0.3)) @ r0
+        t = self.key(t + self.d(0.4, 0.7), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
         p_pass = np.array([sc.pelvis[0] + u(-0.04, 0.04), sc.pelvis[1] + u(0.30, 0.42),
                            self.shoulder_height() - u(0.22, 0.35)])
-        t_arrive = self.key(t + u(0.6, 0.9), r_pass, p_pass)
+        r_pass = self.comfortable(r0, p_pass)
+        t_arrive = self.key(t + self.d(0.6, 0.9), r_pass, p_pass)
         base = {"side": unit(np.array([side_sign(taker), -0.6, 0.0])),
                 "top": unit(np.array([0.3 * side_sign(taker), 1.0, 0.0]))}
         styles = ["side", "top"] if self.rng.random() < 0.5 else ["top", "side"]
@@ -513,11 +549,12 @@ class _Builder:
                                False, styles)
         if g_taker is None or not self.reachable(taker, g_taker, (r_pass, p_pass)):
             raise PlanRejected(f"no {taker} grasp to take {obj.name} over")
-        t_taken = grasp_in(self.plan.hands[taker], t_arrive - u(0.6, 0.9), g_taker, (r_pass, p_pass), self.rng,
-                           not_before=t_arrive + u(0.02, 0.15))
-        t_let_go = t_taken + u(0.1, 0.25)
-        end_giver = grasp_out(self.plan.hands[giver], t_let_go, (r_pass, p_pass), self.rng)
-        t = self.key(t_let_go + 0.3 + u(0.05, 0.15), r_pass, p_pass)  # the giver's fingers are off
+        t_taken = grasp_in(self.plan.hands[taker], t_arrive - self.d(0.6, 0.9), g_taker, (r_pass, p_pass),
+                           self.rng, self.tempo, not_before=t_arrive + self.d(0.02, 0.15))
+        t_let_go = t_taken + self.d(0.1, 0.25)
+        end_giver = grasp_out(self.plan.hands[giver], t_let_go, (r_pass, p_pass), self.rng, self.tempo)
+        # The giver's fingers are off before the taker moves it (its grip opens in <= 0.3 s).
+        t = self.key(t_let_go + self.tempo * 0.3 + self.d(0.05, 0.15), r_pass, p_pass)
         for _ in range(8):
             drop = (axis_angle(UP, u(-0.2, 0.2)) @ r_pass,
                     np.array([*self.table_spot(taker), sc.table_height + obj.half_height]))
@@ -525,13 +562,13 @@ class _Builder:
                 break
         else:
             raise PlanRejected(f"cannot put {obj.name} down with the {taker} hand")
-        t = self.key(t + u(0.9, 1.3), *drop) + u(0.05, 0.15)
+        t = self.lower(t, drop)[0] + self.d(0.05, 0.15)
         self.plan.look.key(t, 1.0)
-        self.finish(max(end_giver, grasp_out(self.plan.hands[taker], t, drop, self.rng)))
+        self.finish(max(end_giver, grasp_out(self.plan.hands[taker], t, drop, self.rng, self.tempo)))
 
     def finish(self, t: float) -> None:
         self.plan.look.key(t, 0.0)
-        end = snap(t + self.u(0.3, 0.7))
+        end = snap(t + self.d(0.3, 0.7))
         if end > MAX_SECONDS:
             raise PlanRejected(f"plan lasts {end:.2f} s")
         for hp in self.plan.hands.values():
@@ -541,52 +578,58 @@ class _Builder:
         self.plan.duration = end
 
     # -- manipulations: object keys from the grip at ``t``; return (time, pose back on the table)
+    #    (durations through self.d, so they follow the sequence's tempo)
 
     def lift(self, t: float, pose0):
         r0, p0 = pose0
         u = self.u
         up = p0 + np.array([u(-0.05, 0.05), u(-0.12, 0.0), u(0.15, 0.3)])
         tilt = axis_angle(_turn(np.array([1.0, 0.0, 0.0]), u(0, 2 * np.pi)), u(0.0, 0.12))
-        t = self.key(t + u(0.6, 1.0), tilt @ r0, up)
-        t = self.key(t + u(0.4, 1.2), axis_angle(UP, u(-0.15, 0.15)) @ r0, up + u(-0.03, 0.03, 3))
-        end = self.put_down(pose0)
-        return self.key(t + u(0.6, 1.0), *end), end
+        t = self.key(t + self.d(0.6, 1.0), tilt @ r0, up)
+        t = self.key(t + self.d(0.4, 1.2), axis_angle(UP, u(-0.15, 0.15)) @ r0, up + u(-0.03, 0.03, 3))
+        return self.lower(t, self.put_down(pose0))
 
     def offhand(self, t: float, pose0):
         r0, p0 = pose0
         u = self.u
-        t = self.key(t + u(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
-        r_off = axis_angle(UP, u(-0.2, 0.2)) @ r0
+        t = self.key(t + self.d(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
         sc = self.scene
         base = np.array([sc.pelvis[0] + 0.5 * (p0[0] - sc.pelvis[0]), sc.pelvis[1] + 0.15,
                          self.shoulder_height() - u(0.12, 0.3)])
         direction = _turn(np.array([0.0, 1.0, 0.0]), u(-0.2, 0.2))
+        r_off = r0 if self.mode == "both" else self.comfortable(r0, base + 0.4 * direction)
         p_off = self.extend(r_off, base, direction, u(0.86, 0.93))
-        t = self.key(t + u(0.8, 1.1), r_off, p_off)
-        t = self.key(t + u(0.8, 1.8), r_off, p_off + u(-0.02, 0.02, 3))
-        end = self.put_down(pose0)
-        return self.key(t + u(0.8, 1.1), *end), end
+        t = self.key(t + self.d(0.8, 1.1), r_off, p_off)
+        t = self.key(t + self.d(0.8, 1.8), r_off, p_off + u(-0.02, 0.02, 3))
+        return self.lower(t, self.put_down(pose0))
 
     def inspect(self, t: float, pose0):
         r0, p0 = pose0
         u = self.u
-        t = self.key(t + u(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.1, 0.18)]))
+        t = self.key(t + self.d(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.1, 0.18)]))
         lateral = 0.0 if self.mode == "both" else side_sign(self.mode) * u(0.0, 0.06)
         p_face = self.scene.mouth(0.0) + np.array([lateral, u(0.26, 0.36), u(-0.06, 0.02)])
-        t = self.key(t + u(0.8, 1.1), r0, p_face)
-        axes = (UP, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+        r_face = r0 if self.mode == "both" else self.comfortable(r0, p_face)
+        t = self.key(t + self.d(0.8, 1.1), r_face, p_face)
+        if self.mode == "both":  # turn it like a steering wheel or about the vertical
+            pivot, axes, ranges = p_face, (np.array([0.0, 1.0, 0.0]), UP), ((0.2, 0.5), (0.2, 0.5))
+        else:  # turn the hand about its own axis (forearm twist), tilt it, or turn it about the vertical
+            g = self.plan.hands[self.mode].grasp
+            hand_rot = r_face @ g.rot
+            pivot = p_face + r_face @ g.pos  # the wrist stays put
+            axes = (hand_rot @ g.hand.canonical[:, 0], hand_rot @ g.hand.canonical[:, 2], UP)
+            ranges = ((0.6, 1.3), (0.25, 0.5), (0.3, 0.7))
         for _ in range(int(self.rng.integers(2, 4))):
-            k = int(self.rng.integers(3))
-            angle = self.rng.choice([-1.0, 1.0]) * (u(0.5, 1.2) if k == 0 else u(0.35, 0.8))
-            t = self.key(t + u(0.6, 1.0), axis_angle(axes[k], angle) @ r0, p_face + u(-0.02, 0.02, 3))
-        t = self.key(t + u(0.6, 0.9), r0, p_face)
-        end = self.put_down(pose0)
-        return self.key(t + u(0.7, 1.0), *end), end
+            k = int(self.rng.integers(len(axes)))
+            turn = axis_angle(axes[k], self.rng.choice([-1.0, 1.0]) * u(*ranges[k]))
+            t = self.key(t + self.d(0.6, 1.0), turn @ r_face, pivot + turn @ (p_face - pivot) + u(-0.02, 0.02, 3))
+        t = self.key(t + self.d(0.6, 0.9), r_face, p_face)
+        return self.lower(t, self.put_down(pose0))
 
     def drink(self, t: float, pose0):
         r0, p0 = pose0
         u, plan = self.u, self.plan
-        t = self.key(t + u(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
+        t = self.key(t + self.d(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
         back = u(0.15, 0.35)  # the head tilts back while drinking
         mouth = self.scene.mouth(-back) + np.array([0.0, u(0.008, 0.02), 0.0])
         toward = np.array([0.0, -1.0, 0.0])  # from the object to the face
@@ -596,31 +639,33 @@ class _Builder:
         r_sip = axis_angle(axis, u(0.8, 1.25)) @ r0
         p_sip = mouth - r_sip @ lip
         p_near = p_sip + np.array([0.0, u(0.04, 0.08), -u(0.10, 0.16)])
-        t = self.key(t + u(0.8, 1.1), r_near, p_near)
+        t = self.key(t + self.d(0.8, 1.1), r_near, p_near)
         plan.look.key(t, 1.0)
         plan.pitch.key(t, 0.0)
-        t = self.key(t + u(0.5, 0.8), r_sip, p_sip)
+        t = self.key(t + self.d(0.5, 0.8), r_sip, p_sip)
         plan.look.key(t, 0.0)
         plan.pitch.key(t, -back)
         r_sip2 = axis_angle(axis, u(0.0, 0.2)) @ r_sip
-        t = self.key(t + u(0.8, 1.6), r_sip2, mouth - r_sip2 @ lip)
+        t = self.key(t + self.d(0.8, 1.6), r_sip2, mouth - r_sip2 @ lip)
         plan.look.key(t, 0.0)
         plan.pitch.key(t, -back)
-        t = self.key(t + u(0.5, 0.8), r_near, p_near)
+        t = self.key(t + self.d(0.5, 0.8), r_near, p_near)
         plan.look.key(t, 1.0)
         plan.pitch.key(t, 0.0)
-        end = self.put_down(pose0)
-        return self.key(t + u(0.8, 1.1), *end), end
+        return self.lower(t, self.put_down(pose0))
 
     def pour(self, t: float, pose0):
         r0, p0 = pose0
         u, sc = self.u, self.scene
-        t = self.key(t + u(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
+        t = self.key(t + self.d(0.5, 0.8), r0, p0 + np.array([0.0, u(-0.05, 0.0), u(0.08, 0.15)]))
         if self.mode == "both":
-            toward, alpha = np.array([0.0, 1.0, 0.0]), u(1.0, 1.4)
+            toward, alpha = np.array([0.0, 1.0, 0.0]), u(0.8, 1.15)
             spot = p0 + np.array([u(-0.05, 0.05), u(0.12, 0.2), 0.0])
-        else:
-            toward, alpha = unit(np.array([-side_sign(self.mode), u(0.0, 0.4), 0.0])), u(1.2, 1.8)
+        else:  # tip it over forward, about the (level) line of the arm: a twist of the forearm
+            shoulder = sc.torso(sc.theta0, 0.0).point(sc.rest, sc.arms[self.mode].shoulder)
+            toward = np.cross(UP, world_pose(pose0, self.plan.hands[self.mode].grasp)[1] - shoulder)
+            toward = unit(toward * np.array([1.0, 1.0, 0.0]) * np.sign(toward[1]))
+            alpha = u(1.1, 1.6)
             spot = p0 + u(0.15, 0.28) * toward
         c = sc.table_centre
         spot[0] = np.clip(spot[0], c[0] - TABLE_SIZE[0] / 2 + 0.05, c[0] + TABLE_SIZE[0] / 2 - 0.05)
@@ -637,12 +682,11 @@ class _Builder:
             return rot, pos + max(0.04 - low, 0.0) * UP  # keep the tilted object off the table
 
         r_pre, p_pre = tilted(u(0.15, 0.3))
-        t = self.key(t + u(0.7, 1.0), r_pre, p_pre - 0.03 * toward + 0.04 * UP)
-        t = self.key(t + u(0.5, 0.8), *tilted(alpha))
-        t = self.key(t + u(0.8, 1.6), *tilted(alpha + u(0.0, 0.2)))
-        t = self.key(t + u(0.5, 0.8), r_pre, p_pre - 0.03 * toward + 0.04 * UP)
-        end = self.put_down(pose0)
-        return self.key(t + u(0.7, 1.0), *end), end
+        t = self.key(t + self.d(0.7, 1.0), r_pre, p_pre - 0.03 * toward + 0.04 * UP)
+        t = self.key(t + self.d(0.5, 0.8), *tilted(alpha))
+        t = self.key(t + self.d(0.8, 1.6), *tilted(alpha + u(0.0, 0.2)))
+        t = self.key(t + self.d(0.5, 0.8), r_pre, p_pre - 0.03 * toward + 0.04 * UP)
+        return self.lower(t, self.put_down(pose0))
 
 
 def _first_grasp(scene, side, obj, verts, pose, rng, base, spread, obstacles, floor, handle, styles) -> Grasp | None:

@@ -79,6 +79,14 @@ class SubjectModel:
         return build_proxy(self.rest, cfg.hand_spacing, cfg.body_spacing)
 
     @cached_property
+    def body_capsules(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Ends (K, 3) x2, radii and carrying joints of the proxy capsules outside the hands."""
+        hands = set(LEFT_HAND_CODES) | set(RIGHT_HAND_CODES)
+        caps = [c for c in self.proxy.capsules if c.code not in hands]
+        return (np.stack([c.a for c in caps]), np.stack([c.b for c in caps]), np.array([c.radius for c in caps]),
+                np.array([c.joint for c in caps]))
+
+    @cached_property
     def pelvis_height(self) -> float:
         """World z of the pelvis that puts the lowest foot proxy point on the floor."""
         feet = self.proxy.rest_points[self.proxy.mask(FOOT_CODES)] - self.rest[0]
