@@ -11,21 +11,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-// Width of one frame's feature vector.
-#define FRAME_DIM 335
-
-// Contact flag threshold on the probability.
-#define CONTACT_THRESHOLD 0.5
-
-// The only manifest version this reader understands.
-#define VERSION 1
-
-// Number of components / Transformer streams.
-#define N_STREAMS 4
-
-// Joints of the SMPL-X tree.
-#define NUM_JOINTS 55
-
 // Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
 // signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
 #define CG_ABI_VERSION 1
@@ -59,29 +44,6 @@
 
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
-
-// Smallest non-zero temperature (below it `x / t` can overflow the useful range).
-#define MIN_TEMPERATURE 1e-4
-
-// `exp_det(d)` returns exactly 0 below this.
-#define EXP_UNDERFLOW -700.0
-
-// 1 / ln 2, the `f64` nearest to it (= `std::f64::consts::LOG2_E`; spelled as the same
-// literal as the Python reference on purpose).
-#define INV_LN2 1.4426950408889634
-
-// fdlibm `ln2_hi`: its low 32 bits are zero, so `k * LN2_HI` is exact for |k| < 2^20.
-#define LN2_HI 0.6931471803691238
-
-// fdlibm `ln2_lo` = ln 2 − `LN2_HI`.
-#define LN2_LO 1.9082149292705877e-10
-
-#define LEFT_WRIST 20
-
-#define RIGHT_WRIST 21
-
-// Longest prompt accepted, in UTF-8 bytes.
-#define MAX_TEXT_BYTES 4096
 
 // Result of every `cg_*` function that can fail. Non-negative values are normal outcomes,
 // negative values are errors; after an error, `cg_last_error()` on the same thread has a
@@ -134,14 +96,14 @@ typedef int32_t cg_status;
 // The coordinate system frames are expressed in, chosen at engine creation.
 typedef enum cg_coordinate_system {
   // The bundle's own: z up, right-handed, metres (GRAB's world). `S` = identity.
-  CG_COORDINATE_SYSTEM_CG_COORDS_NATIVE = 0,
+  CG_COORDS_NATIVE = 0,
   // glTF: y up, right-handed, metres. (x, y, z) -> (x, z, -y) (a rotation, det +1).
-  CG_COORDINATE_SYSTEM_CG_COORDS_GLTF = 1,
+  CG_COORDS_GLTF = 1,
   // Unity: y up, left-handed, metres. (x, y, z) -> (-x, z, -y) (a mirror, det -1:
   // the glTF mapping with x negated, as glTFast / UnityGLTF import glTF).
-  CG_COORDINATE_SYSTEM_CG_COORDS_UNITY = 2,
+  CG_COORDS_UNITY = 2,
   // Unreal: z up, left-handed, centimetres. (x, y, z) -> 100 * (x, -y, z) (a mirror).
-  CG_COORDINATE_SYSTEM_CG_COORDS_UNREAL = 3,
+  CG_COORDS_UNREAL = 3,
 } cg_coordinate_system;
 
 // Opaque handle to an engine (a loaded model bundle and its settings). Create with
@@ -247,21 +209,6 @@ typedef struct cg_frame {
   // World positions of the 55 joints (only when has_joint_positions is 1).
   float joint_positions[CG_NUM_JOINTS][3];
 } cg_frame;
-
-// Row-major 3×3 matrix, `m[row][col]`, acting on column vectors.
-typedef double Mat3[3][3];
-
-// Feature channels that are contact probabilities (left, right): not de-normalized.
-#define CONTACT_CHANNELS { 240, 334, }
-
-// 1/n!, n = 0..13, each the `f64` nearest to it (same literals as the Python reference;
-// they round-trip, so both languages get the same bits).
-#define EXP_COEFFS { 1.0, 1.0, 0.5, 0.16666666666666666, 0.041666666666666664, 0.008333333333333333, 0.001388888888888889, 0.0001984126984126984, 2.48015873015873e-05, 2.7557319223985893e-06, 2.755731922398589e-07, 2.505210838544172e-08, 2.08767569878681e-09, 1.6059043836821613e-10, }
-
-#define IDENTITY { { 1.0, 0.0, 0.0, }, { 0.0, 1.0, 0.0, }, { 0.0, 0.0, 1.0, }, }
-
-// The SMPL-X kinematic tree (parent of each joint, -1 for the pelvis).
-#define SMPLX_PARENTS { -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15, 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38, 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53, }
 
 #ifdef __cplusplus
 extern "C" {

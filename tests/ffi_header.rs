@@ -39,3 +39,25 @@ fn header_declares_and_documents_every_function() {
         assert!(GENERATED.contains(s), "{s} missing from the header");
     }
 }
+
+#[test]
+fn header_exports_only_the_c_api_namespace() {
+    // Internal constants leaking into a host's namespace (e.g. `VERSION`) would clash.
+    for line in GENERATED.lines() {
+        let l = line.trim_start();
+        let name = if let Some(rest) = l.strip_prefix("#define ") {
+            rest.split_whitespace().next()
+        } else if let Some(rest) = l.strip_prefix("typedef ") {
+            rest.trim_end_matches(['{', ';', ' ']).split_whitespace().last().map(|n| n.trim_start_matches('*'))
+        } else {
+            None
+        };
+        if let Some(n) = name {
+            let n = n.split('[').next().unwrap_or(n);
+            assert!(
+                n == "COMGRASP_H" || n.starts_with("cg_") || n.starts_with("CG_"),
+                "non-API name `{n}` exported in the header: add it to cbindgen.toml's exclude list"
+            );
+        }
+    }
+}
