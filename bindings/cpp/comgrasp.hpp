@@ -1,0 +1,226 @@
+// comgrasp.hpp: header-only C++17 wrapper over the ComGrasp C ABI (include/comgrasp.h).
+//
+// Why a wrapper: the C API is handle + status based; in C++ the natural shape is RAII
+// (a handle is destroyed exactly once, by its owner's destructor) and exceptions for
+// failures that are not part of the normal flow. What stays C-like on purpose:
+//   * frames are the C struct `cg_frame` (alias `comgrasp::Frame`), written into a
+//     caller-owned object, so polling never allocates;
+//   * `Stream::poll_status` is `noexcept` and returns the raw status, for hot loops and
+//     code built without exceptions in mind (game engines);
+//   * exceptions carry the status and copy `cg_last_error()` at the throw site (the C
+//     message is thread-local and overwritten by the next failing call).
+//
+//   comgrasp::Engine engine(comgrasp::EngineConfig().bundle_path("models/tiny"));
+//   comgrasp::Stream stream = engine.start("A woman drinks from the mug");
+//   comgrasp::Frame f;
+//   while (stream.wait(f, std::chrono::milliseconds(100)) != comgrasp::Poll::End) { ... }
+//
+// Thread rules are the C ABI's: an Engine may be used from any thread at once; a Stream
+// from one thread at a time, except `cancel()`, which any thread may call at any time.
+#ifndef COMGRASP_HPP
+#define COMGRASP_HPP
+
+#include <chrono>
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+#include <string_view>
+#include <utility>
+
+#include "comgrasp.h"
+
+namespace comgrasp {
+
+using Frame = cg_frame;
+using Status = cg_status;
+
+/// Coordinate system of an engine's frames (see `cg_coordinate_system`).
+enum class Coords : int {
+    Native = CG_COORDS_NATIVE,
+    Gltf = CG_COORDS_GLTF,
+    Unity = CG_COORDS_UNITY,
+    Unreal = CG_COORDS_UNREAL,
+};
+
+/// The normal outcomes of a poll; errors are thrown (or returned by `poll_status`).
+enum class Poll : int {
+    Frame = CG_OK,          ///< a frame was written
+    Pending = CG_PENDING,   ///< nothing yet, poll again later
+    End = CG_END,           ///< finished, every frame delivered
+    Cancelled = CG_CANCELLED,
+};
+
+/// A failed `cg_*` call: its status plus the library's message, copied when thrown.
+class Error : public std::runtime_error {
+public:
+    Error(const char *call, Status status)
+        : std::runtime_error(std::string(call) + ": " + cg_status_string(status) + ": " +
+                             cg_last_error()),
+          status_(status) {}
+    /// The `CG_ERR_*` code.
+    Status status() const noexcept { return status_; }
+
+private:
+    Status status_;
+};
+
+namespace detail {
+/// Throws for errors (negative codes); passes the normal outcomes (>= 0) through.
+inline Status check(const char *call, Status st) {
+    if (static_cast<int32_t>(st) < 0) throw Error(call, st);
+    return st;
+}
+}  // namespace detail
+
+/// Throws `std::runtime_error` if the loaded library was built from a different header
+/// (the usual failure when a stale shared library is picked up). Engine's constructor
+/// calls it, so hosts rarely need to.
+inline void check_abi() {
+    if (cg_abi_version() != CG_ABI_VERSION || cg_frame_size() != sizeof(cg_frame))
+        throw std::runtime_error("comgrasp: library ABI " + std::to_string(cg_abi_version()) +
+                                 " / frame size " + std::to_string(cg_frame_size()) +
+                                 " does not match comgrasp.h");
+}
+
+/// Engine settings; a builder over `cg_engine_config` (defaults from `cg_engine_config_init`).
+class EngineConfig {
+public:
+    EngineConfig() { cg_engine_config_init(&raw_); }
+    EngineConfig &bundle_path(std::string path) { path_ = std::move(path); return *this; }
+    EngineConfig &coordinate_system(Coords c) {
+        raw_.coordinate_system = static_cast<cg_coordinate_system>(c);
+        return *this;
+    }
+    EngineConfig &enable_fk(bool on = true) { raw_.enable_fk = on ? 1u : 0u; return *this; }
+    EngineConfig &ring_capacity(uint32_t frames) { raw_.ring_capacity = frames; return *this; }
+    EngineConfig &max_streams(uint32_t n) { raw_.max_streams = n; return *this; }
+
+    /// The C struct, its `bundle_path` pointing into this object: valid while it lives
+    /// unchanged. (The path is stored as a std::string so copies of the builder stay valid.)
+    cg_engine_config raw() const {
+        cg_engine_config c = raw_;
+        c.bundle_path = path_.empty() ? nullptr : path_.c_str();
+        return c;
+    }
+
+private:
+    cg_engine_config raw_{};
+    std::string path_;
+};
+
+/// Per-stream sampling overrides; a builder over `cg_stream_config`. Each setter also
+/// clears the field's `CG_USE_DEFAULT_*` bit, so unset fields keep the bundle's defaults.
+class StreamConfig {
+public:
+    StreamConfig() { cg_stream_config_init(&raw_); }
+    StreamConfig &seed(uint64_t v) { raw_.seed = v; return use(CG_USE_DEFAULT_SEED); }
+    StreamConfig &temperature(double v) { raw_.temperature = v; return use(CG_USE_DEFAULT_TEMPERATURE); }
+    StreamConfig &top_k(uint32_t v) { raw_.top_k = v; return use(CG_USE_DEFAULT_TOP_K); }
+    StreamConfig &min_len(uint32_t v) { raw_.min_len = v; return use(CG_USE_DEFAULT_MIN_LEN); }
+    StreamConfig &max_len(uint32_t v) { raw_.max_len = v; return use(CG_USE_DEFAULT_MAX_LEN); }
+    const cg_stream_config &raw() const noexcept { return raw_; }
+
+private:
+    StreamConfig &use(uint32_t bit) { raw_.use_defaults &= ~bit; return *this; }
+    cg_stream_config raw_{};
+};
+
+/// One generation. Move-only; the destructor stops the worker and frees the stream.
+class Stream {
+public:
+    Stream() noexcept = default;
+    /// Takes ownership of a handle from `cg_start` (NULL gives an empty Stream).
+    explicit Stream(cg_stream *h) noexcept : h_(h) {}
+    Stream(Stream &&o) noexcept : h_(std::exchange(o.h_, nullptr)) {}
+    Stream &operator=(Stream &&o) noexcept {
+        if (this != &o) { reset(); h_ = std::exchange(o.h_, nullptr); }
+        return *this;
+    }
+    Stream(const Stream &) = delete;
+    Stream &operator=(const Stream &) = delete;
+    ~Stream() { reset(); }
+
+    /// Never blocks, never allocates, never throws: the raw `cg_poll_frame` status.
+    Status poll_status(Frame &out) noexcept { return cg_poll_frame(h_, &out); }
+
+    /// `cg_poll_frame`; throws `Error` for errors (including the worker's, e.g. inference).
+    Poll poll(Frame &out) { return static_cast<Poll>(detail::check("cg_poll_frame", cg_poll_frame(h_, &out))); }
+
+    /// `cg_stream_wait`: blocks up to `timeout` for a frame (never on a game's main thread).
+    Poll wait(Frame &out, std::chrono::milliseconds timeout) {
+        auto ms = timeout.count() < 0 ? 0 : timeout.count() > UINT32_MAX ? UINT32_MAX : timeout.count();
+        return static_cast<Poll>(detail::check("cg_stream_wait", cg_stream_wait(h_, static_cast<uint32_t>(ms), &out)));
+    }
+
+    /// Stops generation within about one token step; any thread, also while another
+    /// thread polls this stream. Idempotent.
+    void cancel() const { detail::check("cg_cancel", cg_cancel(h_)); }
+
+    /// The stream's id (frames carry it as `stream_id`).
+    uint64_t id() const {
+        uint64_t v = 0;
+        detail::check("cg_stream_id", cg_stream_id(h_, &v));
+        return v;
+    }
+
+    /// Destroys the stream now (as the destructor would); the object becomes empty.
+    void reset() noexcept {
+        if (h_) cg_stream_destroy(std::exchange(h_, nullptr));
+    }
+    cg_stream *get() const noexcept { return h_; }
+    explicit operator bool() const noexcept { return h_ != nullptr; }
+
+private:
+    cg_stream *h_ = nullptr;
+};
+
+/// A loaded model bundle. Move-only; the destructor cancels its running streams (their
+/// Stream objects stay valid and report `Poll::Cancelled`) and frees the model.
+class Engine {
+public:
+    /// Loads and verifies the bundle (a fraction of a second: do it once).
+    explicit Engine(const EngineConfig &cfg) {
+        check_abi();
+        cg_engine_config c = cfg.raw();
+        detail::check("cg_engine_create", cg_engine_create(&c, &h_));
+    }
+    Engine(Engine &&o) noexcept : h_(std::exchange(o.h_, nullptr)) {}
+    Engine &operator=(Engine &&o) noexcept {
+        if (this != &o) { reset(); h_ = std::exchange(o.h_, nullptr); }
+        return *this;
+    }
+    Engine(const Engine &) = delete;
+    Engine &operator=(const Engine &) = delete;
+    ~Engine() { reset(); }
+
+    /// Starts a stream (returns at once; the motion is generated on a worker thread).
+    /// `text` is UTF-8 and need not be NUL-terminated.
+    Stream start(std::string_view text, const StreamConfig &cfg = StreamConfig()) {
+        cg_stream *s = nullptr;
+        // A default string_view has a NULL data(); pass "" so it reads as empty text
+        // (CG_ERR_INVALID_ARGUMENT), not as a NULL pointer.
+        const char *p = text.data() ? text.data() : "";
+        detail::check("cg_start", cg_start_utf8(h_, reinterpret_cast<const uint8_t *>(p),
+                                                text.size(), &cfg.raw(), &s));
+        return Stream(s);
+    }
+
+    /// Streams alive (started and not yet destroyed).
+    uint32_t stream_count() const {
+        uint32_t n = 0;
+        detail::check("cg_engine_stream_count", cg_engine_stream_count(h_, &n));
+        return n;
+    }
+
+    void reset() noexcept {
+        if (h_) cg_engine_destroy(std::exchange(h_, nullptr));
+    }
+    cg_engine *get() const noexcept { return h_; }
+
+private:
+    cg_engine *h_ = nullptr;
+};
+
+}  // namespace comgrasp
+
+#endif  // COMGRASP_HPP

@@ -1,0 +1,685 @@
+//! `comgrasp bench`: the engine's speed on one bundle (DESIGN §7), as a report or as JSON
+//! for `scripts/bench.sh`, which runs the Python references (onnxruntime, PyTorch with and
+//! without KV cache) on the same bundle, prompt and seed and prints the ratios.
+//!
+//! What is measured, in this order (wall clock, `Instant`; medians and p90 over the runs):
+//! 1. **load**: `Bundle::load` (manifest, SHA-256 of every file, three graphs into tract).
+//! 2. **text**: `TextEncoder::embed` of the prompt (tokenizer + encoder graph + pooling).
+//! 3. **step**: `StepModel::step` with the real, Rust-owned KV cache: `--warmup` steps, a
+//!    reset, then the `--steps` steps of the benchmark sequence. The sampler runs between
+//!    steps exactly as in a stream (timed apart), so the step loop draws the stream's tokens.
+//!    The sequence length is fixed: `min_len = max_len = --steps`, so End is never sampled
+//!    early and every runtime does the same number of steps.
+//! 4. **decode**: `DecoderModel::decode` of those tokens, one 16-frame chunk per token,
+//!    after a warm-up chunk; and the frame assembly of a chunk.
+//! 5. **stream**: `--stream-runs` end-to-end generations through `Engine::start` and
+//!    `Stream::wait` on the same loaded bundle: time to first frame (start -> first frame
+//!    in the consumer's hands), frames per second over the whole generation and the
+//!    real-time factor (frames/s ÷ fps). The frames of the first run are compared with
+//!    frames assembled from the step loop's tokens: equal frames mean the stream generated
+//!    the same tokens.
+//! 6. **poll**: `Stream::poll` cost, timed in batches of [`POLL_BATCH`] calls (so the clock
+//!    read is not what is measured): on an empty ring (while the first frame is computed)
+//!    and on a ready frame (after the whole generation is buffered).
+//! 7. **memory**: peak RSS (`VmHWM`), before the bandwidth probe.
+//! 8. **bandwidth**: read bandwidth of a buffer much larger than the L3 (sum of u64, best
+//!    of 5), 1 and 2 threads, and the *bandwidth limit* of a step: the bytes one step must
+//!    read (the step graph's weights + the full KV cache) ÷ that bandwidth.
+//!
+//! Threads: tract runs single-threaded unless the crate is built with the
+//! `multithread-mm` feature (tract-linalg's rayon executor); then `--threads N` installs an
+//! N-thread executor. Without the feature `--threads` above 1 is reported, not applied.
+//!
+//! Never used in tests as a timing assertion; timings depend on the machine and its load.
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use comgrasp::assemble::FrameAssembler;
+use comgrasp::bundle::manifest::FRAME_DIM;
+use comgrasp::bundle::{Bundle, N_STREAMS};
+use comgrasp::engine::{SourceFactory, StreamRequest};
+use comgrasp::generator::{Generator, Pipeline};
+use comgrasp::sampler::{SamplingParams, TokenSampler};
+use comgrasp::{ChunkSource, CoordinateSystem, Engine, EngineConfig, Frame, PollResult, StreamConfig};
+use serde_json::{json, Value};
+use sha2::{Digest, Sha256};
+
+pub const HELP: &str = "\
+usage: comgrasp bench --bundle DIR [options]
+
+Measures load time, text embedding, token step (real KV cache), decoder chunk, end-to-end
+streams (time to first frame, frames/s, real-time factor), poll latency, peak RSS and
+memory read bandwidth on one bundle, and prints the generated tokens so other runtimes
+can be checked against them.
+
+  --bundle DIR          model bundle directory
+  --prompt TEXT         prompt (default \"A woman drinks from the mug.\")
+  --seed N              sampler seed (default: the bundle's)
+  --steps N             token steps per sequence, End forbidden before and forced after
+                        (default: the bundle's L_max)
+  --warmup N            untimed steps before the timed ones (default 3)
+  --threads N           tract matmul threads (needs the multithread-mm feature; default 1)
+  --temperature T       sampling temperature (default: the bundle's)
+  --top-k K             top-k (default: the bundle's)
+  --stream-runs N       end-to-end streams to time (default 3)
+  --text-runs N         text embeddings to time (default 10)
+  --bandwidth-mib N     buffer of the bandwidth probe, 0 = skip (default 512)
+  --json                print one JSON object instead of the report
+  -h, --help            this text";
+
+const DEFAULT_PROMPT: &str = "A woman drinks from the mug.";
+/// Polls per timed batch in the poll-latency measurement.
+const POLL_BATCH: usize = 64;
+
+#[derive(Debug)]
+struct Options {
+    bundle: PathBuf,
+    prompt: String,
+    seed: Option<u64>,
+    steps: Option<usize>,
+    warmup: usize,
+    threads: usize,
+    temperature: Option<f64>,
+    top_k: Option<u32>,
+    stream_runs: usize,
+    text_runs: usize,
+    bandwidth_mib: usize,
+    json: bool,
+}
+
+pub fn run(args: &[String]) -> Result<(), String> {
+    if args.iter().any(|a| a == "-h" || a == "--help") {
+        println!("{HELP}");
+        return Ok(());
+    }
+    let opts = parse(args).map_err(|m| format!("bench: {m}\nRun `comgrasp bench --help` for usage."))?;
+    let report = bench(&opts).map_err(|e| format!("bench: {e}"))?;
+    if opts.json {
+        println!("{}", serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?);
+    } else {
+        print_report(&report);
+    }
+    Ok(())
+}
+
+fn parse(args: &[String]) -> Result<Options, String> {
+    let mut o = Options {
+        bundle: PathBuf::new(),
+        prompt: DEFAULT_PROMPT.into(),
+        seed: None,
+        steps: None,
+        warmup: 3,
+        threads: 1,
+        temperature: None,
+        top_k: None,
+        stream_runs: 3,
+        text_runs: 10,
+        bandwidth_mib: 512,
+        json: false,
+    };
+    let mut bundle = None;
+    let mut it = args.iter();
+    while let Some(arg) = it.next() {
+        let (name, inline) = match arg.split_once('=') {
+            Some((n, v)) if n.starts_with("--") => (n, Some(v.to_string())),
+            _ => (arg.as_str(), None),
+        };
+        if name == "--json" {
+            if inline.is_some() {
+                return Err("--json takes no value".into());
+            }
+            o.json = true;
+            continue;
+        }
+        const KNOWN: [&str; 11] = ["--bundle", "--prompt", "--seed", "--steps", "--warmup", "--threads",
+                                   "--temperature", "--top-k", "--stream-runs", "--text-runs", "--bandwidth-mib"];
+        if !KNOWN.contains(&name) {
+            return Err(format!("unknown option {name:?}"));
+        }
+        let v = match inline {
+            Some(v) => v,
+            None => it.next().cloned().ok_or_else(|| format!("{name} needs a value"))?,
+        };
+        match name {
+            "--bundle" => bundle = Some(PathBuf::from(v)),
+            "--prompt" => o.prompt = v,
+            "--seed" => o.seed = Some(number(name, &v)?),
+            "--steps" => o.steps = Some(number(name, &v)?),
+            "--warmup" => o.warmup = number(name, &v)?,
+            "--threads" => o.threads = number(name, &v)?,
+            "--temperature" => o.temperature = Some(number(name, &v)?),
+            "--top-k" => o.top_k = Some(number(name, &v)?),
+            "--stream-runs" => o.stream_runs = number(name, &v)?,
+            "--text-runs" => o.text_runs = number(name, &v)?,
+            "--bandwidth-mib" => o.bandwidth_mib = number(name, &v)?,
+            _ => unreachable!("checked against KNOWN"),
+        }
+    }
+    o.bundle = bundle.ok_or("--bundle DIR is required")?;
+    if o.threads == 0 {
+        return Err("--threads must be at least 1".into());
+    }
+    if o.steps == Some(0) {
+        return Err("--steps must be at least 1".into());
+    }
+    if o.stream_runs == 0 || o.text_runs == 0 {
+        return Err("--stream-runs and --text-runs must be at least 1".into());
+    }
+    Ok(o)
+}
+
+fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {
+    value.trim().parse().map_err(|_| format!("{name}: {value:?} is not a valid number here"))
+}
+
+// ------------------------------------------------------------------------------ statistics
+
+/// Median, p90 (nearest rank), mean, min and max of a sample, in the unit of the input.
+fn stats(xs: &[f64]) -> Value {
+    if xs.is_empty() {
+        return Value::Null;
+    }
+    let mut s = xs.to_vec();
+    s.sort_by(f64::total_cmp);
+    let rank = |q: f64| s[((q * s.len() as f64).ceil() as usize).clamp(1, s.len()) - 1];
+    let median = if s.len() % 2 == 1 { s[s.len() / 2] } else { 0.5 * (s[s.len() / 2 - 1] + s[s.len() / 2]) };
+    json!({
+        "median": median, "p90": rank(0.9), "mean": s.iter().sum::<f64>() / s.len() as f64,
+        "min": s[0], "max": s[s.len() - 1], "n": s.len(),
+    })
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+// ------------------------------------------------------------------------------ threads
+
+/// Installs tract's N-thread matmul executor; returns the thread count tract will use.
+#[allow(unexpected_cfgs)]
+#[cfg(feature = "multithread-mm")]
+fn set_tract_threads(n: usize) -> (usize, &'static str) {
+    use tract_onnx::tract_core::tract_linalg::multithread::{set_default_executor, Executor};
+    if n > 1 {
+        set_default_executor(Executor::multithread(n));
+        (n, "multithread-mm executor")
+    } else {
+        (1, "single thread")
+    }
+}
+
+#[allow(unexpected_cfgs)]
+#[cfg(not(feature = "multithread-mm"))]
+fn set_tract_threads(n: usize) -> (usize, &'static str) {
+    if n > 1 {
+        (1, "single thread: this build has no multithread-mm feature, --threads ignored")
+    } else {
+        (1, "single thread")
+    }
+}
+
+// ------------------------------------------------------------------------------ memory
+
+/// (peak, current) resident set size in bytes, from /proc/self/status (Linux) or
+/// getrusage (peak only) elsewhere.
+fn rss() -> (Option<u64>, Option<u64>) {
+    if let Ok(s) = std::fs::read_to_string("/proc/self/status") {
+        let field = |name: &str| {
+            s.lines().find_map(|l| l.strip_prefix(name)).and_then(|v| {
+                v.trim().trim_end_matches("kB").trim().parse::<u64>().ok().map(|kb| kb * 1024)
+            })
+        };
+        return (field("VmHWM:"), field("VmRSS:"));
+    }
+    // SAFETY: getrusage only writes the struct we pass.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) } == 0 {
+        let unit = if cfg!(target_os = "macos") { 1 } else { 1024 };
+        return (Some(ru.ru_maxrss as u64 * unit), None);
+    }
+    (None, None)
+}
+
+fn mib(b: Option<u64>) -> Value {
+    b.map_or(Value::Null, |b| json!(b as f64 / (1 << 20) as f64))
+}
+
+// ------------------------------------------------------------------------------ bandwidth
+
+/// Sum of a slice with 8 independent accumulators (vectorizes; reads every byte).
+fn sum_u64(xs: &[u64]) -> u64 {
+    let mut acc = [0u64; 8];
+    let mut chunks = xs.chunks_exact(8);
+    for c in &mut chunks {
+        for i in 0..8 {
+            acc[i] = acc[i].wrapping_add(c[i]);
+        }
+    }
+    let tail = chunks.remainder().iter().fold(0u64, |a, &x| a.wrapping_add(x));
+    acc.iter().fold(tail, |a, &x| a.wrapping_add(x))
+}
+
+/// Best and median read bandwidth (bytes/s) of `buf` with `threads` threads over `reps` passes.
+fn read_bandwidth(buf: &[u64], threads: usize, reps: usize) -> (f64, f64) {
+    let bytes = std::mem::size_of_val(buf) as f64;
+    let mut rates = Vec::with_capacity(reps);
+    for _ in 0..reps {
+        let t = Instant::now();
+        let total = std::thread::scope(|s| {
+            let per = buf.len().div_ceil(threads);
+            let hs: Vec<_> = buf.chunks(per).map(|c| s.spawn(move || sum_u64(std::hint::black_box(c)))).collect();
+            hs.into_iter().map(|h| h.join().unwrap_or(0)).fold(0u64, u64::wrapping_add)
+        });
+        std::hint::black_box(total);
+        rates.push(bytes / t.elapsed().as_secs_f64());
+    }
+    rates.sort_by(f64::total_cmp);
+    (rates[rates.len() - 1], rates[rates.len() / 2])
+}
+
+// ------------------------------------------------------------------------------ the bench
+
+fn cpu_model() -> Option<String> {
+    let s = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    s.lines().find_map(|l| l.strip_prefix("model name").map(|v| v.trim_start_matches([' ', '\t', ':']).to_string()))
+}
+
+/// Bytes of the step graph's files (the .onnx and any external data beside it).
+fn step_graph_bytes(bundle: &Bundle) -> u64 {
+    let file = &bundle.manifest.transformer.file;
+    bundle.manifest.files.iter().filter(|(p, _)| p.starts_with(file.as_str())).map(|(_, e)| e.bytes).sum()
+}
+
+fn hash_tokens(tokens: &[[usize; N_STREAMS]]) -> String {
+    // SHA-256 of the tokens as little-endian int64, row-major (steps, 4): what numpy's
+    // `np.asarray(tokens, '<i8').tobytes()` hashes to on the Python side.
+    let mut h = Sha256::new();
+    for row in tokens {
+        for &t in row {
+            h.update((t as i64).to_le_bytes());
+        }
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn bench(o: &Options) -> Result<Value, String> {
+    let err = |e: comgrasp::Error| e.to_string();
+    let (tract_threads, thread_note) = set_tract_threads(o.threads);
+    let rss_before = rss();
+
+    // 1. load
+    let t = Instant::now();
+    let bundle = Bundle::load(&o.bundle).map_err(err)?;
+    let load_ms = ms(t.elapsed());
+    let rss_loaded = rss();
+    let m = &bundle.manifest;
+    let l_max = m.l_max;
+    let steps = o.steps.unwrap_or(l_max);
+    if steps > l_max {
+        return Err(format!("--steps {steps} exceeds the bundle's L_max {l_max}"));
+    }
+    let seed = o.seed.unwrap_or(m.sampling.seed);
+    let temperature = o.temperature.unwrap_or(m.sampling.temperature);
+    let top_k = o.top_k.unwrap_or(m.sampling.top_k as u32);
+    let params = SamplingParams::new(temperature, top_k, steps as u32, steps as u32, l_max as u32).map_err(err)?;
+    let end_ids = m.end_ids();
+    let pad_ids = m.pad_ids();
+    let pad_usize = pad_ids.map(|p| p as usize);
+
+    // 2. text
+    let emb = bundle.text.embed(&o.prompt).map_err(err)?; // warm-up
+    let mut text_ms = Vec::with_capacity(o.text_runs);
+    for _ in 0..o.text_runs {
+        let t = Instant::now();
+        let e = bundle.text.embed(&o.prompt).map_err(err)?;
+        text_ms.push(ms(t.elapsed()));
+        if e != emb {
+            return Err("the text embedding differs between two runs".into());
+        }
+    }
+
+    // 3. steps with the real cache
+    let mut st = bundle.step.new_state();
+    let mut prev = pad_ids;
+    let mut warm_sampler = TokenSampler::new(seed, params, end_ids, pad_usize);
+    for k in 0..o.warmup.min(steps) {
+        let logits = bundle.step.step(&mut st, prev, k, &emb).map_err(err)?;
+        prev = warm_sampler.sample_step(k, logits).map_err(err)?.map(|c| c as i64);
+    }
+    st.reset().map_err(err)?;
+    let mut sampler = TokenSampler::new(seed, params, end_ids, pad_usize);
+    let mut prev = pad_ids;
+    let mut tokens: Vec<[usize; N_STREAMS]> = Vec::with_capacity(steps);
+    let (mut step_ms, mut sample_us) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
+    for k in 0..steps {
+        let t = Instant::now();
+        let logits = bundle.step.step(&mut st, prev, k, &emb).map_err(err)?;
+        let t_step = t.elapsed();
+        let t = Instant::now();
+        let codes = sampler.sample_step(k, logits).map_err(err)?;
+        sample_us.push(t.elapsed().as_secs_f64() * 1e6);
+        step_ms.push(ms(t_step));
+        if codes.iter().zip(&end_ids).any(|(c, e)| c == e) {
+            return Err(format!("End sampled at step {k} although min_len = {steps}"));
+        }
+        prev = codes.map(|c| c as i64);
+        tokens.push(codes);
+    }
+    drop(st);
+
+    // 4. decode + assembly
+    let f = bundle.decoder.frames_per_token();
+    let mut ds = bundle.decoder.new_state();
+    let mut chunk = vec![0f32; bundle.decoder.chunk_len()];
+    bundle.decoder.decode(&mut ds, tokens[0].map(|c| c as i64), &mut chunk).map_err(err)?; // warm-up
+    ds.reset().map_err(err)?;
+    let mut normalized = Vec::with_capacity(steps * chunk.len());
+    let mut decode_ms = Vec::with_capacity(steps);
+    for codes in &tokens {
+        let t = Instant::now();
+        bundle.decoder.decode(&mut ds, codes.map(|c| c as i64), &mut chunk).map_err(err)?;
+        decode_ms.push(ms(t.elapsed()));
+        normalized.extend_from_slice(&chunk);
+    }
+    drop(ds);
+    let config = EngineConfig {
+        bundle_path: Some(o.bundle.clone()),
+        coordinate_system: CoordinateSystem::CG_COORDS_NATIVE,
+        enable_fk: false,
+        ring_capacity: (steps * f + 16).max(256),
+        max_streams: 2,
+        default_stream: StreamConfig::default(),
+    };
+    let assembler = FrameAssembler::new(&m.normalization.mean, &m.normalization.std, &m.skeleton.parents,
+                                        &m.skeleton.rest_joints, config.coordinate_system, config.enable_fk, m.fps)
+        .map_err(err)?;
+    let n_frames = steps * f;
+    let mut expected = vec![Frame::default(); n_frames];
+    let mut assemble_us = Vec::with_capacity(steps);
+    for (c, frames) in expected.chunks_mut(f).enumerate() {
+        let t = Instant::now();
+        for (i, fr) in frames.iter_mut().enumerate() {
+            let idx = c * f + i;
+            // Stream ids start at 1 and the first stream of the engine below is compared.
+            assembler.assemble(&normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM], 1, idx as u64,
+                               idx + 1 == n_frames, fr);
+        }
+        assemble_us.push(t.elapsed().as_secs_f64() * 1e6);
+    }
+
+    // 5. end-to-end streams on the same loaded bundle
+    let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), &config).map_err(err)?);
+    let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| {
+        Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?) as Box<dyn ChunkSource>)
+    });
+    let engine = Engine::with_source_factory(config, factory).map_err(err)?;
+    let stream_cfg = StreamConfig {
+        seed: Some(seed),
+        temperature: Some(temperature),
+        top_k: Some(top_k),
+        min_len: Some(steps as u32),
+        max_len: Some(steps as u32),
+    };
+    let mut ttff_ms = Vec::new();
+    let mut total_ms = Vec::new();
+    let mut fps_runs = Vec::new();
+    let mut stream_matches = None;
+    let mut frames: Vec<Frame> = Vec::with_capacity(n_frames);
+    for run in 0..o.stream_runs {
+        frames.clear();
+        let mut fr = Frame::default();
+        let t0 = Instant::now();
+        let mut stream = engine.start(&o.prompt, stream_cfg.clone()).map_err(err)?;
+        let mut first = None;
+        loop {
+            match stream.wait(&mut fr, Duration::from_secs(60)) {
+                PollResult::Frame => {
+                    first.get_or_insert_with(|| t0.elapsed());
+                    frames.push(fr);
+                }
+                PollResult::Pending => return Err("no frame for 60 s".into()),
+                PollResult::End => break,
+                PollResult::Cancelled => return Err("the stream was cancelled".into()),
+                PollResult::Error => {
+                    return Err(stream.error().map_or_else(|| "the stream failed".into(), |e| e.to_string()))
+                }
+            }
+        }
+        let total = t0.elapsed();
+        let sid = stream.id();
+        drop(stream);
+        if frames.len() != n_frames {
+            return Err(format!("the stream gave {} frames, expected {n_frames}", frames.len()));
+        }
+        ttff_ms.push(ms(first.unwrap_or(total)));
+        total_ms.push(ms(total));
+        fps_runs.push(n_frames as f64 / total.as_secs_f64());
+        if run == 0 {
+            // Same frames as the step loop's tokens decoded and assembled => same tokens.
+            stream_matches = Some(sid == 1 && frames == expected);
+        }
+    }
+    let gen_s = total_ms.iter().copied().fold(0.0, f64::max) / 1e3;
+
+    // 6. poll latency: empty ring while the first frame is computed, then ready frames
+    let mut empty_ns = Vec::new();
+    let mut ready_ns = Vec::new();
+    {
+        let mut fr = Frame::default();
+        let mut stream = engine.start(&o.prompt, stream_cfg.clone()).map_err(err)?;
+        let mut got = 0usize;
+        'empty: while empty_ns.len() < 20_000 {
+            let t = Instant::now();
+            let mut all_pending = true;
+            for _ in 0..POLL_BATCH {
+                match stream.poll(&mut fr) {
+                    PollResult::Pending => {}
+                    PollResult::Frame => {
+                        got += 1;
+                        all_pending = false;
+                        break;
+                    }
+                    _ => break 'empty,
+                }
+            }
+            let dt = t.elapsed();
+            if !all_pending {
+                break;
+            }
+            empty_ns.push(dt.as_secs_f64() * 1e9 / POLL_BATCH as f64);
+        }
+        // Let the worker buffer everything (the ring holds the whole sequence), then drain.
+        std::thread::sleep(Duration::from_secs_f64(gen_s * 1.5 + 0.05));
+        let mut done = false;
+        while !done {
+            let t = Instant::now();
+            let mut n = 0;
+            for _ in 0..POLL_BATCH {
+                match stream.poll(&mut fr) {
+                    PollResult::Frame => n += 1,
+                    _ => {
+                        done = true;
+                        break;
+                    }
+                }
+            }
+            let dt = t.elapsed();
+            got += n;
+            if n == POLL_BATCH {
+                ready_ns.push(dt.as_secs_f64() * 1e9 / POLL_BATCH as f64);
+            }
+        }
+        if got != n_frames {
+            // The generation was slower than the sleep: the ready numbers still only count
+            // full batches of frames.
+            while let PollResult::Frame = stream.wait(&mut fr, Duration::from_secs(60)) {
+                got += 1;
+            }
+        }
+    }
+    drop(engine);
+
+    // 7. memory
+    let rss_end = rss();
+
+    // 8. bandwidth (with the bundle's memory released first)
+    let step_bytes = step_graph_bytes(&bundle);
+    let t = &m.transformer;
+    let cache_bytes = (2 * t.n_layers * t.n_heads * t.cache_slots * t.head_dims.iter().sum::<usize>() * 4) as u64;
+    let fps = m.fps;
+    let model = json!({
+        "step_graph_bytes": step_bytes, "kv_cache_bytes": cache_bytes,
+        "n_layers": t.n_layers, "n_heads": t.n_heads, "widths": t.widths, "cache_slots": t.cache_slots,
+        "files_bytes": m.files.values().map(|e| e.bytes).sum::<u64>(),
+    });
+    drop(bundle);
+    let bandwidth = if o.bandwidth_mib > 0 {
+        let n = o.bandwidth_mib * (1 << 20) / 8;
+        let buf: Vec<u64> = (0..n as u64).collect();
+        let (b1, m1) = read_bandwidth(&buf, 1, 5);
+        let (b2, m2) = read_bandwidth(&buf, 2, 5);
+        let limit = |bw: f64| (step_bytes + cache_bytes) as f64 / bw * 1e3;
+        let step_med = stats(&step_ms)["median"].as_f64().unwrap_or(f64::NAN);
+        json!({
+            "buffer_mib": o.bandwidth_mib,
+            "gb_per_s_1t": b1 / 1e9, "gb_per_s_1t_median": m1 / 1e9,
+            "gb_per_s_2t": b2 / 1e9, "gb_per_s_2t_median": m2 / 1e9,
+            "step_limit_ms_1t": limit(b1), "step_limit_ms_2t": limit(b2),
+            "step_over_limit_1t": step_med / limit(b1), "step_over_limit_2t": step_med / limit(b2),
+        })
+    } else {
+        Value::Null
+    };
+
+    let step_stats = stats(&step_ms);
+    let tokens_json: Vec<Vec<usize>> = tokens.iter().map(|r| r.to_vec()).collect();
+    Ok(json!({
+        "runtime": "comgrasp (tract-onnx 0.23)",
+        "bundle": o.bundle.display().to_string(),
+        "machine": {"cpu": cpu_model(), "logical_cpus": std::thread::available_parallelism().map(|n| n.get()).ok()},
+        "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note},
+        "config": {
+            "prompt": o.prompt, "seed": seed, "steps": steps, "warmup": o.warmup,
+            "temperature": temperature, "top_k": top_k, "min_len": steps, "max_len": steps,
+            "fps": fps, "frames_per_token": f, "l_max": l_max,
+        },
+        "model": model,
+        "load_ms": load_ms,
+        "text_ms": stats(&text_ms),
+        "step_ms": step_stats,
+        "sample_us": stats(&sample_us),
+        "decode_ms": stats(&decode_ms),
+        "assemble_us_per_chunk": stats(&assemble_us),
+        "stream": {
+            "runs": o.stream_runs, "frames": n_frames,
+            "ttff_ms": stats(&ttff_ms), "total_ms": stats(&total_ms),
+            "frames_per_s": stats(&fps_runs),
+            "rtf": stats(&fps_runs.iter().map(|x| x / fps).collect::<Vec<_>>()),
+            "ms_per_token": stats(&total_ms.iter().map(|x| x / steps as f64).collect::<Vec<_>>()),
+            "matches_step_loop": stream_matches,
+        },
+        "poll_ns": {"batch": POLL_BATCH, "empty": stats(&empty_ns), "ready": stats(&ready_ns)},
+        "rss_mib": {
+            "before_load": mib(rss_before.1), "after_load": mib(rss_loaded.1),
+            "end": mib(rss_end.1), "peak": mib(rss_end.0),
+        },
+        "bandwidth": bandwidth,
+        "tokens_sha256": hash_tokens(&tokens),
+        "tokens": tokens_json,
+    }))
+}
+
+// ------------------------------------------------------------------------------ report
+
+fn print_report(r: &Value) {
+    let g = |path: &[&str]| {
+        let mut v = r;
+        for p in path {
+            v = &v[*p];
+        }
+        v.as_f64().unwrap_or(f64::NAN)
+    };
+    let s = |path: &[&str]| r.pointer(&format!("/{}", path.join("/"))).cloned().unwrap_or(Value::Null);
+    println!("comgrasp bench: {}", r["bundle"].as_str().unwrap_or("?"));
+    println!("  machine   {} ({} logical CPUs); tract: {}", r["machine"]["cpu"].as_str().unwrap_or("?"),
+             s(&["machine", "logical_cpus"]), r["threads"]["note"].as_str().unwrap_or("?"));
+    println!("  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, prompt {}",
+             s(&["config", "steps"]), s(&["config", "frames_per_token"]), s(&["config", "seed"]),
+             s(&["config", "temperature"]), s(&["config", "top_k"]), s(&["config", "prompt"]));
+    println!("  load      {:.1} ms (verify + 3 graphs); step graph {:.1} MB, KV cache {:.1} MB",
+             g(&["load_ms"]), g(&["model", "step_graph_bytes"]) / 1e6, g(&["model", "kv_cache_bytes"]) / 1e6);
+    let line = |label: &str, key: &str, unit: &str| {
+        println!("  {label:<9} median {:.3} {unit}, p90 {:.3} {unit} (n = {})", g(&[key, "median"]), g(&[key, "p90"]),
+                 s(&[key, "n"]));
+    };
+    line("text", "text_ms", "ms");
+    line("step", "step_ms", "ms");
+    line("sample", "sample_us", "us");
+    line("decode", "decode_ms", "ms");
+    line("assemble", "assemble_us_per_chunk", "us");
+    println!("  stream    TTFF median {:.2} ms (p90 {:.2}), {:.0} frames/s, RTF {:.1}, {:.2} ms/token; \
+              frames match the step loop: {}",
+             g(&["stream", "ttff_ms", "median"]), g(&["stream", "ttff_ms", "p90"]),
+             g(&["stream", "frames_per_s", "median"]), g(&["stream", "rtf", "median"]),
+             g(&["stream", "ms_per_token", "median"]), s(&["stream", "matches_step_loop"]));
+    println!("  poll      empty {:.1} ns, ready frame {:.1} ns (median per call, batches of {})",
+             g(&["poll_ns", "empty", "median"]), g(&["poll_ns", "ready", "median"]), POLL_BATCH);
+    println!("  RSS       peak {:.1} MiB (before load {:.1}, after load {:.1})", g(&["rss_mib", "peak"]),
+             g(&["rss_mib", "before_load"]), g(&["rss_mib", "after_load"]));
+    if !r["bandwidth"].is_null() {
+        println!("  bandwidth {:.1} GB/s (1 thread), {:.1} GB/s (2 threads); step limit {:.2} ms (1 t) / {:.2} ms (2 t); \
+                  step / limit {:.2} / {:.2}",
+                 g(&["bandwidth", "gb_per_s_1t"]), g(&["bandwidth", "gb_per_s_2t"]),
+                 g(&["bandwidth", "step_limit_ms_1t"]), g(&["bandwidth", "step_limit_ms_2t"]),
+                 g(&["bandwidth", "step_over_limit_1t"]), g(&["bandwidth", "step_over_limit_2t"]));
+    }
+    let toks = r["tokens"].as_array().map_or(0, Vec::len);
+    let head: Vec<String> = r["tokens"].as_array().into_iter().flatten().take(4).map(|t| t.to_string()).collect();
+    println!("  tokens    {toks} steps, sha256 {}, first {}", r["tokens_sha256"].as_str().unwrap_or("?"), head.join(" "));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(a: &[&str]) -> Vec<String> {
+        a.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[test]
+    fn parses_options() {
+        let o = parse(&args(&["--bundle", "b", "--steps=5", "--json", "--prompt", "x y", "--threads", "2"])).unwrap();
+        assert_eq!(o.bundle, PathBuf::from("b"));
+        assert_eq!(o.steps, Some(5));
+        assert!(o.json);
+        assert_eq!(o.prompt, "x y");
+        assert_eq!(o.threads, 2);
+        assert!(parse(&args(&["--steps", "5"])).is_err(), "bundle required");
+        assert!(parse(&args(&["--bundle", "b", "--nope"])).is_err());
+        assert!(parse(&args(&["--bundle", "b", "--steps", "0"])).is_err());
+        assert!(parse(&args(&["--bundle", "b", "--seed"])).is_err());
+    }
+
+    #[test]
+    fn stats_median_and_p90() {
+        let v = stats(&[5.0, 1.0, 3.0, 2.0, 4.0, 6.0, 7.0, 8.0, 9.0, 10.0]);
+        assert_eq!(v["median"].as_f64(), Some(5.5));
+        assert_eq!(v["p90"].as_f64(), Some(9.0));
+        assert_eq!(v["min"].as_f64(), Some(1.0));
+        assert!(stats(&[]).is_null());
+    }
+
+    #[test]
+    fn token_hash_is_sha256_of_le_int64() {
+        // sha256 of 32 zero bytes (one step of four zero tokens).
+        assert_eq!(hash_tokens(&[[0, 0, 0, 0]]),
+                   "66687aadf862bd776c8fc18b8e9f8e20089714856ee233b3902a591d0d5f2925");
+    }
+
+    #[test]
+    fn sum_reads_everything() {
+        let v: Vec<u64> = (0..1003).collect();
+        assert_eq!(sum_u64(&v), 1003 * 1002 / 2);
+    }
+}

@@ -1,0 +1,290 @@
+//! `comgrasp generate`: one prompt → all frames → a JSON or NPZ file, plus a one-line
+//! summary with the numbers a user asks first (how much motion, how fast it started).
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use comgrasp::frame::{CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
+use comgrasp::{CoordinateSystem, Engine, EngineConfig, Error, Frame, PollResult, StreamConfig};
+use serde::Serialize;
+
+use crate::npz;
+use crate::Failure;
+
+pub const HELP: &str = "\
+usage: comgrasp generate --bundle DIR --text PROMPT [options]
+
+Generates one motion and writes every frame to a file.
+
+  --bundle DIR          model bundle directory (e.g. models/tiny)
+  --text PROMPT         what to do, e.g. \"A woman drinks from the mug\"
+  --out FILE            FILE.json (array of frame objects) or FILE.npz (numpy arrays);
+                        without it only the summary is printed
+  --seed N              sampler seed (default: the bundle's)
+  --temperature T       softmax temperature, >= 0; 0 = greedy (default: the bundle's)
+  --top-k K             sample among the K most likely tokens; 0 = all (default: the bundle's)
+  --min-len N           no end before N token steps of 16 frames (default: the bundle's)
+  --max-len N           end at N token steps at the latest (default: the bundle's)
+  --coords SYSTEM       native (z up, metres), gltf (y up), unity (y up, left-handed)
+                        or unreal (z up, left-handed, centimetres); default native
+  --fk                  also compute the 55 world joint positions (joint_positions)
+  -h, --help            this text";
+
+/// The parsed command line.
+struct Options {
+    bundle: PathBuf,
+    text: String,
+    out: Option<(PathBuf, Format)>,
+    stream: StreamConfig,
+    coords: CoordinateSystem,
+    fk: bool,
+}
+
+#[derive(Clone, Copy)]
+enum Format {
+    Json,
+    Npz,
+}
+
+pub fn run(args: &[String]) -> Result<(), Failure> {
+    if args.iter().any(|a| a == "-h" || a == "--help") {
+        println!("{HELP}");
+        return Ok(());
+    }
+    let opts = parse(args).map_err(|m| Failure::Usage(format!("generate: {m}\nRun `comgrasp generate --help` for usage.")))?;
+    let t0 = Instant::now();
+
+    let engine = Engine::new(EngineConfig {
+        bundle_path: Some(opts.bundle.clone()),
+        coordinate_system: opts.coords,
+        enable_fk: opts.fk,
+        ..EngineConfig::default()
+    })
+    .map_err(engine_failure)?;
+    // The engine verified the bundle; this re-read is only for its frame rate.
+    let fps = comgrasp::bundle::verify::read_manifest(&opts.bundle).map_err(engine_failure)?.fps;
+    let load = t0.elapsed();
+
+    let t_start = Instant::now();
+    let mut stream = engine.start(&opts.text, opts.stream.clone()).map_err(engine_failure)?;
+    let mut frames: Vec<Frame> = Vec::new();
+    let mut first_frame = None;
+    let mut f = Frame::default();
+    loop {
+        match stream.wait(&mut f, Duration::from_millis(100)) {
+            PollResult::Frame => {
+                first_frame.get_or_insert_with(|| t_start.elapsed());
+                frames.push(f);
+            }
+            PollResult::Pending => {}
+            PollResult::End => break,
+            PollResult::Cancelled => return Err(Failure::Run("the stream was cancelled".into())),
+            PollResult::Error => {
+                let msg = stream.error().map_or_else(|| "the stream failed".into(), |e| e.to_string());
+                return Err(Failure::Run(msg));
+            }
+        }
+    }
+    let generation = t_start.elapsed();
+    drop(stream);
+    drop(engine);
+
+    if let Some((path, format)) = &opts.out {
+        write(path, *format, &frames, fps, opts.fk)
+            .map_err(|e| Failure::Run(format!("cannot write {}: {e}", path.display())))?;
+    }
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let mut line = format!(
+        "{} frames, {:.2} s of motion at {fps} fps; first frame {} after start, generation {:.1} ms, \
+         bundle load {:.1} ms, total {:.1} ms",
+        frames.len(),
+        frames.len() as f64 / fps,
+        first_frame.map_or("none".into(), |d| format!("{:.1} ms", ms(d))),
+        ms(generation),
+        ms(load),
+        ms(t0.elapsed()),
+    );
+    if let Some((path, _)) = &opts.out {
+        line += &format!("; wrote {}", path.display());
+    }
+    // A closed stdout (e.g. `| head -0`) is not worth a panic or an error.
+    let _ = writeln!(std::io::stdout(), "{line}");
+    Ok(())
+}
+
+/// Engine errors caused by the arguments (a bad sampling value, an over-long prompt) are
+/// usage errors; the rest (bundle, inference, I/O) are run failures.
+fn engine_failure(e: Error) -> Failure {
+    match e {
+        Error::InvalidArgument(_) => Failure::Usage(format!("generate: {e}")),
+        e => Failure::Run(e.to_string()),
+    }
+}
+
+fn parse(args: &[String]) -> Result<Options, String> {
+    let (mut bundle, mut text, mut out) = (None, None, None);
+    let mut stream = StreamConfig::default();
+    let mut coords = CoordinateSystem::CG_COORDS_NATIVE;
+    let mut fk = false;
+    let mut it = args.iter();
+    while let Some(arg) = it.next() {
+        // Accept both `--name value` and `--name=value`.
+        let (name, inline) = match arg.split_once('=') {
+            Some((n, v)) if n.starts_with("--") => (n, Some(v.to_string())),
+            _ => (arg.as_str(), None),
+        };
+        if name == "--fk" {
+            if inline.is_some() {
+                return Err("--fk takes no value".into());
+            }
+            fk = true;
+            continue;
+        }
+        if !name.starts_with("--") {
+            return Err(format!("unexpected argument {arg:?}"));
+        }
+        let known = ["--bundle", "--text", "--out", "--seed", "--temperature", "--top-k", "--min-len", "--max-len", "--coords"];
+        if !known.contains(&name) {
+            return Err(format!("unknown option {name}"));
+        }
+        let value = match inline {
+            Some(v) => v,
+            None => it.next().cloned().ok_or_else(|| format!("{name} needs a value"))?,
+        };
+        match name {
+            "--bundle" => bundle = Some(PathBuf::from(value)),
+            "--text" => text = Some(value),
+            "--out" => out = Some(value),
+            "--seed" => stream.seed = Some(number(name, &value)?),
+            "--temperature" => stream.temperature = Some(number(name, &value)?),
+            "--top-k" => stream.top_k = Some(number(name, &value)?),
+            "--min-len" => stream.min_len = Some(number(name, &value)?),
+            "--max-len" => stream.max_len = Some(number(name, &value)?),
+            "--coords" => {
+                coords = match value.to_ascii_lowercase().as_str() {
+                    "native" => CoordinateSystem::CG_COORDS_NATIVE,
+                    "gltf" => CoordinateSystem::CG_COORDS_GLTF,
+                    "unity" => CoordinateSystem::CG_COORDS_UNITY,
+                    "unreal" => CoordinateSystem::CG_COORDS_UNREAL,
+                    _ => return Err(format!("--coords must be native, gltf, unity or unreal, got {value:?}")),
+                }
+            }
+            _ => unreachable!("checked against `known`"),
+        }
+    }
+    let bundle = bundle.ok_or("--bundle DIR is required (there is no built-in bundle yet)")?;
+    let text = text.ok_or("--text PROMPT is required")?;
+    // Decide the format before generating, so a typo does not cost a whole run.
+    let out = match out {
+        None => None,
+        Some(p) => {
+            let path = PathBuf::from(&p);
+            let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+            let format = match ext.as_deref() {
+                Some("json") => Format::Json,
+                Some("npz") => Format::Npz,
+                _ => return Err(format!("--out {p:?}: the file name must end in .json or .npz")),
+            };
+            let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            if !dir.is_dir() {
+                return Err(format!("--out {p:?}: directory {} does not exist", dir.display()));
+            }
+            Some((path, format))
+        }
+    };
+    Ok(Options { bundle, text, out, stream, coords, fk })
+}
+
+fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {
+    value.trim().parse().map_err(|_| format!("{name}: {value:?} is not a valid number here"))
+}
+
+fn write(path: &Path, format: Format, frames: &[Frame], fps: f64, fk: bool) -> std::io::Result<()> {
+    let mut w = BufWriter::new(File::create(path)?);
+    match format {
+        Format::Json => write_json(&mut w, frames, fk)?,
+        Format::Npz => npz::write(&mut w, &npz_arrays(frames, fps, fk))?,
+    }
+    w.into_inner().map_err(|e| e.into_error())?.sync_all()
+}
+
+/// One frame as JSON: the C frame's fields by name (reserved padding left out,
+/// `joint_positions` only with `--fk`). Borrowed, so serializing copies nothing.
+#[derive(Serialize)]
+struct JsonFrame<'a> {
+    frame_index: u64,
+    time_s: f64,
+    root_translation: &'a [f32; 3],
+    root_rotation: &'a [f32; 4],
+    body_rotations: &'a [[f32; 4]],
+    left_hand_rotations: &'a [[f32; 4]],
+    right_hand_rotations: &'a [[f32; 4]],
+    object_translation: &'a [f32; 3],
+    object_rotation: &'a [f32; 4],
+    object_centre: &'a [f32; 3],
+    left_wrist_to_object: &'a [f32; 3],
+    right_wrist_to_object: &'a [f32; 3],
+    contact_probability: &'a [f32; 2],
+    contact: &'a [u8; 2],
+    is_last: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    joint_positions: Option<&'a [[f32; 3]]>,
+}
+
+/// A JSON array with one frame object per line: valid JSON that still diffs and greps well.
+fn write_json(w: &mut impl Write, frames: &[Frame], fk: bool) -> std::io::Result<()> {
+    w.write_all(b"[")?;
+    for (i, f) in frames.iter().enumerate() {
+        w.write_all(if i == 0 { b"\n" } else { b",\n" })?;
+        let jf = JsonFrame {
+            frame_index: f.frame_index,
+            time_s: f.time_s,
+            root_translation: &f.root_translation,
+            root_rotation: &f.root_rotation,
+            body_rotations: &f.body_rotations,
+            left_hand_rotations: &f.left_hand_rotations,
+            right_hand_rotations: &f.right_hand_rotations,
+            object_translation: &f.object_translation,
+            object_rotation: &f.object_rotation,
+            object_centre: &f.object_centre,
+            left_wrist_to_object: &f.left_wrist_to_object,
+            right_wrist_to_object: &f.right_wrist_to_object,
+            contact_probability: &f.contact_probability,
+            contact: &f.contact,
+            is_last: f.is_last != 0,
+            joint_positions: fk.then_some(&f.joint_positions[..]),
+        };
+        serde_json::to_writer(&mut *w, &jf)?;
+    }
+    w.write_all(b"\n]\n")
+}
+
+/// The frames as (T, ...) arrays, one per frame field, plus the scalar `fps`.
+fn npz_arrays(frames: &[Frame], fps: f64, fk: bool) -> Vec<npz::Array> {
+    let t = frames.len();
+    let f32s = |name: &str, shape: &[usize], get: &dyn Fn(&Frame) -> &[f32]| {
+        let mut full = vec![t];
+        full.extend_from_slice(shape);
+        npz::Array::f32(name, &full, frames.iter().flat_map(|f| get(f).iter().copied()))
+    };
+    let mut arrays = vec![
+        f32s("root_translation", &[3], &|f| &f.root_translation),
+        f32s("root_rotation", &[4], &|f| &f.root_rotation),
+        f32s("body_rotations", &[CG_BODY_JOINTS, 4], &|f| f.body_rotations.as_flattened()),
+        f32s("left_hand_rotations", &[CG_HAND_JOINTS, 4], &|f| f.left_hand_rotations.as_flattened()),
+        f32s("right_hand_rotations", &[CG_HAND_JOINTS, 4], &|f| f.right_hand_rotations.as_flattened()),
+        f32s("object_translation", &[3], &|f| &f.object_translation),
+        f32s("object_rotation", &[4], &|f| &f.object_rotation),
+        f32s("object_centre", &[3], &|f| &f.object_centre),
+        f32s("left_wrist_to_object", &[3], &|f| &f.left_wrist_to_object),
+        f32s("right_wrist_to_object", &[3], &|f| &f.right_wrist_to_object),
+        f32s("contact_probability", &[2], &|f| &f.contact_probability),
+        npz::Array::u8("contact", &[t, 2], frames.iter().flat_map(|f| f.contact)),
+        npz::Array::scalar_f64("fps", fps),
+    ];
+    if fk {
+        arrays.push(f32s("joint_positions", &[CG_NUM_JOINTS, 3], &|f| f.joint_positions.as_flattened()));
+    }
+    arrays
+}

@@ -1,0 +1,162 @@
+//! A minimal NPZ writer: `.npy` arrays in an uncompressed ("stored") zip, which is what
+//! `numpy.savez` writes and `numpy.load` reads. Written by hand (a CRC-32 and three zip
+//! headers) instead of pulling in a zip crate with its compression back ends.
+use std::io::{self, Write};
+
+/// One array: its `.npy` dtype descriptor (`<f4`, `<f8`, `|u1`), shape and raw
+/// little-endian C-order data.
+pub struct Array {
+    pub name: String,
+    pub descr: &'static str,
+    pub shape: Vec<usize>,
+    pub data: Vec<u8>,
+}
+
+impl Array {
+    /// A float32 array from values in C order.
+    pub fn f32(name: &str, shape: &[usize], values: impl IntoIterator<Item = f32>) -> Array {
+        let data = values.into_iter().flat_map(f32::to_le_bytes).collect();
+        Array { name: name.into(), descr: "<f4", shape: shape.to_vec(), data }
+    }
+
+    /// A uint8 array from values in C order.
+    pub fn u8(name: &str, shape: &[usize], values: impl IntoIterator<Item = u8>) -> Array {
+        Array { name: name.into(), descr: "|u1", shape: shape.to_vec(), data: values.into_iter().collect() }
+    }
+
+    /// A 0-d float64 array (a scalar, e.g. `fps`).
+    pub fn scalar_f64(name: &str, v: f64) -> Array {
+        Array { name: name.into(), descr: "<f8", shape: Vec::new(), data: v.to_le_bytes().to_vec() }
+    }
+
+    /// The array as a `.npy` file (format 1.0, header padded to a multiple of 64 bytes).
+    pub fn to_npy(&self) -> Vec<u8> {
+        let shape = match self.shape.as_slice() {
+            [] => "()".to_string(),
+            [n] => format!("({n},)"),
+            dims => format!("({})", dims.iter().map(usize::to_string).collect::<Vec<_>>().join(", ")),
+        };
+        let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}", self.descr);
+        // magic (6) + version (2) + header length (2) + header, ending in '\n'.
+        let unpadded = 10 + header.len() + 1;
+        header.extend(std::iter::repeat_n(' ', unpadded.next_multiple_of(64) - unpadded));
+        header.push('\n');
+        let mut out = Vec::with_capacity(10 + header.len() + self.data.len());
+        out.extend_from_slice(b"\x93NUMPY\x01\x00");
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(&self.data);
+        out
+    }
+}
+
+/// Writes the arrays as `NAME.npy` entries of a stored zip. Fails (instead of writing a
+/// broken file) if anything exceeds the 4 GiB / 65535-entry limits of a zip without ZIP64.
+pub fn write(mut w: impl Write, arrays: &[Array]) -> io::Result<()> {
+    let too_big = || io::Error::new(io::ErrorKind::InvalidInput, "motion too large for an NPZ without ZIP64");
+    let mut central = Vec::new();
+    let mut offset = 0u64;
+    for a in arrays {
+        let name = format!("{}.npy", a.name);
+        let data = a.to_npy();
+        let size = u32::try_from(data.len()).map_err(|_| too_big())?;
+        let at = u32::try_from(offset).map_err(|_| too_big())?;
+        let crc = crc32(&data);
+        // Local file header, then the data.
+        let mut h = Vec::with_capacity(30 + name.len());
+        put32(&mut h, 0x0403_4b50);
+        entry_fields(&mut h, crc, size, name.len());
+        h.extend_from_slice(name.as_bytes());
+        w.write_all(&h)?;
+        w.write_all(&data)?;
+        offset += (h.len() + data.len()) as u64;
+        // Its central directory record, written after all entries.
+        put32(&mut central, 0x0201_4b50);
+        put16(&mut central, 20); // version made by: 2.0
+        entry_fields(&mut central, crc, size, name.len());
+        put16(&mut central, 0); // comment length
+        put16(&mut central, 0); // disk number
+        put16(&mut central, 0); // internal attributes
+        put32(&mut central, 0); // external attributes
+        put32(&mut central, at);
+        central.extend_from_slice(name.as_bytes());
+    }
+    let count = u16::try_from(arrays.len()).map_err(|_| too_big())?;
+    let cd_size = u32::try_from(central.len()).map_err(|_| too_big())?;
+    let cd_at = u32::try_from(offset).map_err(|_| too_big())?;
+    w.write_all(&central)?;
+    let mut end = Vec::with_capacity(22);
+    put32(&mut end, 0x0605_4b50);
+    put16(&mut end, 0); // this disk
+    put16(&mut end, 0); // disk with the central directory
+    put16(&mut end, count);
+    put16(&mut end, count);
+    put32(&mut end, cd_size);
+    put32(&mut end, cd_at);
+    put16(&mut end, 0); // comment length
+    w.write_all(&end)
+}
+
+/// The fields local and central headers share, from "version needed" to "extra length".
+fn entry_fields(out: &mut Vec<u8>, crc: u32, size: u32, name_len: usize) {
+    put16(out, 20); // version needed: 2.0
+    put16(out, 0); // flags
+    put16(out, 0); // method: stored
+    put16(out, 0); // time 00:00:00
+    put16(out, (1 << 5) | 1); // date 1980-01-01 (fixed, so output is reproducible)
+    put32(out, crc);
+    put32(out, size); // compressed
+    put32(out, size); // uncompressed
+    put16(out, name_len as u16);
+    put16(out, 0); // extra length
+}
+
+fn put16(out: &mut Vec<u8>, v: u16) {
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+fn put32(out: &mut Vec<u8>, v: u32) {
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+/// CRC-32 (IEEE, reflected, as zip uses) with a table built at compile time.
+fn crc32(bytes: &[u8]) -> u32 {
+    const TABLE: [u32; 256] = {
+        let mut t = [0u32; 256];
+        let mut i = 0;
+        while i < 256 {
+            let mut c = i as u32;
+            let mut k = 0;
+            while k < 8 {
+                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+                k += 1;
+            }
+            t[i] = c;
+            i += 1;
+        }
+        t
+    };
+    !bytes.iter().fold(!0u32, |c, &b| TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc32_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
+
+    #[test]
+    fn npy_header_is_aligned() {
+        for shape in [vec![], vec![7], vec![7, 21, 4]] {
+            let n: usize = shape.iter().product();
+            let npy = Array::f32("a", &shape, vec![0.0; n]).to_npy();
+            let hlen = u16::from_le_bytes([npy[8], npy[9]]) as usize;
+            assert_eq!((10 + hlen) % 64, 0);
+            assert_eq!(npy[10 + hlen - 1], b'\n');
+            assert_eq!(npy.len(), 10 + hlen + 4 * n);
+        }
+    }
+}
