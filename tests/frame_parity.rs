@@ -5,39 +5,10 @@
 //! coordinate system, and no allocation in `assemble`.
 
 use comgrasp::assemble::{FrameAssembler, FRAME_DIM};
-use comgrasp::bundle::npy;
 use comgrasp::frame::{cg_coordinate_system as Cs, Frame};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-use std::path::{Path, PathBuf};
 
-// ---- allocation counter (this thread only) ----
-struct Counting;
-thread_local! {
-    static COUNT: Cell<Option<usize>> = const { Cell::new(None) };
-}
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
-        let _ = COUNT.try_with(|c| c.set(c.get().map(|n| n + 1)));
-        unsafe { System.alloc(l) }
-    }
-    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
-        unsafe { System.dealloc(p, l) }
-    }
-    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
-        let _ = COUNT.try_with(|c| c.set(c.get().map(|n| n + 1)));
-        unsafe { System.realloc(p, l, n) }
-    }
-}
-#[global_allocator]
-static A: Counting = Counting;
-
-fn count_allocs<R>(f: impl FnOnce() -> R) -> (R, usize) {
-    COUNT.with(|c| c.set(Some(0)));
-    let r = f();
-    let n = COUNT.with(|c| c.replace(None)).unwrap();
-    (r, n)
-}
+mod alloc_counter;
+use alloc_counter::count_allocs;
 
 #[test]
 fn allocation_counter_works() {
@@ -45,16 +16,12 @@ fn allocation_counter_works() {
     assert!(n > 0);
 }
 
-fn bundle() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("models/tiny")
-}
+mod bundle_support;
+use bundle_support::{load_f32, tiny_dir};
 
 /// A float32 .npy of the tiny bundle (the engine's own reader): (shape, data).
 fn npy_f32(rel: &str) -> (Vec<usize>, Vec<f32>) {
-    let path = bundle().join(rel);
-    let a = npy::read(&path).unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(a.dtype, npy::NpyDtype::F32, "{rel}");
-    (a.shape.clone(), a.to_f32(&path).unwrap())
+    load_f32(&tiny_dir(), rel)
 }
 
 struct Manifest {
@@ -66,7 +33,7 @@ struct Manifest {
 }
 
 fn manifest() -> Manifest {
-    let text = std::fs::read_to_string(bundle().join("manifest.json")).unwrap();
+    let text = std::fs::read_to_string(tiny_dir().join("manifest.json")).unwrap();
     let m: serde_json::Value = serde_json::from_str(&text).unwrap();
     let f32s = |v: &serde_json::Value| -> Vec<f32> {
         v.as_array()

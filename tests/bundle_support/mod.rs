@@ -39,6 +39,23 @@ pub fn load_i64(dir: &Path, rel: &str) -> (Vec<usize>, Vec<i64>) {
     (a.shape, v)
 }
 
+pub fn load_f64(dir: &Path, rel: &str) -> Vec<f64> {
+    let p = dir.join(rel);
+    let a = npy::read(&p).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(a.dtype, npy::NpyDtype::F64, "{rel}");
+    a.to_f64()
+}
+
+/// Integer parity vectors as u64 (token ids and raw SplitMix64 outputs).
+pub fn load_u64(dir: &Path, rel: &str) -> Vec<u64> {
+    let p = dir.join(rel);
+    let a = npy::read(&p).unwrap_or_else(|e| panic!("{e}"));
+    match a.dtype {
+        npy::NpyDtype::U64 => a.to_u64(&p).unwrap_or_else(|e| panic!("{e}")),
+        _ => load_i64(dir, rel).1.into_iter().map(|v| v as u64).collect(),
+    }
+}
+
 pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f64 {
     assert_eq!(a.len(), b.len(), "length mismatch");
     a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).abs()).fold(0.0, f64::max)
