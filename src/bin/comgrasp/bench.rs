@@ -31,6 +31,9 @@
 //! N-thread executor. Without the feature `--threads` above 1 is reported, not applied.
 //!
 //! Never used in tests as a timing assertion; timings depend on the machine and its load.
+// `multithread-mm` is an optional crate feature (see `set_tract_threads`); builds without
+// it declared must not warn about the cfg.
+#![allow(unexpected_cfgs)]
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -197,7 +200,6 @@ fn ms(d: Duration) -> f64 {
 // ------------------------------------------------------------------------------ threads
 
 /// Installs tract's N-thread matmul executor; returns the thread count tract will use.
-#[allow(unexpected_cfgs)]
 #[cfg(feature = "multithread-mm")]
 fn set_tract_threads(n: usize) -> (usize, &'static str) {
     use tract_onnx::tract_core::tract_linalg::multithread::{set_default_executor, Executor};
@@ -209,7 +211,6 @@ fn set_tract_threads(n: usize) -> (usize, &'static str) {
     }
 }
 
-#[allow(unexpected_cfgs)]
 #[cfg(not(feature = "multithread-mm"))]
 fn set_tract_threads(n: usize) -> (usize, &'static str) {
     if n > 1 {
@@ -239,6 +240,17 @@ fn rss() -> (Option<u64>, Option<u64>) {
         return (Some(ru.ru_maxrss as u64 * unit), None);
     }
     (None, None)
+}
+
+/// Minor page faults of the process so far (0 where getrusage is unavailable).
+fn minor_faults() -> u64 {
+    // SAFETY: getrusage only writes the struct we pass.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut ru) } == 0 {
+        ru.ru_minflt as u64
+    } else {
+        0
+    }
 }
 
 fn mib(b: Option<u64>) -> Value {
@@ -352,6 +364,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     let mut prev = pad_ids;
     let mut tokens: Vec<[usize; N_STREAMS]> = Vec::with_capacity(steps);
     let (mut step_ms, mut sample_us) = (Vec::with_capacity(steps), Vec::with_capacity(steps));
+    let faults0 = minor_faults();
     for k in 0..steps {
         let t = Instant::now();
         let logits = bundle.step.step(&mut st, prev, k, &emb).map_err(err)?;
@@ -366,6 +379,7 @@ fn bench(o: &Options) -> Result<Value, String> {
         prev = codes.map(|c| c as i64);
         tokens.push(codes);
     }
+    let step_faults = minor_faults() - faults0;
     drop(st);
 
     // 4. decode + assembly
@@ -376,12 +390,14 @@ fn bench(o: &Options) -> Result<Value, String> {
     ds.reset().map_err(err)?;
     let mut normalized = Vec::with_capacity(steps * chunk.len());
     let mut decode_ms = Vec::with_capacity(steps);
+    let faults0 = minor_faults();
     for codes in &tokens {
         let t = Instant::now();
         bundle.decoder.decode(&mut ds, codes.map(|c| c as i64), &mut chunk).map_err(err)?;
         decode_ms.push(ms(t.elapsed()));
         normalized.extend_from_slice(&chunk);
     }
+    let decode_faults = minor_faults() - faults0;
     drop(ds);
     let config = EngineConfig {
         bundle_path: Some(o.bundle.clone()),
@@ -426,6 +442,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     let mut fps_runs = Vec::new();
     let mut stream_matches = None;
     let mut frames: Vec<Frame> = Vec::with_capacity(n_frames);
+    let faults0 = minor_faults();
     for run in 0..o.stream_runs {
         frames.clear();
         let mut fr = Frame::default();
@@ -460,6 +477,7 @@ fn bench(o: &Options) -> Result<Value, String> {
             stream_matches = Some(sid == 1 && frames == expected);
         }
     }
+    let stream_faults = minor_faults() - faults0;
     let gen_s = total_ms.iter().copied().fold(0.0, f64::max) / 1e3;
 
     // 6. poll latency: empty ring while the first frame is computed, then ready frames
@@ -511,11 +529,9 @@ fn bench(o: &Options) -> Result<Value, String> {
             }
         }
         if got != n_frames {
-            // The generation was slower than the sleep: the ready numbers still only count
-            // full batches of frames.
-            while let PollResult::Frame = stream.wait(&mut fr, Duration::from_secs(60)) {
-                got += 1;
-            }
+            // The generation was slower than the sleep (the ready numbers only count full
+            // batches of frames anyway): drain the rest so the worker can finish.
+            while let PollResult::Frame = stream.wait(&mut fr, Duration::from_secs(60)) {}
         }
     }
     drop(engine);
@@ -578,6 +594,11 @@ fn bench(o: &Options) -> Result<Value, String> {
             "rtf": stats(&fps_runs.iter().map(|x| x / fps).collect::<Vec<_>>()),
             "ms_per_token": stats(&total_ms.iter().map(|x| x / steps as f64).collect::<Vec<_>>()),
             "matches_step_loop": stream_matches,
+        },
+        "minor_page_faults_per_token": {
+            "step_loop": step_faults as f64 / steps as f64,
+            "decode_loop": decode_faults as f64 / steps as f64,
+            "stream": stream_faults as f64 / (steps * o.stream_runs) as f64,
         },
         "poll_ns": {"batch": POLL_BATCH, "empty": stats(&empty_ns), "ready": stats(&ready_ns)},
         "rss_mib": {

@@ -29,11 +29,12 @@ def cmd_train_vq(args) -> int:
     from ..models.configs import make_config
     from ..train.vq_trainer import train_vq
 
-    cfg = make_config(args.preset, single=args.single, down_t=args.down_t, causal_decoder=not args.paper_decoder)
+    cfg = make_config(args.preset, single=args.single, down_t=args.down_t, causal_decoder=not args.paper_decoder,
+                      width_scale=args.width_scale)
     t = cfg.train
     t = replace(t, total_iters=args.iters or t.total_iters, batch_size=args.batch or t.batch_size,
                 warmup_iters=min(t.warmup_iters, max(1, (args.iters or t.total_iters) // 10)),
-                lr=args.lr or t.lr)
+                lr=args.lr or t.lr, window_frames=args.window or t.window_frames)
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
                  ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after)
@@ -135,7 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="small", choices=("tiny", "small", "default", "big"))
     s.add_argument("--single", action="store_true", help="one VQ-VAE over all 335 features (ablation)")
     s.add_argument("--paper-decoder", action="store_true", help="non-causal decoder (no streaming)")
-    s.add_argument("--down-t", type=int, default=4)
+    s.add_argument("--down-t", type=int, default=4, help="2**down_t frames per token (4: 16 frames)")
+    s.add_argument("--width-scale", type=float, default=1.0, help="conv widths x this (0.25 for quick CPU runs)")
+    s.add_argument("--window", type=int, default=None, help="training crop length in frames")
     s.add_argument("--iters", type=int, default=None)
     s.add_argument("--batch", type=int, default=None)
     s.add_argument("--lr", type=float, default=None)

@@ -28,24 +28,34 @@ import torch
 import trimesh
 from tqdm import tqdm
 
+from .. import skeleton as sk
 from ..grab.format import write_grab_npz
 from ..objects.catalogue import CATALOGUE, ObjectSpec, write_object_meshes
 from .ik import matrix_to_rotvec
+from .intents import make_plan
 from .motion import synthesize
-from .plan import FPS, PlanRejected, make_plan
+from .plan import FPS, PlanRejected
 from .subjects import SUBJECT, SUBJECTS, subject_model, vtemp_path, write_subject_files
 
 INTENTS = ("lift", "pass", "offhand", "inspect", "drink", "pour")
 GENERIC_INTENTS = ("lift", "pass", "offhand", "inspect")  # every object; drink/pour per catalogue
-MAX_ATTEMPTS = 16
+MAX_ATTEMPTS = 100  # draws per sequence before giving up (a few are typical)
 INDEX_FILE = "synthgrasp_index.json"
+
+
+def passable(obj: ObjectSpec) -> bool:
+    """During a hand-over both hands hold the object and the receiving hand must stay above
+    its bottom (it puts it down). Two whole hands (the generator has no fingertip pinch) only
+    fit on an object at least ~7 cm tall or ~10 cm wide; GRAB's small cube, sphere and
+    pyramids and our medium pyramid are therefore not passed."""
+    return obj.half_height >= 0.036 or obj.half_extents[:2].max() >= 0.05
 
 
 def hand_modes(obj: ObjectSpec, intent: str) -> tuple[str, ...]:
     """Valid hand modes: a pass goes from one hand to the other; two-handed objects are
     otherwise held with both hands, the rest with either hand."""
     if intent == "pass":
-        return ("right>left", "left>right")
+        return ("right>left", "left>right") if passable(obj) else ()
     return ("both",) if obj.two_handed else ("left", "right")
 
 
@@ -130,7 +140,7 @@ def generate_sequence(spec: SequenceSpec, root: str | Path, seed: int) -> dict:
     fullpose = motion.fullpose
     hand = {side: {"global_orient": matrix_to_rotvec(motion.global_rot[:, w]), "transl": motion.joints[:, w],
                    "fullpose": fullpose[:, cols]}
-            for side, w, cols in (("lhand", 20, slice(75, 120)), ("rhand", 21, slice(120, 165)))}
+            for side, w, cols in (("lhand", sk.LEFT_WRIST, slice(75, 120)), ("rhand", sk.RIGHT_WRIST, slice(120, 165)))}
     table = np.tile(plan.scene.table_centre, (T, 1))
     write_grab_npz(
         root / spec.file, gender=spec.gender, sbj_id=spec.sbj_id, obj_name=spec.obj_name,
@@ -152,9 +162,13 @@ def _init_worker() -> None:
 
 def generate_dataset(out_dir: Path, n_sequences: int, seed: int, workers: int = 2, progress: bool = True) -> dict:
     """Write a SynthGrasp dataset of ``n_sequences`` under ``out_dir`` with ``workers``
-    processes. Existing files of the same names are overwritten, others are left alone.
-    Returns a summary: counts per intent/object/hands/subject/gender, frames, motion
-    seconds and the wall-clock seconds the generation took."""
+    processes (1: in this process). Existing files of the same names are overwritten,
+    others are left alone. The index (``synthgrasp_index.json``) has one row per file:
+    file, index, sbj_id, gender, obj_name, intent, mode ('left' | 'right' | 'both' |
+    'right>left' | 'left>right', a pass being giver>taker), hands (in grasp order),
+    n_frames, seconds, attempts (draws it took). Returns the summary: counts per
+    intent/object/hands/subject/gender, frames, motion seconds, and the wall-clock
+    seconds the generation took."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

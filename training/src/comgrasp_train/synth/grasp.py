@@ -35,7 +35,6 @@ PALM_RADIUS = 0.012  # radius of the palm capsules in surface.py
 FLEX_DEG = {"index": (75, 95, 60), "middle": (75, 95, 60), "pinky": (75, 95, 60), "ring": (75, 95, 60),
             "thumb": (45, 45, 60)}
 _PALM_NORMAL = np.array([0.0, -1.0, 0.0])
-_CURL_GRID = np.linspace(0.0, 1.0, 33)
 
 
 class Hand:
@@ -62,6 +61,13 @@ class Hand:
         self._cap_b = np.stack([c.b for c in caps])
         self.cap_radius = np.array([c.radius for c in caps])
         self._cap_joint = np.array([c.joint for c in caps])
+        # Points along each capsule's axis (<= 4 mm apart): the hand as seen by another hand.
+        n = [max(2, int(np.ceil(np.linalg.norm(c.b - c.a) / 0.004)) + 1) for c in caps]
+        self._axis_cap = np.repeat(np.arange(len(caps)), n)
+        self._axis_frac = np.concatenate([np.linspace(0.0, 1.0, k) for k in n])[:, None]
+        self.axis_radius = self.cap_radius[self._axis_cap]
+        cap_code = np.array([c.code for c in caps])[self._axis_cap]
+        self.axis_finger = np.stack([np.isin(cap_code, f + 1) for f in self.fingers])  # (5, M)
         # Points grouped by the joint that carries them: (joint, hand point indices, offsets).
         joint, pts = proxy.joint[self.index], proxy.rest_points[self.index]
         self._groups = [(j, np.nonzero(joint == j)[0], pts[joint == j] - self.rest[j]) for j in np.unique(joint)]
@@ -98,9 +104,17 @@ class Hand:
         b = np.einsum("bkij,kj->bki", g[:, cj], self._cap_b - self.rest[cj]) + j[:, cj]
         return a, b
 
+    def axis(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Points (..., M, 3) along the capsule axes, from the capsule ends (..., K, 3)."""
+        return a[..., self._axis_cap, :] + self._axis_frac * (b - a)[..., self._axis_cap, :]
+
     @cached_property
     def open_points(self) -> np.ndarray:
         return self.points(np.zeros(5))[0]
+
+    @cached_property
+    def open_axis(self) -> np.ndarray:
+        return self.axis(*(x[0] for x in self.capsules(np.zeros(5))))
 
     def anchor(self, lam: float) -> np.ndarray:
         """A point on the palm surface (wrist frame): ``lam`` of the way from the wrist to the
@@ -127,8 +141,8 @@ class Obstacles:
     cap_b: np.ndarray | None = None
     cap_r: np.ndarray | None = None
 
-    def sdf(self, p: np.ndarray) -> np.ndarray:
-        d = self.capsule_sdf(p)
+    def plane_sdf(self, p: np.ndarray) -> np.ndarray:
+        d = np.full(p.shape[:-1], np.inf)
         for n, off in self.planes:
             d = np.minimum(d, p @ n - off)
         return d
@@ -194,27 +208,36 @@ def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, tar
                approach: np.ndarray, lam: float, obstacles: Obstacles) -> Grasp | None:
     """Slide the open hand (wrist rotation ``rot``, object frame) along ``approach`` so that
     its palm anchor travels on the line through ``target`` until it first touches, then
-    curl each finger until it touches. None if the hand cannot touch the object there."""
+    curl each finger until it touches. None if the hand cannot touch the object there.
+
+    Clearance is measured from the hand's surface points to the object and the planes, and
+    from its capsule axes (less their radii) to the other hand's capsules (far fewer points).
+    """
     approach = unit(approach)
 
-    def clearance(p):
-        return np.minimum(shape.sdf(p), obstacles.sdf(p))
+    def clearance(curls, pos, points=slice(None)):  # (B, 5) -> per-point and per-axis-point clearance
+        ends = (x @ rot.T + pos for x in hand.capsules(curls))
+        pts = hand.points(curls)[:, points] @ rot.T + pos
+        return (np.minimum(shape.sdf(pts), obstacles.plane_sdf(pts)),
+                obstacles.capsule_sdf(hand.axis(*ends)) - hand.axis_radius)
 
     pos = target - 0.3 * approach - rot @ hand.anchor(lam)
-    pts = hand.open_points @ rot.T + pos
-    if obstacles.sdf(pts).min() < GAP:
-        return None
-    s = min(_trace(lambda p: np.minimum(shape.sdf(p), obstacles.capsule_sdf(p)), pts, approach),
+    pts, axis = hand.open_points @ rot.T + pos, hand.open_axis @ rot.T + pos
+    if min(obstacles.plane_sdf(pts).min(), (obstacles.capsule_sdf(axis) - hand.axis_radius).min()) < GAP:
+        return None  # starts inside the table or the other hand
+    s = min(_trace(lambda s: min(shape.sdf(pts + s * approach).min(),
+                                 (obstacles.capsule_sdf(axis + s * approach) - hand.axis_radius).min())),
             obstacles.plane_hit(pts, approach))
     if not np.isfinite(s):
         return None
     pos = pos + s * approach
-    curls = _close_fingers(hand, rot, pos, clearance)
+    curls = _close_fingers(hand, clearance, pos)
 
+    d_pts, d_axis = clearance(curls[None], pos)
     pts = hand.points(curls)[0] @ rot.T + pos
     a, b = (x[0] @ rot.T + pos for x in hand.capsules(curls))
     sdf = shape.sdf(pts)
-    if sdf.min() > GAP + 1e-4 or clearance(pts).min() < GAP - 1e-5:
+    if sdf.min() > GAP + 1e-4 or min(d_pts.min(), d_axis.min()) < GAP - 1e-5:
         return None
     dist_v, nearest = cKDTree(pts).query(verts, distance_upper_bound=CONTACT_THRESHOLD)
     touching = np.isfinite(dist_v)
@@ -225,13 +248,13 @@ def make_grasp(hand: Hand, shape: Shape, verts: np.ndarray, rot: np.ndarray, tar
     return Grasp(hand, rot, pos, curls, approach, pts, a, b, dist_v, object_codes, body_codes)
 
 
-def _trace(sdf, pts: np.ndarray, direction: np.ndarray, max_travel: float = 0.6) -> float:
-    """Sphere tracing: how far the points can move along ``direction`` until the nearest is
-    GAP from the surface (never overshoots, since the SDFs are distance bounds); inf if
-    they pass it."""
+def _trace(distance, max_travel: float = 0.6) -> float:
+    """Sphere tracing: the travel ``s`` at which ``distance(s)`` (a lower bound of the gap
+    to everything) comes down to GAP, stepping by the gap so it never overshoots; inf if the
+    hand passes by."""
     s = 0.0
     for _ in range(200):
-        step = float(sdf(pts + s * direction).min()) - GAP
+        step = float(distance(s)) - GAP
         if step < 2e-5:
             return s
         s += step
@@ -240,27 +263,26 @@ def _trace(sdf, pts: np.ndarray, direction: np.ndarray, max_travel: float = 0.6)
     return np.inf
 
 
-def _close_fingers(hand: Hand, rot: np.ndarray, pos: np.ndarray, clearance) -> np.ndarray:
+def _close_fingers(hand: Hand, clearance, pos: np.ndarray) -> np.ndarray:
     """Per finger, the largest curl on the way from open at which it still keeps ``GAP``:
-    the first touch on a grid of curls, refined by bisection."""
+    the first touch on a coarse grid of curls, then on a fine grid inside that step (the
+    fingers are independent, so every finger is searched in the same batch)."""
+
     on_finger = hand.finger_mask.any(axis=0)
-    masks = hand.finger_mask[:, on_finger]
-    pts = hand.points(np.repeat(_CURL_GRID[:, None], 5, axis=1))[:, on_finger] @ rot.T + pos
-    d = clearance(pts)  # (G, finger points)
-    dmin = np.stack([d[:, m].min(axis=1) for m in masks], axis=1)  # (G, 5)
-    hit = dmin < GAP
-    first = np.where(hit.any(axis=0), hit.argmax(axis=0), len(_CURL_GRID))
-    lo = _CURL_GRID[np.clip(first - 1, 0, None)]
-    hi = np.where(first < len(_CURL_GRID), _CURL_GRID[np.minimum(first, len(_CURL_GRID) - 1)], 1.0)
-    lo = np.where(first == 0, 0.0, lo)
-    free = (first > 0) & (first < len(_CURL_GRID))
-    for _ in range(10):
-        mid = np.where(free, 0.5 * (lo + hi), lo)
-        dm = clearance(hand.points(mid)[0, on_finger] @ rot.T + pos)
-        ok = np.array([dm[m].min() >= GAP for m in masks])
-        lo = np.where(free & ok, mid, lo)
-        hi = np.where(free & ~ok, mid, hi)
-    return lo
+
+    def clear(curls):  # (B, 5) -> (B, 5) clearance of each finger
+        d_pts, d_axis = clearance(curls, pos, on_finger)
+        return np.stack([np.minimum(d_pts[:, m].min(axis=1), d_axis[:, ma].min(axis=1))
+                         for m, ma in zip(hand.finger_mask[:, on_finger], hand.axis_finger)], axis=1)
+
+    coarse = np.linspace(0.0, 1.0, 33)
+    ok = clear(np.repeat(coarse[:, None], 5, axis=1)) >= GAP
+    first = np.where((~ok).any(axis=0), (~ok).argmax(axis=0), len(coarse))  # first touching step
+    lo = coarse[np.clip(first - 1, 0, None)]
+    fine = lo + np.linspace(0.0, 1.0, 17)[:, None] * (coarse[1] - coarse[0]) * (first > 0) * (first < len(coarse))
+    ok = clear(fine) >= GAP
+    last = np.where(ok.all(axis=0), len(fine) - 1, ok.argmin(axis=0) - 1)  # last clear fine step
+    return np.where(first == 0, 0.0, fine[np.clip(last, 0, None), np.arange(5)])
 
 
 def edge_point(shape: Shape, origin: np.ndarray, direction: np.ndarray, max_len: float = 0.3) -> np.ndarray:

@@ -27,9 +27,10 @@ import numpy as np
 import torch
 
 from .. import skeleton as sk
-from .ik import LEFT_HIP, RIGHT_HIP, SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
 from ..objects.catalogue import TABLE_SIZE
-from .plan import FPS, HELD, IDLE, SIDES, Plan, PlanRejected, Track, segments, world_pose
+from .ik import HEAD, LEFT_HIP, NECK, RIGHT_HIP, SPINE, arm_ik, look_at, matrix_to_rotvec, minjerk, slerp
+from .plan import FPS, HELD, IDLE, Plan, PlanRejected, Track, segments, world_pose
+from .scene import SIDES
 
 THETA_MARGIN = 0.03  # extra bow (rad) beyond the smallest one that reaches
 LAG = 0.4  # share of a reach during which the hand only rises (retracting: only lowers)
@@ -41,6 +42,8 @@ BODY_TOLERANCE = 0.01  # m the carried object may press into the body proxy (e.g
 
 @dataclass
 class Motion:
+    """One synthesized sequence, everything per frame (T = frames at 120 fps)."""
+
     local_rot: np.ndarray  # (T, 55, 3, 3) local joint rotations
     transl: np.ndarray  # (T, 3) SMPL-X transl (pelvis = rest J0 + transl)
     global_rot: np.ndarray  # (T, 55, 3, 3) from FK
@@ -63,6 +66,9 @@ class Motion:
 
 @dataclass
 class _HandFrames:
+    """A hand's keys located per frame (segment start/end key, raw fraction, their kinds)
+    and its wrist target being filled in."""
+
     k0: np.ndarray
     k1: np.ndarray
     u: np.ndarray
@@ -75,11 +81,13 @@ class _HandFrames:
 
     @property
     def concrete(self) -> np.ndarray:
-        """Frames whose target is a world pose (not involving the torso-relative idle pose)."""
+        """Frames whose target is a world pose (not involving the shoulder-relative idle pose)."""
         return (self.kind0 != IDLE) & ((self.kind1 != IDLE) | (self.u == 0))
 
 
 def _task_targets(plan: Plan, side: str, t: np.ndarray, obj_rot: np.ndarray, obj_pos: np.ndarray) -> _HandFrames:
+    """The wrist targets that do not depend on the torso: free world poses (min-jerk between
+    keys) and, while held, object pose x grasp transform."""
     hp = plan.hands[side]
     times, kinds = np.asarray(hp.times), np.asarray(hp.kinds)
     key_rot = np.full((len(times), 3, 3), np.nan)
@@ -158,6 +166,7 @@ def _spine_track(plan: Plan, hands: dict[str, _HandFrames], values, default: flo
 
 
 def synthesize(plan: Plan) -> Motion:
+    """All frames of a plan (steps 1-6 above); raises PlanRejected if the plan fails a check."""
     sc = plan.scene
     rest = sc.rest
     T = int(round(plan.duration * FPS)) + 1
@@ -165,7 +174,7 @@ def synthesize(plan: Plan) -> Motion:
     obj_rot, obj_pos = plan.object.sample(t)
     hands = {s: _task_targets(plan, s, t, obj_rot, obj_pos) for s in SIDES}
 
-    # Torso: yaw toward the object, then the bend every world target needs.
+    # Torso: yaw toward the object, then the bow every world target needs.
     psi = _spine_track(plan, hands, lambda f: sc.psi_toward(obj_pos[f]), 0.0, t)
     need = np.zeros(T)
     for s, hf in hands.items():
@@ -188,7 +197,7 @@ def synthesize(plan: Plan) -> Motion:
         hand = sc.hands[s]
         local[:, hand.fingers] = hand.finger_locals(curls)
     neck_head = look_at(rest, tor, obj_pos, plan.look.sample(t), plan.pitch.sample(t))
-    local[:, 12] = local[:, 15] = neck_head
+    local[:, NECK] = local[:, HEAD] = neck_head
 
     transl = tor.pelvis_pos - rest[0]
     g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(local), torch.from_numpy(rest),

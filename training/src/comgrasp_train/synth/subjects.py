@@ -92,10 +92,6 @@ class SubjectModel:
         feet = self.proxy.rest_points[self.proxy.mask(FOOT_CODES)] - self.rest[0]
         return float(-(feet @ ROOT_ROT.T)[:, 2].min())
 
-    def world(self, p: np.ndarray, pelvis: np.ndarray) -> np.ndarray:
-        """Rest-pose (canonical) points -> world points of the standing subject."""
-        return (np.asarray(p) - self.rest[0]) @ ROOT_ROT.T + pelvis
-
 
 @lru_cache(maxsize=None)
 def subject_model(sbj_id: str) -> SubjectModel:
