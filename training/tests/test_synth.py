@@ -159,13 +159,16 @@ def test_holding_hand_carries_the_object_rigidly_and_touches_it(dataset, posed):
                 sdf = shape.sdf(local)
                 worst["penetration"] = max(worst["penetration"], -sdf.min())
                 worst["gap"] = max(worst["gap"], sdf.min(axis=1).max())
-                # contact/object: the vertices within GRAB's threshold of this hand carry its codes.
+                # contact/object: the vertices within GRAB's threshold of this hand carry its codes
+                # (with both hands on it, the nearer hand's); vertices within 0.1 mm of the
+                # threshold may go either way (float32 files).
                 for f, p in zip(frames, local):
-                    near = np.isfinite(cKDTree(p).query(verts, distance_upper_bound=THRESHOLD)[0])
+                    dist = cKDTree(p).query(verts)[0]
+                    near, sure = dist <= THRESHOLD, np.abs(dist - THRESHOLD) > 1e-4
                     labelled = np.isin(codes[f], list(HAND_CODES[k]))
-                    both = seq.contact[f].all()
-                    miss = (labelled & ~near).mean() + (0 if both else (near & ~labelled).mean())
-                    worst["label_mismatch"] = max(worst["label_mismatch"], miss)
+                    wrong = labelled & ~near if seq.contact[f].all() else labelled != near
+                    worst["label_mismatch"] = max(worst["label_mismatch"], int((wrong & sure).sum()))
+                    assert labelled.any()
     assert worst["drift"] < 1e-3 and worst["angle"] < 2e-3, worst
     assert worst["penetration"] <= 5e-3 and worst["gap"] <= 2.5e-3, worst
-    assert worst["label_mismatch"] < 0.01, worst
+    assert worst["label_mismatch"] == 0, worst
