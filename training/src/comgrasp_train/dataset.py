@@ -46,7 +46,8 @@ class FeatureSet:
         d = np.load(path, allow_pickle=False)
         info = json.loads(str(d["info"]))
         offs = np.concatenate([[0], np.cumsum(d["lengths"])])
-        feats = [d["features"][a:b] for a, b in zip(offs[:-1], offs[1:])]
+        allf = d["features"]  # an NpzFile re-reads the array on every access: read it once
+        feats = [allf[a:b] for a, b in zip(offs[:-1], offs[1:])]
         return FeatureSet(float(d["fps"]), feats, list(d["rest_joints"]), info["texts"], info["meta"])
 
 
