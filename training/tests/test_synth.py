@@ -172,3 +172,18 @@ def test_holding_hand_carries_the_object_rigidly_and_touches_it(dataset, posed):
     assert worst["drift"] < 1e-3 and worst["angle"] < 2e-3, worst
     assert worst["penetration"] <= 5e-3 and worst["gap"] <= 2.5e-3, worst
     assert worst["label_mismatch"] == 0, worst
+
+
+def test_metric_suite_on_the_generated_batch(dataset):
+    """The ground truth through the paper's metric suite (what `comgrasp-data check` reports):
+    bounds stated here are the SynthGrasp contract."""
+    from comgrasp_train.plausibility import dataset_plausibility
+
+    rep = dataset_plausibility(dataset[0], limit=None)
+    assert rep["skipped"] == 0 and rep["sequences"] >= 6
+    worst, mean = rep["max"], rep["mean"]
+    assert worst["foot_sliding_mm"] < 0.01  # mm per frame: feet planted
+    assert worst["object_unheld_motion_mm"] < 0.01 and worst["object_unheld_rotation_deg"] < 0.1
+    assert worst["penetration_max_mm"] < 10.0  # any body point, deepest over all frames
+    assert mean["penetration_max_mm"] < 3.0
+    assert mean["label_contact_f1"] > 0.9  # contact labels agree with geometric contact (5 mm)
