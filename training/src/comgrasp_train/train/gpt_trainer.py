@@ -7,8 +7,6 @@ then training samples (text embedding, codes) batches. Writes ``<out>/ckpt.pt``
 
 from __future__ import annotations
 
-import json
-import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from ..models.gpt_configs import TransformerConfig
 from ..models.transformer import ComGraspTransformer, stream_nll
 from ..models.vq_losses import make_scheduler
 from ..text_encoder import load_text_encoder
-from .runtime import load_checkpoint, restore, save_checkpoint, seed_everything, setup_runtime
+from .runtime import load_checkpoint, restore, run_training, seed_everything, setup_runtime
 from .tokens import TokenBatcher, encode_feature_set
 from .vq_trainer import load_prepared, load_vq
 
@@ -99,16 +97,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
 
     config = {"transformer": cfg.to_dict(), "train": asdict(train), "text": asdict(text), "vq_dir": str(vq_dir),
               "data": str(data_dir), "seed": seed, "fps": fs.fps}
-    log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
-    bar = None
-    if progress and rt.is_main:
-        from tqdm import tqdm
 
-        bar = tqdm(total=train.total_iters, initial=step, desc="train-gpt", unit="it")
-    metrics: dict = {}
-    t0 = time.time()
-    end = min(train.total_iters, stop_after or train.total_iters)
-    while step < end:
+    def one_step():
         emb, codes = batcher.batch(train.batch_size, gen)
         net.train()
         opt.zero_grad(set_to_none=True)
@@ -120,24 +110,12 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
             torch.nn.utils.clip_grad_norm_(net.parameters(), train.grad_clip)
         opt.step()
         sched.step()
-        step += 1
-        if bar is not None:
-            bar.update(1)
-        if rt.is_main and (step % log_every == 0 or step == end):
-            metrics = {"step": step, "loss": float(loss), "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
-            metrics.update({f"nll/{n}": float(v) for n, v in zip(("global", "body", "lhand", "rhand"), per)})
-            log.write(json.dumps(metrics) + "\n")
-            log.flush()
-            if bar is not None:
-                bar.set_postfix(loss=f"{metrics['loss']:.3f}")
-        if rt.is_main and (step % ckpt_every == 0 or step == end):
-            save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
-                            extra={"sampler_rng": gen.get_state()})
-    if bar is not None:
-        bar.close()
-    if log is not None:
-        log.close()
-    return metrics
+        return {"loss": loss.detach(), **{f"nll/{n}": v.detach() for n, v in zip(("global", "body", "lhand", "rhand"), per)}}
+
+    return run_training(
+        rt, step=step, end=min(train.total_iters, stop_after or train.total_iters), total=train.total_iters,
+        desc="train-gpt", step_fn=one_step, out_dir=out_dir, model=model, optimizer=opt, scheduler=sched,
+        config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every, progress=progress)
 
 
 def load_gpt(run_dir: Path, device="cpu"):

@@ -105,3 +105,44 @@ def restore(ckpt: dict, *, model: torch.nn.Module, optimizer=None, scheduler=Non
         scheduler.load_state_dict(ckpt["scheduler"])
     set_rng_state(ckpt["rng"])
     return int(ckpt["step"])
+
+
+def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, step_fn, out_dir: Path,
+                 model, optimizer, scheduler, config: dict, gen: torch.Generator, log_every: int,
+                 ckpt_every: int, progress: bool, postfix=None) -> dict:
+    """The loop both trainers share: ``step_fn()`` runs one optimisation step and returns its
+    metrics (floats or 0-d tensors); every ``log_every`` steps they go to ``log.jsonl`` and the
+    progress bar, every ``ckpt_every`` steps and at ``end`` a resumable checkpoint is written
+    (with the batch sampler's RNG). Returns the last logged metrics."""
+    import time
+
+    log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
+    bar = None
+    if progress and rt.is_main:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=step, desc=desc, unit="it")
+    metrics: dict = {}
+    t0 = time.time()
+    try:
+        while step < end:
+            m = step_fn()
+            step += 1
+            if bar is not None:
+                bar.update(1)
+            if log is not None and (step % log_every == 0 or step == end):
+                metrics = {k: float(v) for k, v in m.items()}
+                metrics.update(step=step, lr=scheduler.get_last_lr()[0], seconds=time.time() - t0)
+                log.write(json.dumps(metrics) + "\n")
+                log.flush()
+                if bar is not None:
+                    bar.set_postfix(postfix(metrics) if postfix else {"loss": f"{metrics['loss']:.3f}"})
+            if rt.is_main and (step % ckpt_every == 0 or step == end):
+                save_checkpoint(out_dir / "ckpt.pt", model=model, optimizer=optimizer, scheduler=scheduler,
+                                step=step, config=config, extra={"sampler_rng": gen.get_state()})
+    finally:
+        if bar is not None:
+            bar.close()
+        if log is not None:
+            log.close()
+    return metrics

@@ -7,8 +7,6 @@ writes ``<out>/ckpt.pt`` (resumable, every ``ckpt_every`` steps and at the end) 
 
 from __future__ import annotations
 
-import json
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,7 +18,7 @@ from ..models.vq_losses import make_optimizer, make_scheduler, vq_training_step
 from ..models.vqvae import build_vq
 from ..normalization import Normalizer
 from ..representation import features_to_joints
-from .runtime import load_checkpoint, restore, save_checkpoint, seed_everything, setup_runtime
+from .runtime import load_checkpoint, restore, run_training, seed_everything, setup_runtime
 from .windows import WindowSampler
 
 
@@ -66,41 +64,23 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         return x * std + mean
 
     config = {"vq": cfg.to_dict(), "data": str(data_dir), "seed": seed, "fps": fs.fps}
-    metrics: dict = {}
-    bar = None
-    if progress and rt.is_main:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.train.total_iters, initial=step, desc="train-vq", unit="it")
     out_dir.mkdir(parents=True, exist_ok=True)
     if rt.is_main:  # the run is self-contained: its statistics travel with its checkpoint
         norm.save(out_dir / "stats.npz")
-    log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
-    t0 = time.time()
-    end = min(cfg.train.total_iters, stop_after or cfg.train.total_iters)
-    while step < end:
+
+    def one_step():
         x, rest = sampler.batch(cfg.train.batch_size, gen)
         x, rest = x.to(rt.device), rest.to(rt.device)
         rest_b = rest[:, None]  # (B, 1, 55, 3) broadcasts against (B, T, ...) and (P, B, T, ...)
-        m = vq_training_step(model, opt, x, lambda f: features_to_joints(f, rest_b), cfg, denorm, sched)
-        step += 1
-        if bar is not None:
-            bar.update(1)
-        if rt.is_main and (step % log_every == 0 or step == end):
-            metrics = {k: float(v) for k, v in m.items()}
-            metrics.update(step=step, lr=sched.get_last_lr()[0], seconds=time.time() - t0)
-            log.write(json.dumps(metrics) + "\n")
-            log.flush()
-            if bar is not None:
-                bar.set_postfix(loss=f"{metrics['loss']:.3f}", joint_mm=f"{1000 * metrics['joint'] / len(cfg.model.components):.1f}")
-        if rt.is_main and (step % ckpt_every == 0 or step == end):
-            save_checkpoint(ckpt_path, model=model, optimizer=opt, scheduler=sched, step=step, config=config,
-                            extra={"sampler_rng": gen.get_state()})
-    if bar is not None:
-        bar.close()
-    if log is not None:
-        log.close()
-    return metrics
+        return vq_training_step(model, opt, x, lambda f: features_to_joints(f, rest_b), cfg, denorm, sched)
+
+    n_comp = len(cfg.model.components)
+    return run_training(
+        rt, step=step, end=min(cfg.train.total_iters, stop_after or cfg.train.total_iters),
+        total=cfg.train.total_iters, desc="train-vq", step_fn=one_step, out_dir=out_dir, model=model,
+        optimizer=opt, scheduler=sched, config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every,
+        progress=progress,
+        postfix=lambda m: {"loss": f"{m['loss']:.3f}", "joint_mm": f"{1000 * m['joint'] / n_comp:.1f}"})
 
 
 def load_vq(run_dir: Path, device: str | torch.device = "cpu"):
