@@ -52,7 +52,7 @@ from ..skeleton import DEFAULT_REST_JOINTS
 from ..text_encoder import MiniLMTextEncoder
 from .bundle import MANIFEST, STEP_FILE, export_bundle, file_table
 from .parity import DEFAULT_STEP_PROMPTS
-from .tiny import OBJECTS, _perturb, tiny_normalizer
+from .tiny import OBJECTS, random_vq_model, tiny_normalizer
 
 PRESETS = ("paper", "small")
 VQ_PRESET = "default"
@@ -77,16 +77,7 @@ def random_vq(seed: int = 0, vq_preset: str = VQ_PRESET, perturb: float = 0.0):
     already blows the activations up to where float32 rounding breaks the 1e-4
     streaming == offline check, so it is off by default (the cost is the same)."""
     cfg = make_config(vq_preset)
-    torch.manual_seed(seed)
-    vq = ComponentVQ(cfg.model)
-    if perturb:
-        _perturb(vq, perturb, seed + 1)
-    g = torch.Generator().manual_seed(seed + 2)
-    with torch.no_grad():
-        for part in vq.parts.values():
-            part.quantizer.codebook.copy_(torch.randn(part.quantizer.codebook.shape, generator=g))
-            part.quantizer.initialised.fill_(True)
-    return vq.eval(), cfg
+    return random_vq_model(cfg, seed, perturb), cfg
 
 
 def random_gpt(name: str, seed: int = 0, codebook_sizes=None):

@@ -106,19 +106,26 @@ def _perturb(module: torch.nn.Module, scale: float, seed: int) -> None:
             p.add_(torch.randn(p.shape, generator=g) * scale)
 
 
-def tiny_vq(seed: int = 0):
-    base = make_config("tiny")
-    comps = tuple(dataclasses.replace(c, codebook_size=j) for c, j in zip(base.model.components, CODEBOOKS))
-    cfg = dataclasses.replace(base, model=dataclasses.replace(base.model, components=comps))
+def random_vq_model(cfg, seed: int, perturb: float):
+    """A VQ of ``cfg`` with PyTorch's initialisation (seeded), optional weight noise
+    (``perturb``) and random codebooks marked initialised (shared with random_bundle.py)."""
     torch.manual_seed(seed)
     vq = ComponentVQ(cfg.model)
-    _perturb(vq, 0.05, seed + 1)
+    if perturb:
+        _perturb(vq, perturb, seed + 1)
     g = torch.Generator().manual_seed(seed + 2)
     with torch.no_grad():
         for part in vq.parts.values():
             part.quantizer.codebook.copy_(torch.randn(part.quantizer.codebook.shape, generator=g))
             part.quantizer.initialised.fill_(True)
-    return vq.eval(), cfg
+    return vq.eval()
+
+
+def tiny_vq(seed: int = 0):
+    base = make_config("tiny")
+    comps = tuple(dataclasses.replace(c, codebook_size=j) for c, j in zip(base.model.components, CODEBOOKS))
+    cfg = dataclasses.replace(base, model=dataclasses.replace(base.model, components=comps))
+    return random_vq_model(cfg, seed, 0.05), cfg
 
 
 def tiny_gpt(seed: int = 0):
