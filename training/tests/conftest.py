@@ -28,6 +28,17 @@ def random_sequence_arrays(rng: np.random.Generator, T: int, n_obj_vertices: int
                 contact_body=np.zeros((T, 16), np.int8), contact_object=contact)
 
 
+@pytest.fixture
+def one_thread():
+    """Tiny models: extra torch threads only add contention on a shared machine."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def grab_root(tmp_path_factory) -> Path:
     """A GRAB-layout root with meshes for 'mug' and 'cubesmall' and six good sequences."""

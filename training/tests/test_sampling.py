@@ -17,12 +17,7 @@ from comgrasp_train.models.transformer import ComGraspTransformer
 CFG = preset("tiny")  # vocab sizes 18, 34, 18, 26; End 16, 32, 16, 24
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny ops: threads only add contention on a shared machine
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _splitmix_reference(seed, n):

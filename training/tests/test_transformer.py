@@ -10,12 +10,7 @@ from comgrasp_train.models.gpt_configs import PRESETS, TransformerConfig, preset
 from comgrasp_train.models.transformer import ComGraspTransformer, count_parameters
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny ops: threads only add contention on a shared machine
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _model(seed=0, std=0.1, **overrides):
