@@ -9,9 +9,10 @@ trap 'rm -f "$log"' EXIT
 # No doc tests (the crate has none), so the last result line is a real test binary's.
 cargo test --locked --lib --bins --tests 2>&1 | tee -a "$log"
 # One closing line over both runners (pytest's "N passed" and cargo's "ok. N passed; M failed").
-py_line=$(grep -E '^[0-9]+ (passed|failed)' "$log" | tail -1 || true)
-py_pass=$(echo "$py_line" | grep -Eo '[0-9]+ passed' | awk '{s+=$1} END {print s+0}')
-py_fail=$(echo "$py_line" | grep -Eo '[0-9]+ failed' | awk '{s+=$1} END {print s+0}')
-rs_pass=$(grep -Eo 'test result: [a-zA-Z]+\. [0-9]+ passed' "$log" | awk '{s+=$4} END {print s+0}')
-rs_fail=$(grep -Eo '[0-9]+ failed;' "$log" | awk '{s+=$1} END {print s+0}')
+# awk, not grep, so a count that is absent reads 0 instead of tripping `set -e` under pipefail.
+py_line=$(awk '/^[0-9]+ (passed|failed)/ {l=$0} END {print l}' "$log")
+py_pass=$(echo "$py_line" | awk '{for (i = 2; i <= NF; i++) if ($i ~ /^passed/) s += $(i-1)} END {print s+0}')
+py_fail=$(echo "$py_line" | awk '{for (i = 2; i <= NF; i++) if ($i ~ /^failed/) s += $(i-1)} END {print s+0}')
+rs_pass=$(awk '/^test result:/ {s += $4} END {print s+0}' "$log")
+rs_fail=$(awk '/^test result:/ {s += $6} END {print s+0}' "$log")
 echo "all: $((py_pass + rs_pass)) passed, $((py_fail + rs_fail)) failed"
