@@ -20,6 +20,7 @@ use std::sync::Arc;
 
 use parking_lot::{Condvar, Mutex};
 
+use crate::bundle::Bundle;
 use crate::error::{Error, Result};
 use crate::frame::CoordinateSystem;
 use crate::stream::{ChunkSource, Stream, StreamShared};
@@ -170,6 +171,7 @@ pub fn validate_text(text: &str) -> Result<()> {
 /// streams from any thread.
 pub struct Engine {
     config: EngineConfig,
+    bundle: Option<Arc<Bundle>>,
     factory: SourceFactory,
     streams: Arc<StreamSet>,
 }
@@ -179,8 +181,8 @@ impl Engine {
     /// the graphs once, so starting a stream is cheap.
     pub fn new(config: EngineConfig) -> Result<Engine> {
         config.validate()?;
-        let factory = crate::generator::source_factory(&config)?;
-        Ok(Engine::from_parts(config, factory))
+        let (bundle, factory) = crate::generator::source_factory(&config)?;
+        Ok(Engine::from_parts(config, Some(bundle), factory))
     }
 
     /// An engine whose streams come from `factory` instead of a bundle. For tests and
@@ -188,12 +190,19 @@ impl Engine {
     #[doc(hidden)]
     pub fn with_source_factory(config: EngineConfig, factory: SourceFactory) -> Result<Engine> {
         config.validate()?;
-        Ok(Engine::from_parts(config, factory))
+        Ok(Engine::from_parts(config, None, factory))
     }
 
-    fn from_parts(config: EngineConfig, factory: SourceFactory) -> Engine {
+    fn from_parts(config: EngineConfig, bundle: Option<Arc<Bundle>>, factory: SourceFactory) -> Engine {
         let streams = Arc::new(StreamSet::new(config.max_streams));
-        Engine { config, factory, streams }
+        Engine { config, bundle, factory, streams }
+    }
+
+    /// The loaded bundle (manifest: fps, skeleton, object catalogue; files such as the
+    /// object meshes through [`Bundle::file_bytes`]). `None` for a test engine built with
+    /// [`Engine::with_source_factory`].
+    pub fn bundle(&self) -> Option<&Arc<Bundle>> {
+        self.bundle.as_ref()
     }
 
     /// The configuration the engine was created with.

@@ -38,7 +38,8 @@ pub use crate::stream::ChunkSource;
 /// Loads the bundle named by the config (verifying it) and returns the factory that builds
 /// one [`Generator`] per stream. Everything expensive (graph loading, the assembler) happens
 /// here, once per engine.
-pub fn source_factory(config: &EngineConfig) -> Result<SourceFactory> {
+/// The bundle the engine loaded and the factory that starts its streams.
+pub fn source_factory(config: &EngineConfig) -> Result<(Arc<Bundle>, SourceFactory)> {
     let Some(path) = config.bundle_path.as_ref() else {
         return Err(Error::bundle(
             PathBuf::new(),
@@ -46,10 +47,11 @@ pub fn source_factory(config: &EngineConfig) -> Result<SourceFactory> {
         ));
     };
     let bundle = Bundle::load(path)?;
-    let pipeline = Arc::new(Pipeline::new(bundle, config)?);
-    Ok(Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
+    let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), config)?);
+    let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
         Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?))
-    }))
+    });
+    Ok((bundle, factory))
 }
 
 /// What every stream of an engine shares: the bundle and the frame assembler.

@@ -52,6 +52,15 @@ impl Bundle {
     pub fn path(&self, rel: &str) -> PathBuf {
         self.dir.join(rel)
     }
+
+    /// The bytes of a file the manifest lists (e.g. an object mesh `objects/mug.obj`).
+    /// Names the manifest does not list are an error, so a host cannot read outside it.
+    pub fn file_bytes(&self, rel: &str) -> Result<Vec<u8>> {
+        if !self.manifest.files.contains_key(rel) {
+            return Err(crate::error::Error::bundle(self.path(rel), "not a file the manifest lists"));
+        }
+        std::fs::read(self.path(rel)).map_err(|e| crate::error::Error::bundle(self.path(rel), format!("cannot read: {e}")))
+    }
 }
 
 #[allow(dead_code)]

@@ -62,8 +62,7 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
         ..EngineConfig::default()
     })
     .map_err(engine_failure)?;
-    // The engine verified the bundle; this re-read is only for its frame rate.
-    let fps = comgrasp::bundle::verify::read_manifest(&opts.bundle).map_err(engine_failure)?.fps;
+    let fps = engine.bundle().expect("Engine::new always loads a bundle").manifest.fps;
     let load = t0.elapsed();
 
     let t_start = Instant::now();
