@@ -3,6 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_python.sh
+bash scripts/setup_node.sh
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 .venv/bin/python -m pytest training/tests -q -p no:cacheprovider 2>&1 | tee "$log"

@@ -21,6 +21,6 @@ mkdir -p "$RUN"
 $P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small \
   --window 64 --batch 32 --iters "$VQ_ITERS" --lr 4e-4 --ckpt-every 50
 $P/comgrasp-train -q train-gpt --data ${DATA}_prep --vq $RUN/vq --out $RUN/gpt --preset small \
-  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200
+  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8
 $P/comgrasp-train evaluate --data ${DATA}_prep --vq $RUN/vq --gpt $RUN/gpt --out $RUN/eval/table.md --limit 60
-$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-text-encoder
+$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT"

@@ -150,7 +150,7 @@ fn bad_command_lines_fail_cleanly() {
     let cases: &[(&[&str], i32, &str)] = &[
         (&[], 2, "no command given"),
         (&["dance"], 2, "unknown command \"dance\""),
-        (&["generate"], 2, "--bundle DIR is required"),
+        (&["generate"], 2, "--text PROMPT is required"),
         (&["generate", "--bundle", t], 2, "--text PROMPT is required"),
         (&["generate", "--bundle", t, "--text"], 2, "--text needs a value"),
         (&["generate", "--bundle", t, "--text", "hi", "--seed", "many"], 2, "--seed"),

@@ -9,7 +9,12 @@ use comgrasp::bundle::npy;
 
 /// models/tiny, the bundle committed for tests.
 pub fn tiny_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("models").join("tiny")
+    // Another bundle's parity vectors replay through the same tests with
+    // COMGRASP_PARITY_BUNDLE=<dir> (e.g. a freshly exported one before it is shipped).
+    match std::env::var_os("COMGRASP_PARITY_BUNDLE") {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join("models").join("tiny"),
+    }
 }
 
 /// parity/index.json of a bundle.

@@ -1,5 +1,6 @@
-//! `comgrasp generate`: one prompt → all frames → a JSON or NPZ file, plus a one-line
-//! summary with the numbers a user asks first (how much motion, how fast it started).
+//! `comgrasp generate`: one prompt → all frames → a JSON or NPZ file, an animated glTF
+//! binary and/or a PNG strip of key frames, plus a one-line summary with the numbers a
+//! user asks first (how much motion, how fast it started) and what was written.
 use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -10,32 +11,44 @@ use comgrasp::{CoordinateSystem, Engine, EngineConfig, Error, Frame, PollResult,
 use serde::Serialize;
 
 use crate::npz;
-use crate::Failure;
+use crate::png::Image;
+use crate::scene::Scene;
+use crate::{gltf, preview, Failure};
 
 pub const HELP: &str = "\
-usage: comgrasp generate --bundle DIR --text PROMPT [options]
+usage: comgrasp generate [--bundle DIR] --text PROMPT [options]
 
-Generates one motion and writes every frame to a file.
+Generates one motion and writes every frame to a file, an animated glTF and/or a
+PNG strip of key frames.
 
-  --bundle DIR          model bundle directory (e.g. models/tiny)
+  --bundle DIR          model bundle directory (e.g. models/tiny); default: the
+                        COMGRASP_BUNDLE environment variable, else the built-in bundle
   --text PROMPT         what to do, e.g. \"A woman drinks from the mug\"
-  --out FILE            FILE.json (array of frame objects) or FILE.npz (numpy arrays);
-                        without it only the summary is printed
+  --out FILE            FILE.json (array of frame objects) or FILE.npz (numpy arrays)
+  --glb FILE            FILE.glb: animated glTF 2.0 binary (skinned stand-in body on the
+                        SMPL-X skeleton, the object the prompt names, one animation);
+                        implies --coords gltf
+  --preview FILE        FILE.png: strip of 6 key frames (skeleton, object, contact)
+                        (without --out, --glb or --preview only the summary is printed)
   --seed N              sampler seed (default: the bundle's)
   --temperature T       softmax temperature, >= 0; 0 = greedy (default: the bundle's)
   --top-k K             sample among the K most likely tokens; 0 = all (default: the bundle's)
   --min-len N           no end before N token steps of 16 frames (default: the bundle's)
   --max-len N           end at N token steps at the latest (default: the bundle's)
   --coords SYSTEM       native (z up, metres), gltf (y up), unity (y up, left-handed)
-                        or unreal (z up, left-handed, centimetres); default native
+                        or unreal (z up, left-handed, centimetres); default native,
+                        and gltf with --glb (another system conflicts with --glb)
   --fk                  also compute the 55 world joint positions (joint_positions)
   -h, --help            this text";
 
 /// The parsed command line.
 struct Options {
-    bundle: PathBuf,
+    /// `None`: the engine's default (COMGRASP_BUNDLE or the embedded bundle).
+    bundle: Option<PathBuf>,
     text: String,
     out: Option<(PathBuf, Format)>,
+    glb: Option<PathBuf>,
+    preview: Option<PathBuf>,
     stream: StreamConfig,
     coords: CoordinateSystem,
     fk: bool,
@@ -56,13 +69,21 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
     let t0 = Instant::now();
 
     let engine = Engine::new(EngineConfig {
-        bundle_path: Some(opts.bundle.clone()),
+        bundle_path: opts.bundle.clone(),
         coordinate_system: opts.coords,
-        enable_fk: opts.fk,
+        // The preview draws the skeleton from the engine's own joint positions.
+        enable_fk: opts.fk || opts.preview.is_some(),
         ..EngineConfig::default()
     })
     .map_err(engine_failure)?;
-    let fps = engine.bundle().expect("Engine::new always loads a bundle").manifest.fps;
+    let bundle = engine.bundle().cloned().ok_or_else(|| Failure::Run("the engine has no model bundle".into()))?;
+    let fps = bundle.manifest.fps;
+    // Skeleton and object mesh before generating, so a broken mesh does not cost a run.
+    let scene = if opts.glb.is_some() || opts.preview.is_some() {
+        Some(Scene::load(&bundle, opts.coords, &opts.text).map_err(Failure::Run)?)
+    } else {
+        None
+    };
     let load = t0.elapsed();
 
     let t_start = Instant::now();
@@ -93,6 +114,23 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
         write(path, *format, &frames, fps, opts.fk)
             .map_err(|e| Failure::Run(format!("cannot write {}: {e}", path.display())))?;
     }
+    let mut wrote = Vec::new();
+    if let (Some(path), Some(scene)) = (&opts.glb, &scene) {
+        let bytes = gltf::glb(scene, &frames, &opts.text, fps).map_err(|e| Failure::Run(format!("glb: {e}")))?;
+        write_file(path, &bytes)?;
+        wrote.push(format!("glb {} ({} bytes, {})", path.display(), bytes.len(), scene.object_note()));
+    }
+    if let (Some(path), Some(scene)) = (&opts.preview, &scene) {
+        let p = preview::render(scene, &frames).map_err(|e| Failure::Run(format!("preview: {e}")))?;
+        write_file(path, &p.image.encode())?;
+        let Image { width, height, .. } = p.image;
+        let keys: Vec<String> = p.key_frames.iter().map(usize::to_string).collect();
+        let mut note = format!("preview {} ({width}x{height}, frames {})", path.display(), keys.join(","));
+        if opts.glb.is_none() {
+            note += &format!(", {}", scene.object_note());
+        }
+        wrote.push(note);
+    }
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     let mut line = format!(
         "{} frames, {:.2} s of motion at {fps} fps; first frame {} after start, generation {:.1} ms, \
@@ -106,6 +144,9 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
     );
     if let Some((path, _)) = &opts.out {
         line += &format!("; wrote {}", path.display());
+    }
+    for w in wrote {
+        line += &format!("; wrote {w}");
     }
     // A closed stdout (e.g. `| head -0`) is not worth a panic or an error.
     let _ = writeln!(std::io::stdout(), "{line}");
@@ -121,10 +162,15 @@ fn engine_failure(e: Error) -> Failure {
     }
 }
 
+/// Writes a whole output file; a failure names the file.
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
+    std::fs::write(path, bytes).map_err(|e| Failure::Run(format!("cannot write {}: {e}", path.display())))
+}
+
 fn parse(args: &[String]) -> Result<Options, String> {
-    let (mut bundle, mut text, mut out) = (None, None, None);
+    let (mut bundle, mut text, mut out, mut glb, mut preview) = (None, None, None, None, None);
     let mut stream = StreamConfig::default();
-    let mut coords = CoordinateSystem::CG_COORDS_NATIVE;
+    let mut coords = None;
     let mut fk = false;
     let mut it = args.iter();
     while let Some(arg) = it.next() {
@@ -143,7 +189,8 @@ fn parse(args: &[String]) -> Result<Options, String> {
         if !name.starts_with("--") {
             return Err(format!("unexpected argument {arg:?}"));
         }
-        let known = ["--bundle", "--text", "--out", "--seed", "--temperature", "--top-k", "--min-len", "--max-len", "--coords"];
+        let known =
+            ["--bundle", "--text", "--out", "--glb", "--preview", "--seed", "--temperature", "--top-k", "--min-len", "--max-len", "--coords"];
         if !known.contains(&name) {
             return Err(format!("unknown option {name}"));
         }
@@ -155,44 +202,79 @@ fn parse(args: &[String]) -> Result<Options, String> {
             "--bundle" => bundle = Some(PathBuf::from(value)),
             "--text" => text = Some(value),
             "--out" => out = Some(value),
+            "--glb" => glb = Some(value),
+            "--preview" => preview = Some(value),
             "--seed" => stream.seed = Some(number(name, &value)?),
             "--temperature" => stream.temperature = Some(number(name, &value)?),
             "--top-k" => stream.top_k = Some(number(name, &value)?),
             "--min-len" => stream.min_len = Some(number(name, &value)?),
             "--max-len" => stream.max_len = Some(number(name, &value)?),
             "--coords" => {
-                coords = match value.to_ascii_lowercase().as_str() {
+                coords = Some(match value.to_ascii_lowercase().as_str() {
                     "native" => CoordinateSystem::CG_COORDS_NATIVE,
                     "gltf" => CoordinateSystem::CG_COORDS_GLTF,
                     "unity" => CoordinateSystem::CG_COORDS_UNITY,
                     "unreal" => CoordinateSystem::CG_COORDS_UNREAL,
                     _ => return Err(format!("--coords must be native, gltf, unity or unreal, got {value:?}")),
-                }
+                })
             }
             _ => unreachable!("checked against `known`"),
         }
     }
-    let bundle = bundle.ok_or("--bundle DIR is required (there is no built-in bundle yet)")?;
     let text = text.ok_or("--text PROMPT is required")?;
-    // Decide the format before generating, so a typo does not cost a whole run.
+    // Decide formats and check directories before generating, so a typo does not cost a
+    // whole run.
     let out = match out {
         None => None,
         Some(p) => {
-            let path = PathBuf::from(&p);
-            let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-            let format = match ext.as_deref() {
-                Some("json") => Format::Json,
-                Some("npz") => Format::Npz,
-                _ => return Err(format!("--out {p:?}: the file name must end in .json or .npz")),
-            };
-            let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-            if !dir.is_dir() {
-                return Err(format!("--out {p:?}: directory {} does not exist", dir.display()));
-            }
-            Some((path, format))
+            let (path, ext) = output_path("--out", &p, &["json", "npz"])?;
+            Some((path, if ext == "json" { Format::Json } else { Format::Npz }))
         }
     };
-    Ok(Options { bundle, text, out, stream, coords, fk })
+    let glb = glb.map(|p| output_path("--glb", &p, &["glb"]).map(|(path, _)| path)).transpose()?;
+    let preview = preview.map(|p| output_path("--preview", &p, &["png"]).map(|(path, _)| path)).transpose()?;
+    // A glb is y up by definition: its frames must be in glTF's basis, whatever else is
+    // written. An explicit other system is a contradiction, not something to override.
+    let coords = match (coords, &glb) {
+        (Some(c), Some(_)) if c != CoordinateSystem::CG_COORDS_GLTF => {
+            return Err(format!(
+                "--glb writes glTF (y up, right-handed), which conflicts with --coords {}; drop --coords or use --coords gltf",
+                coords_name(c)
+            ))
+        }
+        (_, Some(_)) => CoordinateSystem::CG_COORDS_GLTF,
+        (c, None) => c.unwrap_or(CoordinateSystem::CG_COORDS_NATIVE),
+    };
+    Ok(Options { bundle, text, out, glb, preview, stream, coords, fk })
+}
+
+fn coords_name(c: CoordinateSystem) -> &'static str {
+    match c {
+        CoordinateSystem::CG_COORDS_NATIVE => "native",
+        CoordinateSystem::CG_COORDS_GLTF => "gltf",
+        CoordinateSystem::CG_COORDS_UNITY => "unity",
+        CoordinateSystem::CG_COORDS_UNREAL => "unreal",
+    }
+}
+
+/// An output file name: its extension (lower-cased) must be one of `exts` and its
+/// directory must exist.
+fn output_path(option: &str, p: &str, exts: &[&str]) -> Result<(PathBuf, String), String> {
+    let path = PathBuf::from(p);
+    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).unwrap_or_default();
+    if !exts.contains(&ext.as_str()) {
+        let names: Vec<String> = exts.iter().map(|e| format!(".{e}")).collect();
+        return Err(format!("{option} {p:?}: the file name must end in {}", names.join(" or ")));
+    }
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        return Err(if dir.exists() {
+            format!("{option} {p:?}: {} is not a directory", dir.display())
+        } else {
+            format!("{option} {p:?}: directory {} does not exist", dir.display())
+        });
+    }
+    Ok((path, ext))
 }
 
 fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {

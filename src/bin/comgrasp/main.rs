@@ -5,8 +5,15 @@
 //! is a message on stderr and a non-zero exit code (2: bad arguments, 1: the run failed),
 //! never a panic.
 mod bench;
+mod body_mesh;
+mod checksum;
 mod generate;
+mod gltf;
 mod npz;
+mod obj;
+mod png;
+mod preview;
+mod scene;
 
 use std::process::ExitCode;
 
@@ -14,7 +21,8 @@ const USAGE: &str = "\
 comgrasp: text-driven whole-body grasp motion
 
 usage:
-  comgrasp generate --bundle DIR --text PROMPT [options] [--out FILE.json|FILE.npz]
+  comgrasp generate [--bundle DIR] --text PROMPT [options]
+                    [--out FILE.json|FILE.npz] [--glb FILE.glb] [--preview FILE.png]
   comgrasp bench [options]
   comgrasp --help | --version
 

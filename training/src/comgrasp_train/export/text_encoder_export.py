@@ -272,6 +272,11 @@ def export_text_encoder(
     tok_path = out / TOKENIZER_NAME
     tok_path.write_text(encoder.tokenizer_json, encoding="utf-8")
     onnx_path = export_onnx(encoder, out / ONNX_NAME, opset=opset)
+    quant = None
+    if encoder.int8_weights:
+        from ..weight_quant import store_int8_initializers
+
+        quant = store_int8_initializers(onnx_path, encoder.int8_weights)
     frag = manifest_fragment(encoder, {"tokenizer": TOKENIZER_NAME, "onnx": ONNX_NAME})
     frag["sha256"] = {TOKENIZER_NAME: sha256_file(tok_path), ONNX_NAME: sha256_file(onnx_path)}
     frag["size_bytes"] = {TOKENIZER_NAME: tok_path.stat().st_size, ONNX_NAME: onnx_path.stat().st_size}
@@ -284,6 +289,8 @@ def export_text_encoder(
             )
         frag["parity"] = par
     frag["export_seconds"] = round(time.perf_counter() - t0, 2)
+    if quant is not None:
+        frag["weights"] = quant
     if fragment_name:
         (out / fragment_name).write_text(json.dumps(frag, indent=1, ensure_ascii=False), encoding="utf-8")
     return frag

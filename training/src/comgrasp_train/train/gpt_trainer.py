@@ -47,6 +47,7 @@ class TextConfig:
     backend: str = "minilm"  # "minilm" | "clip" (then checkpoint is required)
     checkpoint: str | None = None
     max_tokens: int | None = None
+    weights: str = "fp32"  # "int8": the weights the exported bundle stores (weight_quant.py)
 
 
 def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, torch.Tensor]:
@@ -72,7 +73,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
     books = tuple(c.codebook_size for c in vq_cfg.model.components)
     if books != tuple(cfg.codebook_sizes):
         raise ValueError(f"transformer codebook sizes {cfg.codebook_sizes} do not match the VQ's {books}")
-    encoder = load_text_encoder(text.backend, checkpoint=text.checkpoint, max_tokens=text.max_tokens)
+    encoder = load_text_encoder(text.backend, checkpoint=text.checkpoint, max_tokens=text.max_tokens,
+                                weights=text.weights)
     if encoder.dim != cfg.d_text:
         raise ValueError(f"transformer d_text {cfg.d_text} != text encoder dim {encoder.dim}")
     tokens = encode_feature_set(vq, fs, norm, rt.device)

@@ -1,0 +1,123 @@
+//! What the glb and the preview draw besides the frames: the bundle's skeleton and the
+//! catalogue object the prompt names, both already in the frames' coordinate system.
+//!
+//! A frame's rotations are `S R Sᵀ` and its positions `c S p` (src/assemble.rs); the rest
+//! joints and the object's mesh vertices must get the same `c S` for the frames to pose
+//! them correctly, so the conversion happens once here and nowhere else.
+use comgrasp::bundle::{Bundle, ObjectEntry};
+use comgrasp::skeleton::mat_vec;
+use comgrasp::CoordinateSystem;
+
+use crate::obj;
+
+pub struct Scene {
+    pub coords: CoordinateSystem,
+    pub joint_names: Vec<String>,
+    /// Parent of each joint, -1 for the root (pelvis); parents precede children.
+    pub parents: Vec<i32>,
+    /// Rest joint positions in the frames' basis and units (`c S J`).
+    pub rest: Vec<[f32; 3]>,
+    pub object: SceneObject,
+}
+
+pub struct SceneObject {
+    /// The catalogue name.
+    pub name: String,
+    /// The alias (or name) found in the prompt; `None` = the prompt names no catalogue
+    /// object and the first one was used.
+    pub matched: Option<String>,
+    /// The mesh in the object's frame, converted to the frames' basis (`c S v`), so that
+    /// `object_translation + object_rotation · v` places it in the world.
+    pub mesh: obj::Mesh,
+}
+
+impl Scene {
+    pub fn load(bundle: &Bundle, coords: CoordinateSystem, prompt: &str) -> Result<Scene, String> {
+        let m = &bundle.manifest;
+        let (s, c) = coords.basis();
+        let to_output = |p: &[f32; 3]| mat_vec(&s, &p.map(f64::from)).map(|v| (v * c) as f32);
+        let (index, matched) = choose_object(&m.objects, prompt).ok_or("the bundle's object catalogue is empty")?;
+        let entry = &m.objects[index];
+        let bytes = bundle.file_bytes(&entry.mesh).map_err(|e| e.to_string())?;
+        let text = String::from_utf8(bytes).map_err(|_| format!("{}: not UTF-8 text", entry.mesh))?;
+        let mut mesh = obj::parse(&text).map_err(|e| format!("{}: {e}", entry.mesh))?;
+        for p in &mut mesh.positions {
+            *p = to_output(p);
+        }
+        Ok(Scene {
+            coords,
+            joint_names: m.skeleton.joint_names.clone(),
+            parents: m.skeleton.parents.clone(),
+            rest: m.skeleton.rest_joints.iter().map(to_output).collect(),
+            object: SceneObject { name: entry.name.clone(), matched, mesh },
+        })
+    }
+
+    /// How the object was chosen, for the summary line.
+    pub fn object_note(&self) -> String {
+        match &self.object.matched {
+            Some(alias) => format!("object {} (prompt says {alias:?})", self.object.name),
+            None => format!("object {} (the prompt names no catalogue object; using the first)", self.object.name),
+        }
+    }
+}
+
+/// The catalogue object the prompt names: the longest name or alias that occurs in the
+/// lower-cased prompt starting at a word boundary ("a coffee mug" prefers "coffee mug"
+/// over "mug"; "cubes" still finds "cube", "smuggle" does not find "mug"). Without any
+/// match, the first object and `None`. `None` overall only for an empty catalogue.
+pub fn choose_object(objects: &[ObjectEntry], prompt: &str) -> Option<(usize, Option<String>)> {
+    let prompt = prompt.to_lowercase();
+    let mut best: Option<(usize, &str)> = None;
+    for (i, o) in objects.iter().enumerate() {
+        for name in std::iter::once(&o.name).chain(&o.aliases) {
+            let name = name.trim();
+            if name.is_empty() || !occurs_at_word_start(&prompt, &name.to_lowercase()) {
+                continue;
+            }
+            if best.is_none_or(|(_, b)| name.len() > b.len()) {
+                best = Some((i, name));
+            }
+        }
+    }
+    match best {
+        Some((i, name)) => Some((i, Some(name.to_string()))),
+        None => (!objects.is_empty()).then_some((0, None)),
+    }
+}
+
+fn occurs_at_word_start(haystack: &str, needle: &str) -> bool {
+    haystack.match_indices(needle).any(|(at, _)| !haystack[..at].chars().next_back().is_some_and(char::is_alphanumeric))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(name: &str, aliases: &[&str]) -> ObjectEntry {
+        ObjectEntry {
+            name: name.into(),
+            aliases: aliases.iter().map(|a| a.to_string()).collect(),
+            mesh: format!("objects/{name}.obj"),
+            centre: [0.0; 3],
+            half_extents: [0.1; 3],
+        }
+    }
+
+    #[test]
+    fn the_longest_alias_at_a_word_start_wins() {
+        let cat = [
+            entry("mug", &["mug", "coffee mug", "cup of coffee"]),
+            entry("cubesmall", &["small cube", "cube", "block"]),
+            entry("waterbottle", &["water bottle", "bottle"]),
+        ];
+        let pick = |p: &str| choose_object(&cat, p).map(|(i, a)| (cat[i].name.as_str().to_owned(), a));
+        assert_eq!(pick("A woman drinks from the mug"), Some(("mug".into(), Some("mug".into()))));
+        assert_eq!(pick("Lift the SMALL CUBE."), Some(("cubesmall".into(), Some("small cube".into()))));
+        assert_eq!(pick("pour from the water bottle into a mug"), Some(("waterbottle".into(), Some("water bottle".into()))));
+        assert_eq!(pick("stack the cubes"), Some(("cubesmall".into(), Some("cube".into()))));
+        assert_eq!(pick("he smuggles nothing"), Some(("mug".into(), None)));
+        assert_eq!(pick("wave"), Some(("mug".into(), None)));
+        assert_eq!(choose_object(&[], "mug"), None);
+    }
+}

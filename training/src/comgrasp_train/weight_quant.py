@@ -1,0 +1,112 @@
+"""int8 weight storage for exported graphs (the text encoder of the default bundle).
+
+Weights are quantized per row (a Linear's output channel, an Embedding's token), symmetric,
+``w ≈ q * s`` with ``q`` in [-127, 127]. The PyTorch module is *fake-quantized* in place
+(its weights become exactly ``q * s`` in float32), so the model the GPT is trained with,
+the parity vectors and the ONNX graph all compute the same function. In the ONNX file each
+such weight is stored as an int8 tensor plus a float32 scale column and rebuilt by
+``Cast(int8 -> float) * scale`` (two plain ops every runtime has; tract folds them into a
+constant at load, so inference runs at fp32 speed from a file ~4x smaller). Arithmetic
+stays fp32: only the stored weights are rounded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+# Smaller tensors (biases, LayerNorm, the token-type table) stay fp32: they cost nothing.
+MIN_NUMEL = 4096
+
+
+@dataclass(frozen=True)
+class QuantizedWeight:
+    name: str  # parameter name in the module
+    q: np.ndarray  # (rows, cols) int8
+    scale: np.ndarray  # (rows,) float32
+
+    def dequantized(self) -> np.ndarray:
+        return self.q.astype(np.float32) * self.scale[:, None]
+
+
+def quantize_rows(w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Per-row symmetric int8 of a 2-D float tensor: (q int8, scale float32). A zero row
+    gets scale 1 (its q is 0), so dequantization never divides by zero."""
+    w = w.detach().float().cpu().numpy()
+    amax = np.abs(w).max(axis=1)
+    scale = np.where(amax > 0, amax / 127.0, 1.0).astype(np.float32)
+    q = np.clip(np.rint(w / scale[:, None]), -127, 127).astype(np.int8)
+    return q, scale
+
+
+@torch.no_grad()
+def fake_quantize_int8(module: nn.Module, min_numel: int = MIN_NUMEL) -> list[QuantizedWeight]:
+    """Round every Linear/Embedding weight of ``module`` with at least ``min_numel`` elements
+    to int8 per row, in place; returns what was quantized (for the ONNX rewrite)."""
+    out = []
+    for mod_name, mod in module.named_modules():
+        if not isinstance(mod, (nn.Linear, nn.Embedding)) or mod.weight.numel() < min_numel:
+            continue
+        q, scale = quantize_rows(mod.weight)
+        qw = QuantizedWeight(f"{mod_name}.weight", q, scale)
+        mod.weight.copy_(torch.from_numpy(qw.dequantized()).to(mod.weight))
+        out.append(qw)
+    return out
+
+
+def _digest(a: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float32).tobytes()).hexdigest()
+
+
+def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight]) -> dict:
+    """Rewrite ``onnx_path`` in place: every float initializer equal (bit for bit) to a
+    quantized weight or its transpose (the exporter folds Linear's transpose into the
+    initializer) becomes int8 + scale + Cast + Mul. Returns a summary; raises if a quantized
+    weight was not found, because then the file would silently stay fp32."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    model = onnx.load(str(onnx_path))
+    graph = model.graph
+    # digest of the float32 bytes -> (weight, transposed?)
+    wanted = {}
+    for w in weights:
+        deq = w.dequantized()
+        wanted[_digest(deq)] = (w, False)
+        wanted[_digest(deq.T)] = (w, True)
+    found: set[str] = set()
+    new_inits, new_nodes = [], []
+    for init in list(graph.initializer):
+        if init.data_type != TensorProto.FLOAT or len(init.dims) != 2:
+            continue
+        hit = wanted.get(_digest(numpy_helper.to_array(init)))
+        if hit is None:
+            continue
+        w, transposed = hit
+        q = w.q.T if transposed else w.q
+        scale = w.scale[None, :] if transposed else w.scale[:, None]
+        name = init.name
+        graph.initializer.remove(init)
+        new_inits += [numpy_helper.from_array(np.ascontiguousarray(q), f"{name}__int8"),
+                      numpy_helper.from_array(np.ascontiguousarray(scale, dtype=np.float32), f"{name}__scale")]
+        new_nodes += [helper.make_node("Cast", [f"{name}__int8"], [f"{name}__f32"], to=TensorProto.FLOAT,
+                                       name=f"{name}__dequant_cast"),
+                      helper.make_node("Mul", [f"{name}__f32", f"{name}__scale"], [name], name=f"{name}__dequant_mul")]
+        found.add(w.name)
+    missing = sorted({w.name for w in weights} - found)
+    if missing:
+        raise RuntimeError(f"{onnx_path}: quantized weights not found among the initializers: {missing}")
+    graph.initializer.extend(new_inits)
+    # Dequantization first, so the node list stays topologically sorted.
+    nodes = new_nodes + list(graph.node)
+    del graph.node[:]
+    graph.node.extend(nodes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(onnx_path))
+    return {"scheme": "int8 per row, symmetric, q*scale via Cast+Mul; fp32 compute",
+            "tensors": len(found), "int8_params": int(sum(w.q.size for w in weights))}
