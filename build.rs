@@ -2,11 +2,18 @@
 //! `header_is_current` test compares it with the committed `include/comgrasp.h`); outside CI
 //! it is also written to `include/comgrasp.h`, so a developer's build keeps it current and CI
 //! catches a header that was not committed.
+//!
+//! With feature `embedded-default` it also embeds `models/default` (see `build/embed.rs`).
 use std::{env, fs, path::PathBuf};
+
+#[path = "build/embed.rs"]
+mod embed;
 
 fn main() {
     let crate_dir = PathBuf::from(env::var("CARGO_MANIFEST_DIR").unwrap());
-    let out = PathBuf::from(env::var("OUT_DIR").unwrap()).join("comgrasp.h");
+    let out_dir = PathBuf::from(env::var("OUT_DIR").unwrap());
+    embed::generate(&crate_dir, &out_dir);
+    let out = out_dir.join("comgrasp.h");
     println!("cargo:rerun-if-changed=src");
     println!("cargo:rerun-if-changed=cbindgen.toml");
     println!("cargo:rerun-if-env-changed=CI");

@@ -123,9 +123,13 @@ typedef struct cg_engine_config {
   // Coordinate system of every frame (a `cg_coordinate_system` value; others give
   // `CG_ERR_INVALID_ARGUMENT`). Default `CG_COORDS_NATIVE`.
   enum cg_coordinate_system coordinate_system;
-  // Path of the model bundle directory, NUL-terminated UTF-8. Borrowed only during
-  // `cg_engine_create`. NULL selects the embedded default bundle, which this build does
-  // not have yet (`CG_ERR_BUNDLE`). Default NULL.
+  // Path of the model bundle directory, NUL-terminated UTF-8 (an empty string is
+  // `CG_ERR_INVALID_ARGUMENT`). Borrowed only during `cg_engine_create`. A path given here
+  // always wins. NULL selects, in order: the directory named by the `COMGRASP_BUNDLE`
+  // environment variable when it is set (set but empty or not a valid bundle:
+  // `CG_ERR_BUNDLE`, with no fallback); else the default bundle embedded in the library
+  // (cargo feature `embedded-default`, on by default), so NULL works from any working
+  // directory; else `CG_ERR_BUNDLE`. Default NULL.
   const char *bundle_path;
   // 1: fill `cg_frame.joint_positions` by forward kinematics; 0: leave them zero.
   // Default 0.
@@ -256,7 +260,8 @@ cg_status cg_engine_config_init(struct cg_engine_config *cfg);
 // `struct_size`. Returns `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
 cg_status cg_stream_config_init(struct cg_stream_config *cfg);
 
-// Creates an engine: loads and verifies the model bundle named by `cfg->bundle_path` and
+// Creates an engine: loads and verifies the model bundle selected by `cfg->bundle_path`
+// (NULL: `COMGRASP_BUNDLE`, else the embedded default; see `cg_engine_config`) and
 // prepares its graphs (takes a fraction of a second; do it once, not per stream).
 // On success writes a new handle to `*out`; the caller owns it and must destroy it exactly
 // once with `cg_engine_destroy`. On failure `*out` is left untouched.

@@ -1,17 +1,13 @@
 #!/usr/bin/env bash
-# README command 1: set up, then run the main job. Until the engine lands, the main job is
-# the data pipeline: generate SynthGrasp, check it with the metric suite, render a sequence.
+# README command 1: build the engine with its embedded default model and stream one prompt
+# into an animated glTF + a PNG preview strip, printing a summary. Needs only cargo.
+#   bash scripts/demo.sh ["another prompt"]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup_python.sh
+TEXT=${1:-"A woman drinks from the mug"}
 OUT=out/demo
-P=.venv/bin
-rm -rf "$OUT"
-$P/comgrasp-data synth --out "$OUT/synthgrasp" --sequences 40 --seed 0 --workers 2
-$P/comgrasp-data -q check "$OUT/synthgrasp" --limit 40 --json "$OUT/plausibility.json"
-FILE=$(ls "$OUT"/synthgrasp/grab/s*/mug_drink_*.npz 2>/dev/null | head -1 || true)
-FILE=${FILE:-$(ls "$OUT"/synthgrasp/grab/s*/*.npz | head -1)}
-$P/comgrasp-data text "$FILE" --hands | head -2
-$P/comgrasp-data -q render "$FILE" --out "$OUT/sequence.gif"
-$P/comgrasp-data -q render "$FILE" --out "$OUT/sequence.png" --strip
-echo "demo outputs in $OUT: synthgrasp/, plausibility.json, sequence.gif, sequence.png"
+mkdir -p "$OUT"
+cargo build --release --locked --bin comgrasp
+target/release/comgrasp generate --text "$TEXT" --glb "$OUT/motion.glb" --preview "$OUT/motion.png" \
+  --out "$OUT/motion.json"
+echo "open $OUT/motion.glb in Blender (File > Import > glTF 2.0) or https://gltf-viewer.donmccurdy.com"

@@ -38,8 +38,12 @@ pub const MAX_STREAMS_LIMIT: usize = 1024;
 /// Engine-wide settings, fixed at creation.
 #[derive(Clone, Debug, PartialEq)]
 pub struct EngineConfig {
-    /// The model bundle directory. `None` means the embedded default bundle (not available
-    /// in this build yet: `Engine::new` then fails with a bundle error).
+    /// The model bundle directory; a path given here always wins. `None` selects, in order:
+    /// the directory in the `COMGRASP_BUNDLE` environment variable when it is set (set but
+    /// empty or not a valid bundle: `Engine::new` fails, with no fallback); else the default
+    /// bundle embedded in the library (cargo feature `embedded-default`, on by default), so
+    /// an engine works from any working directory; else `Engine::new` fails with an
+    /// [`Error::Bundle`] saying so. See [`crate::bundle::select`].
     pub bundle_path: Option<PathBuf>,
     /// Coordinate system of every frame.
     pub coordinate_system: CoordinateSystem,

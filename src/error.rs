@@ -1,11 +1,12 @@
 //! The engine's error type. Every failure is a value with a precise message; the C ABI maps
 //! each variant to a status code (`ffi::status`) and keeps the message as the last error.
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A bundle file is missing, unreadable, corrupt, or disagrees with the manifest.
-    #[error("bundle {path}: {msg}")]
+    /// `path` is the file at fault, or empty when no file is (e.g. no bundle selected).
+    #[error("bundle{}: {msg}", at(.path))]
     Bundle { path: PathBuf, msg: String },
     /// An argument is invalid (empty or over-long text, bad config value...).
     #[error("invalid argument: {0}")]
@@ -36,4 +37,9 @@ impl Error {
     pub fn bundle(path: impl Into<PathBuf>, msg: impl Into<String>) -> Self {
         Error::Bundle { path: path.into(), msg: msg.into() }
     }
+}
+
+/// ` <path>`, or nothing for an empty path (so the message does not read "bundle : ...").
+fn at(path: &Path) -> String {
+    if path.as_os_str().is_empty() { String::new() } else { format!(" {}", path.display()) }
 }

@@ -22,7 +22,6 @@
 //!   chunk goes out whole, its last frame marked, without running the forced step;
 //! * if End is sampled at step 0 (possible only with `min_len = 0`) the stream has no
 //!   frames and ends directly (poll reports End without any frame).
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use crate::assemble::FrameAssembler;
@@ -35,18 +34,12 @@ use crate::sampler::{SamplingParams, TokenSampler};
 
 pub use crate::stream::ChunkSource;
 
-/// Loads the bundle named by the config (verifying it) and returns the factory that builds
-/// one [`Generator`] per stream. Everything expensive (graph loading, the assembler) happens
-/// here, once per engine.
-/// The bundle the engine loaded and the factory that starts its streams.
+/// Loads the bundle the config selects (`bundle::select`: the path, else `COMGRASP_BUNDLE`,
+/// else the embedded default), verifying it, and returns it with the factory that builds
+/// one [`Generator`] per stream. Everything expensive (graph loading, the assembler)
+/// happens here, once per engine.
 pub fn source_factory(config: &EngineConfig) -> Result<(Arc<Bundle>, SourceFactory)> {
-    let Some(path) = config.bundle_path.as_ref() else {
-        return Err(Error::bundle(
-            PathBuf::new(),
-            "no bundle_path given, and this build has no embedded default bundle",
-        ));
-    };
-    let bundle = Bundle::load(path)?;
+    let bundle = crate::bundle::select::load(config.bundle_path.as_deref())?;
     let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), config)?);
     let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
         Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?))
@@ -66,7 +59,7 @@ impl Pipeline {
     /// Builds the assembler for the engine's coordinate system and FK setting.
     pub fn new(bundle: Arc<Bundle>, config: &EngineConfig) -> Result<Pipeline> {
         let m = &bundle.manifest;
-        let manifest_path = bundle.path(crate::bundle::manifest::MANIFEST_FILE);
+        let manifest_path = bundle.origin().path_of(crate::bundle::manifest::MANIFEST_FILE);
         let assembler = FrameAssembler::new(
             &m.normalization.mean,
             &m.normalization.std,

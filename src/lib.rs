@@ -1,6 +1,7 @@
 //! ComGrasp Engine: streaming text-to-whole-body-grasp motion with a C ABI.
 //!
-//! Layers, bottom up: [`bundle`] (load and verify a model bundle), [`text`] (tokenizer +
+//! Layers, bottom up: [`bundle`] (load and verify a model bundle from a directory or the
+//! default one embedded in the library, feature `embedded-default`), [`text`] (tokenizer +
 //! text encoder), [`model`] (the Transformer step graph with a Rust-owned KV cache and the
 //! streaming VQ decoder), [`sampler`] (the cross-language deterministic sampler),
 //! [`frame`] (the C frame and its assembly from 335-D features), [`generator`] (one

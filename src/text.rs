@@ -25,6 +25,7 @@ use tokenizers::Tokenizer;
 use tract_onnx::prelude::Tensor;
 
 use crate::bundle::manifest::{EosSelection, Manifest, Pooling};
+use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
 use crate::model::graph::{self, Plan};
 
@@ -88,22 +89,22 @@ impl std::fmt::Debug for TextEncoder {
 impl TextEncoder {
     /// Loads the tokenizer and the graph named by the (verified) manifest and checks that
     /// the tokenizer pads and truncates to exactly `max_tokens`.
-    pub fn load(dir: &Path, m: &Manifest) -> Result<TextEncoder> {
+    pub fn load(src: &BundleSource, m: &Manifest) -> Result<TextEncoder> {
         let t = &m.text_encoder;
-        let tok_path = dir.join(&t.files.tokenizer);
-        let tokenizer = load_tokenizer(&tok_path, t.max_tokens)?;
+        let tok_path = src.path_of(&t.files.tokenizer);
+        let tokenizer = load_tokenizer(&tok_path, &src.read_file(&t.files.tokenizer)?, t.max_tokens)?;
         let roles = t.inputs.iter().map(|i| match i.name.as_str() {
             "input_ids" => Ok(Role::Ids),
             "attention_mask" => Ok(Role::Mask),
             "token_type_ids" => Ok(Role::TypeIds),
             "position_ids" => Ok(Role::Positions),
-            other => Err(Error::bundle(dir.join(&t.files.onnx), format!("unknown text encoder input {other:?}"))),
+            other => Err(Error::bundle(src.path_of(&t.files.onnx), format!("unknown text encoder input {other:?}"))),
         }).collect::<Result<Vec<_>>>()?;
         let pool_index = t.outputs.iter().position(|o| o.name == t.pool_output).ok_or_else(|| {
-            Error::bundle(dir.join(crate::bundle::manifest::MANIFEST_FILE),
+            Error::bundle(src.path_of(crate::bundle::manifest::MANIFEST_FILE),
                           format!("text_encoder pool_output {:?} is not an output", t.pool_output))
         })?;
-        let plan = graph::load(dir, &t.files.onnx, &t.inputs, &t.outputs)?;
+        let plan = graph::load(src, &t.files.onnx, &t.inputs, &t.outputs)?;
         let enc = TextEncoder {
             tokenizer,
             plan,
@@ -249,10 +250,10 @@ impl TextEncoder {
     }
 }
 
-/// Reads tokenizer.json and checks its padding/truncation settings against `max_tokens`.
-fn load_tokenizer(path: &Path, max_tokens: usize) -> Result<Tokenizer> {
-    let bytes = std::fs::read(path).map_err(|e| Error::bundle(path, format!("cannot read: {e}")))?;
-    let tok = match catch_unwind(|| Tokenizer::from_bytes(&bytes)) {
+/// Parses tokenizer.json (`bytes`; `path` names it in errors) and checks its
+/// padding/truncation settings against `max_tokens`.
+fn load_tokenizer(path: &Path, bytes: &[u8], max_tokens: usize) -> Result<Tokenizer> {
+    let tok = match catch_unwind(|| Tokenizer::from_bytes(bytes)) {
         Ok(Ok(t)) => t,
         Ok(Err(e)) => return Err(Error::bundle(path, format!("not a valid tokenizers JSON: {e}"))),
         Err(_) => return Err(Error::bundle(path, "the tokenizers crate panicked while reading it")),

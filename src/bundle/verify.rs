@@ -8,6 +8,10 @@
 //! real inputs/outputs compared with the manifest (`model::graph`), and the parity index is
 //! checked against the `.npy` headers.
 //!
+//! Every check reads through a [`BundleSource`], so a directory and an in-memory bundle
+//! (the embedded default) are verified alike; only the regular-file check and the walk
+//! for unlisted files look at the disk itself (see `bundle::source`).
+//!
 //! Two decisions that differ from the Python verifier's `strict` mode:
 //! * Files and directories whose name starts with '.' are ignored when looking for
 //!   unlisted files (`.DS_Store`, editor swap files); every other unlisted file is an
@@ -24,6 +28,7 @@ use sha2::{Digest, Sha256};
 
 use super::manifest::*;
 use super::npy;
+use super::source::{BundleSource, FileStat};
 use crate::error::{Error, Result};
 
 /// The directory holding the optional parity vectors.
@@ -33,14 +38,15 @@ fn ensure(cond: bool, path: &Path, msg: impl FnOnce() -> String) -> Result<()> {
     if cond { Ok(()) } else { Err(Error::bundle(path, msg())) }
 }
 
-/// Reads and parses `dir/manifest.json`: format and version first, then the schema.
-pub fn read_manifest(dir: &Path) -> Result<Manifest> {
-    ensure(dir.is_dir(), dir, || "not a directory".into())?;
-    let path = dir.join(MANIFEST_FILE);
-    let text = match fs::read(&path) {
-        Ok(b) => String::from_utf8(b).map_err(|_| Error::bundle(&path, "not UTF-8 text"))?,
+/// Reads and parses `manifest.json`: format and version first, then the schema.
+pub fn read_manifest(src: &BundleSource) -> Result<Manifest> {
+    src.check_root()?;
+    let path = src.path_of(MANIFEST_FILE);
+    let text = match src.read(MANIFEST_FILE) {
+        Ok(b) => String::from_utf8(b.into_owned()).map_err(|_| Error::bundle(&path, "not UTF-8 text"))?,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            return Err(Error::bundle(&path, "missing: the directory is not a model bundle"))
+            let what = if src.directory().is_some() { "the directory" } else { "the file set" };
+            return Err(Error::bundle(&path, format!("missing: {what} is not a model bundle")))
         }
         Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
     };
@@ -61,8 +67,8 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest> {
 }
 
 /// Internal consistency of the manifest (no file is read).
-pub fn check_manifest(dir: &Path, m: &Manifest) -> Result<()> {
-    let mp = dir.join(MANIFEST_FILE);
+pub fn check_manifest(src: &BundleSource, m: &Manifest) -> Result<()> {
+    let mp = src.path_of(MANIFEST_FILE);
     let p = mp.as_path();
     ensure(m.fps.is_finite() && m.fps > 0.0, p, || format!("fps must be finite and > 0, got {}", m.fps))?;
     ensure(m.frames_per_token >= 1, p, || "frames_per_token must be >= 1".into())?;
@@ -312,18 +318,27 @@ pub fn sha256_file(path: &Path) -> Result<String> {
         }
         h.update(&buf[..n]);
     }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    Ok(hex(&h.finalize()))
+}
+
+/// Lower-case hex SHA-256 of bytes in memory.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+fn hex(digest: &[u8]) -> String {
+    digest.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Whether `parity/` exists (see the module doc).
-pub fn has_parity(dir: &Path) -> bool {
-    dir.join(PARITY_DIR).is_dir()
+pub fn has_parity(src: &BundleSource) -> bool {
+    src.has_dir(PARITY_DIR)
 }
 
 /// Every listed file is present with its size and SHA-256; nothing unlisted is present.
-pub fn check_files(dir: &Path, m: &Manifest) -> Result<()> {
-    let mp = dir.join(MANIFEST_FILE);
-    let parity = has_parity(dir);
+pub fn check_files(src: &BundleSource, m: &Manifest) -> Result<()> {
+    let mp = src.path_of(MANIFEST_FILE);
+    let parity = has_parity(src);
     for (rel, entry) in &m.files {
         ensure(safe_rel(rel) && rel != MANIFEST_FILE, &mp, || format!("files table entry {rel:?} is not a path inside the bundle"))?;
         let hex_ok = entry.sha256.len() == 64 && entry.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
@@ -331,67 +346,37 @@ pub fn check_files(dir: &Path, m: &Manifest) -> Result<()> {
         if !parity && rel.starts_with("parity/") {
             continue;
         }
-        let path = dir.join(rel);
-        let meta = match fs::metadata(&path) {
-            Ok(meta) => meta,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                return Err(Error::bundle(&path, format!("listed in the manifest but missing (file {rel})")))
-            }
+        let path = src.path_of(rel);
+        let len = match src.stat(rel) {
+            Ok(FileStat::File { len }) => len,
+            Ok(FileStat::Missing) => return Err(Error::bundle(&path, format!("listed in the manifest but missing (file {rel})"))),
+            Ok(FileStat::NotAFile) => return Err(Error::bundle(&path, format!("file {rel} is not a regular file"))),
             Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
         };
-        ensure(meta.is_file(), &path, || format!("file {rel} is not a regular file"))?;
-        ensure(meta.len() == entry.bytes, &path, || {
-            format!("file {rel} has {} bytes, the manifest says {}", meta.len(), entry.bytes)
+        ensure(len == entry.bytes, &path, || {
+            format!("file {rel} has {len} bytes, the manifest says {}", entry.bytes)
         })?;
-        let got = sha256_file(&path)?;
+        let got = src.sha256(rel)?;
         ensure(got == entry.sha256, &path, || {
             format!("file {rel}: SHA-256 {got} does not match the manifest's {} (corrupt or replaced file)", entry.sha256)
         })?;
     }
-    let mut found = Vec::new();
-    walk(dir, "", 0, &mut found)?;
-    let extra: Vec<String> = found.into_iter().filter(|r| r != MANIFEST_FILE && !m.files.contains_key(r)).collect();
-    ensure(extra.is_empty(), dir, || {
+    let extra: Vec<String> = src.list()?.into_iter().filter(|r| r != MANIFEST_FILE && !m.files.contains_key(r)).collect();
+    ensure(extra.is_empty(), &src.root(), || {
         let shown: Vec<&String> = extra.iter().take(8).collect();
         format!("{} file(s) not listed in the manifest: {shown:?}{}", extra.len(), if extra.len() > 8 { " ..." } else { "" })
     })
 }
 
-/// Relative paths of the files under `dir`, skipping dot-names; symlinks to directories
-/// are not followed (they are reported as entries).
-fn walk(dir: &Path, prefix: &str, depth: usize, out: &mut Vec<String>) -> Result<()> {
-    ensure(depth < 16, dir, || "directory tree too deep".into())?;
-    let rd = fs::read_dir(dir).map_err(|e| Error::bundle(dir, format!("cannot list: {e}")))?;
-    for entry in rd {
-        let entry = entry.map_err(|e| Error::bundle(dir, format!("cannot list: {e}")))?;
-        let name = entry.file_name();
-        let Some(name) = name.to_str() else {
-            return Err(Error::bundle(entry.path(), "file name is not UTF-8"));
-        };
-        if name.starts_with('.') {
-            continue;
-        }
-        let rel = if prefix.is_empty() { name.to_string() } else { format!("{prefix}/{name}") };
-        let ft = entry.file_type().map_err(|e| Error::bundle(entry.path(), format!("cannot stat: {e}")))?;
-        if ft.is_dir() {
-            walk(&entry.path(), &rel, depth + 1, out)?;
-        } else {
-            out.push(rel);
-        }
-    }
-    Ok(())
-}
-
 /// parity/index.json agrees with the manifest and with the `.npy` headers (when parity/
 /// is present).
-pub fn check_parity_index(dir: &Path, m: &Manifest) -> Result<()> {
-    if !has_parity(dir) {
+pub fn check_parity_index(src: &BundleSource, m: &Manifest) -> Result<()> {
+    if !has_parity(src) {
         return Ok(());
     }
-    let path: PathBuf = dir.join(&m.parity.index);
-    let text = fs::read_to_string(&path).map_err(|e| Error::bundle(&path, format!("cannot read: {e}")))?;
-    let index: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
+    let path: PathBuf = src.path_of(&m.parity.index);
+    let index: serde_json::Value = serde_json::from_slice(&src.read_file(&m.parity.index)?)
+        .map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
     ensure(index.get("format").and_then(|v| v.as_str()) == Some("comgrasp-parity")
            && index.get("version").and_then(|v| v.as_u64()) == Some(1), &path, || {
         "not a version 1 comgrasp-parity index".into()
@@ -404,11 +389,12 @@ pub fn check_parity_index(dir: &Path, m: &Manifest) -> Result<()> {
         ensure(m.files.contains_key(rel), &path, || format!("lists {rel:?}, which is not in the manifest's files table"))?;
         let dtype = e.get("dtype").and_then(|v| v.as_str()).unwrap_or("?");
         let shape = e.get("shape").cloned().unwrap_or(serde_json::Value::Null);
-        let h = npy::read_header(&dir.join(rel))?;
+        let npy_path = src.path_of(rel);
+        let h = npy::parse_header(&npy_path, &src.read_file(rel)?)?;
         let same_shape = shape.as_array().is_some_and(|a| {
             a.len() == h.shape.len() && a.iter().zip(&h.shape).all(|(x, &y)| x.as_u64() == Some(y as u64))
         });
-        ensure(h.dtype.numpy_name() == dtype && same_shape, &dir.join(rel), || {
+        ensure(h.dtype.numpy_name() == dtype && same_shape, &npy_path, || {
             format!("the file is {} {:?} but parity/index.json says {dtype} {shape}", h.dtype.numpy_name(), h.shape)
         })?;
     }

@@ -24,9 +24,13 @@ pub struct cg_engine_config {
     /// Coordinate system of every frame (a `cg_coordinate_system` value; others give
     /// `CG_ERR_INVALID_ARGUMENT`). Default `CG_COORDS_NATIVE`.
     pub coordinate_system: cg_coordinate_system,
-    /// Path of the model bundle directory, NUL-terminated UTF-8. Borrowed only during
-    /// `cg_engine_create`. NULL selects the embedded default bundle, which this build does
-    /// not have yet (`CG_ERR_BUNDLE`). Default NULL.
+    /// Path of the model bundle directory, NUL-terminated UTF-8 (an empty string is
+    /// `CG_ERR_INVALID_ARGUMENT`). Borrowed only during `cg_engine_create`. A path given here
+    /// always wins. NULL selects, in order: the directory named by the `COMGRASP_BUNDLE`
+    /// environment variable when it is set (set but empty or not a valid bundle:
+    /// `CG_ERR_BUNDLE`, with no fallback); else the default bundle embedded in the library
+    /// (cargo feature `embedded-default`, on by default), so NULL works from any working
+    /// directory; else `CG_ERR_BUNDLE`. Default NULL.
     pub bundle_path: *const c_char,
     /// 1: fill `cg_frame.joint_positions` by forward kinematics; 0: leave them zero.
     /// Default 0.

@@ -27,7 +27,8 @@ fn lookup_engine(engine: *mut cg_engine) -> Result<Arc<EngineEntry>, Failure> {
     Ok(entry)
 }
 
-/// Creates an engine: loads and verifies the model bundle named by `cfg->bundle_path` and
+/// Creates an engine: loads and verifies the model bundle selected by `cfg->bundle_path`
+/// (NULL: `COMGRASP_BUNDLE`, else the embedded default; see `cg_engine_config`) and
 /// prepares its graphs (takes a fraction of a second; do it once, not per stream).
 /// On success writes a new handle to `*out`; the caller owns it and must destroy it exactly
 /// once with `cg_engine_destroy`. On failure `*out` is left untouched.

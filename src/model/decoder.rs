@@ -3,7 +3,6 @@
 //! channels already probabilities) + `next_state`. Decoding chunk by chunk equals decoding
 //! the whole sequence (DESIGN §3 deviation 1), so the engine emits F frames per token as
 //! soon as the token is sampled.
-use std::path::Path;
 use std::sync::Arc;
 
 use parking_lot::Mutex;
@@ -11,6 +10,7 @@ use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
 use crate::bundle::manifest::{Manifest, FRAME_DIM, N_STREAMS};
+use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
 
 /// The loaded decoder graph; shared by all streams of an engine.
@@ -53,10 +53,10 @@ impl std::fmt::Debug for DecoderState {
 
 impl DecoderModel {
     /// Loads `decoder.file`; the manifest was verified (shapes and initial state).
-    pub fn load(dir: &Path, m: &Manifest) -> Result<DecoderModel> {
+    pub fn load(src: &BundleSource, m: &Manifest) -> Result<DecoderModel> {
         let d = &m.decoder;
-        let path = dir.join(&d.file);
-        let plan = graph::load(dir, &d.file, &d.inputs, &d.outputs)?;
+        let path = src.path_of(&d.file);
+        let plan = graph::load(src, &d.file, &d.inputs, &d.outputs)?;
         let k1 = d.state_tokens;
         let flat: Vec<i64> = d.initial_state.iter().flatten().flatten().copied().collect();
         let initial = Tensor::from_shape::<i64>(&[1, N_STREAMS, k1], &flat)

@@ -16,6 +16,7 @@ use std::sync::Arc;
 use tract_onnx::prelude::*;
 
 use crate::bundle::manifest::{Dtype, IoSpec};
+use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
 
 /// A loaded, optimized graph, shared by every stream.
@@ -45,21 +46,26 @@ fn describe(fact: &TypedFact) -> String {
     }
 }
 
-/// Loads `dir/rel` with tract, checks its inputs and outputs against the manifest's
-/// lists, optimizes it and makes it runnable.
-pub(crate) fn load(dir: &Path, rel: &str, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<Plan> {
-    let path = dir.join(rel);
-    match catch_unwind(AssertUnwindSafe(|| load_inner(&path, inputs, outputs))) {
+/// Loads the graph `rel` of the bundle with tract, checks its inputs and outputs against
+/// the manifest's lists, optimizes it and makes it runnable.
+pub(crate) fn load(src: &BundleSource, rel: &str, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<Plan> {
+    let path = src.path_of(rel);
+    match catch_unwind(AssertUnwindSafe(|| load_inner(src, rel, &path, inputs, outputs))) {
         Ok(r) => r,
         Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref())))),
     }
 }
 
-fn load_inner(path: &Path, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<Plan> {
+fn load_inner(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<Plan> {
     let bad = |msg: String| Error::bundle(path, msg);
-    let model = tract_onnx::onnx()
-        .model_for_path(path)
-        .map_err(|e| bad(format!("tract cannot read the ONNX graph: {e:#}")))?;
+    let model = match src.directory() {
+        // From disk tract maps the file and resolves ONNX external data beside it.
+        Some(_) => tract_onnx::onnx().model_for_path(path),
+        // From memory there is no directory, so a graph with external data fails here with
+        // tract's "external data was detected" message.
+        None => tract_onnx::onnx().model_for_read(&mut &*src.read_file(rel)?),
+    }
+    .map_err(|e| bad(format!("tract cannot read the ONNX graph: {e:#}")))?;
 
     // Names and order, as the ONNX file declares them.
     let in_names: Vec<String> = model.input_outlets().map_err(|e| bad(format!("{e:#}")))?

@@ -19,6 +19,7 @@ use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
+use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
 
 const TOKENS: usize = 0;
@@ -69,10 +70,10 @@ impl std::fmt::Debug for StepModel {
 
 impl StepModel {
     /// Loads `transformer.file`; the manifest was verified (shapes follow from it).
-    pub fn load(dir: &std::path::Path, m: &Manifest) -> Result<StepModel> {
+    pub fn load(src: &BundleSource, m: &Manifest) -> Result<StepModel> {
         let t = &m.transformer;
-        let plan = graph::load(dir, &t.file, &t.inputs, &t.outputs)?;
-        let path = dir.join(&t.file);
+        let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
+        let path = src.path_of(&t.file);
         let template_inputs = t.inputs.iter().map(graph::zeros).collect::<Result<Vec<_>>>()
             .map_err(|e| Error::bundle(&path, e.to_string()))?;
         let template_run = Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);

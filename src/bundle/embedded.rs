@@ -1,0 +1,47 @@
+//! The default bundle compiled into the library (cargo feature `embedded-default`, on by
+//! default). `build/embed.rs` turns every file that `models/default/manifest.json` lists,
+//! `parity/` left out (the loader treats parity as optional), into one `include_bytes!`.
+//!
+//! The bytes sit in the binary's read-only data: sharing them between engines costs
+//! nothing, and they cannot change while the process runs. So their sizes and SHA-256
+//! digests are checked once per process (`check_files_once`) and the outcome reused;
+//! parsing the manifest, the tokenizer and the graphs still happens per engine, as for a
+//! directory.
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use super::source::{StaticFiles, EMBEDDED_LABEL};
+use crate::error::{Error, Result};
+
+#[cfg(feature = "embedded-default")]
+mod generated {
+    include!(concat!(env!("OUT_DIR"), "/embedded_bundle.rs"));
+}
+
+/// The embedded files (`manifest.json` first), or `None` in a build without the feature.
+pub fn files() -> Option<StaticFiles> {
+    #[cfg(feature = "embedded-default")]
+    {
+        Some(generated::FILES)
+    }
+    #[cfg(not(feature = "embedded-default"))]
+    {
+        None
+    }
+}
+
+/// Runs `check` (the embedded bundle's file checks) the first time it is called in this
+/// process and returns that outcome every time. `check` must be a function of the
+/// embedded bytes alone, which it is: the manifest it checks against is parsed from them.
+pub(crate) fn check_files_once(check: impl FnOnce() -> Result<()>) -> Result<()> {
+    // `Error` is not `Clone` (it can hold an `io::Error`); a file check only produces
+    // `Error::Bundle`, kept here as its parts.
+    static OUTCOME: OnceLock<std::result::Result<(), (PathBuf, String)>> = OnceLock::new();
+    let outcome = OUTCOME.get_or_init(|| {
+        check().map_err(|e| match e {
+            Error::Bundle { path, msg } => (path, msg),
+            other => (PathBuf::from(EMBEDDED_LABEL), other.to_string()),
+        })
+    });
+    outcome.clone().map_err(|(path, msg)| Error::Bundle { path, msg })
+}
