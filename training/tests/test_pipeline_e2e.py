@@ -42,8 +42,10 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert train_main(["evaluate", "--data", str(prepared), "--vq", str(vq), "--gpt", str(gpt), "--out", str(table),
                        "--repeats", "2", "--max-len", "3", "--min-len", "1"]) == 0
     res = json.loads(table.with_suffix(".json").read_text())
-    assert set(res) == {"VQ reconstruction", "generation (2 repeats)"}
+    assert set(res) == {"VQ reconstruction", "generation (2 repeats)", "ground truth (prompt checks)"}
     assert res["VQ reconstruction"]["mpjpe_mm"]["n"] == 2 and res["generation (2 repeats)"]["mpjpe_mm"]["n"] == 2
+    for row in ("generation (2 repeats)", "ground truth (prompt checks)"):
+        assert 0 <= res[row]["intent_ok"]["mean"] <= 1 and "intent_grasp" in res[row]
     assert 0 <= res["VQ reconstruction"]["contact_accuracy"]["mean"] <= 1
     assert "| VQ reconstruction |" in table.read_text()
 

@@ -5,7 +5,10 @@ Reconstruction: every test sequence through encode -> decode. Generation: each t
 sequence's first description, ``repeats`` times with different seeds; prediction and
 ground truth are compared over their common length (generated lengths differ).
 Besides Table I, reconstruction reports hand contact accuracy (decoded contact
-probability > 0.5 vs the labels, over frames x hands).
+probability > 0.5 vs the labels, over frames x hands), and generation the share of samples
+that obey their prompt (``intent_ok``, the whole generated motion through
+``intent_check``; per-rule rates ``intent_<rule>`` in the JSON), with the ground truth's
+for reference.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import torch
 
 from .body_model import BodyModelConfig, make_body_model
 from .dataset import FeatureSet
+from .intent_check import check_feature_set, check_features
 from .metrics import METRIC_KEYS, MetricConfig, compute_metrics, sample_from_pose, summarize, summarize_repeats
 from .models.sampling import SamplingParams
 from .models.vqvae import fit_to_tokens
@@ -66,13 +70,19 @@ def evaluate_generation(model, fs: FeatureSet, repeats: int = 3, params: Samplin
         for a in range(0, n, batch):
             idx = range(a, min(n, a + batch))
             preds = model.generate([fs.texts[i][0] for i in idx], params, seed=seed + 100_003 * r + a)
-            rows += [_pair_metrics(p, fs.features[i], fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg)
+            rows += [{**_pair_metrics(p, fs.features[i], fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg),
+                      **check_features(p, fs.texts[i][0], fs.meta[i], fs.rest_joints[i], fs.fps).row()}
                      for p, i in zip(preds, idx)]
         out.append(rows)
     return out
 
 
-def write_report(results: dict[str, dict], path_md: Path, extra_keys=("contact_accuracy",)) -> None:
+def evaluate_ground_truth_intent(fs: FeatureSet, limit: int | None = None) -> list[dict]:
+    """The prompt checks of the test sequences themselves (the reference for generation's)."""
+    return [r.row() for r in check_feature_set(fs, limit)]
+
+
+def write_report(results: dict[str, dict], path_md: Path, extra_keys=("contact_accuracy", "intent_ok")) -> None:
     """results: setting -> {key: Summary}. Writes Markdown and the JSON beside it."""
     keys = list(METRIC_KEYS) + [k for k in extra_keys if any(k in r for r in results.values())]
     lines = ["| setting | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
@@ -87,4 +97,5 @@ def write_report(results: dict[str, dict], path_md: Path, extra_keys=("contact_a
         indent=1))
 
 
-__all__ = ["evaluate_reconstruction", "evaluate_generation", "write_report", "summarize", "summarize_repeats"]
+__all__ = ["evaluate_reconstruction", "evaluate_generation", "evaluate_ground_truth_intent", "write_report",
+           "summarize", "summarize_repeats"]

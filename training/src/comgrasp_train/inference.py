@@ -34,7 +34,8 @@ class MotionModel:
         vq, _, vq_conf = load_vq(vq_dir, device)
         gpt, _, gpt_conf = load_gpt(gpt_dir, device)
         text = gpt_conf["text"]
-        enc = load_text_encoder(text["backend"], checkpoint=text.get("checkpoint"), max_tokens=text.get("max_tokens"))
+        enc = load_text_encoder(text["backend"], checkpoint=text.get("checkpoint"), max_tokens=text.get("max_tokens"),
+                                weights=text.get("weights", "fp32"))
         norm = Normalizer.load(Path(vq_dir) / "stats.npz")
         return MotionModel(vq, gpt, enc, norm, float(vq_conf["fps"]), torch.device(device))
 

@@ -368,6 +368,21 @@ def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def unheld_object_motion(object_rotmat: np.ndarray, object_transl: np.ndarray,
+                         held: np.ndarray) -> tuple[float, float]:
+    """(mm, degrees): over the frames where ``held`` (T,) is False, the largest displacement
+    (and rotation angle) of the object from its pose in the last held frame (the first frame
+    before any hold). A resting object must not move, so both should be ~0."""
+    held = np.asarray(held, bool)
+    anchor = np.maximum.accumulate(np.where(held, np.arange(len(held)), 0))  # last held frame so far
+    free = ~held
+    if not free.any():
+        return 0.0, 0.0
+    move = np.linalg.norm(object_transl[free] - object_transl[anchor[free]], axis=-1) * 1000.0
+    turn = _rotation_angle_deg(object_rotmat[anchor[free]], object_rotmat[free])
+    return float(move.max()), float(turn.max())
+
+
 def plausibility(sample: MotionSample, cfg: MetricConfig = MetricConfig(),
                  held_from: str = "geometry") -> dict[str, float]:
     """Physical checks of one sequence (ground truth or generated), no reference needed.
@@ -396,22 +411,14 @@ def plausibility(sample: MotionSample, cfg: MetricConfig = MetricConfig(),
         held = geo.any(axis=1)
     else:
         raise ValueError(f"held_from must be 'geometry' or 'labels', got {held_from!r}")
-    anchor = np.zeros(sample.n_frames, dtype=np.int64)
-    last = 0
-    for t in range(sample.n_frames):
-        if held[t]:
-            last = t
-        anchor[t] = last
-    free = ~held
-    move = np.linalg.norm(sample.object_transl - sample.object_transl[anchor], axis=-1) * 1000.0
-    turn = _rotation_angle_deg(sample.object_rotmat[anchor], sample.object_rotmat)
+    move, turn = unheld_object_motion(sample.object_rotmat, sample.object_transl, held)
     out = {
         "penetration_max_mm": float(depth.max()) if depth.size else 0.0,
         "penetration_mean_mm": float(depth.mean()) if depth.size else 0.0,
         "collision_pct": collision(stats, cfg)[0],
         "foot_sliding_mm": foot_sliding(sample.joints, sample.fps, cfg),
-        "object_unheld_motion_mm": float(move[free].max()) if free.any() else 0.0,
-        "object_unheld_rotation_deg": float(turn[free].max()) if free.any() else 0.0,
+        "object_unheld_motion_mm": move,
+        "object_unheld_rotation_deg": turn,
         "contact_frames_pct": 100.0 * float(held.mean()) if held.size else 0.0,
     }
     if sample.contact is not None:

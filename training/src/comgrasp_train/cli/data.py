@@ -4,6 +4,7 @@
     comgrasp-data info    ROOT [--split NAME]
     comgrasp-data prepare ROOT --out DIR [--split NAME] [--fps 30] [--body-model open|smplx --smplx-dir D]
     comgrasp-data check   ROOT [--limit N] [--json FILE]
+    comgrasp-data check-intent DATA [--part test] [--split NAME] [--limit N] [--json FILE]
     comgrasp-data render  FILE.npz --out OUT.gif|OUT.png [--strip] [--root ROOT]
     comgrasp-data text    FILE.npz [--root ROOT] [--hands]
 """
@@ -91,6 +92,43 @@ def cmd_check(args) -> int:
     return 0
 
 
+def _feature_set(args):
+    """A prepared feature file or folder (its ``--part``), or a raw GRAB-layout root
+    prepared here (hands named in the texts; ``--split``/``--part``, else every sequence)."""
+    from ..dataset import FeatureSet, prepare_features
+    from ..grab.splits import get_split
+
+    data = Path(args.data)
+    file = data if data.suffix == ".npz" else data / f"features_{args.part}.npz"
+    if file.is_file():
+        return FeatureSet.load(file)
+    split = get_split(args.split) if args.split else None
+    return prepare_features(data, split, args.part if split else "all", fps=args.fps, body=_body_cfg(args),
+                            mention_hands=True, limit=args.limit, progress=not args.quiet)[0]
+
+
+def cmd_check_intent(args) -> int:
+    import torch
+
+    from ..intent_check import check_feature_set, intent_rates
+
+    torch.set_num_threads(1)  # per-sequence FK of small tensors: extra threads only contend
+    fs = _feature_set(args)
+    results = check_feature_set(fs, args.limit)
+    rates = intent_rates(results)
+    n_ok = sum(r.ok for r in results)
+    print(f"intent_ok {rates.get('intent_ok', float('nan')):.3f} ({n_ok}/{len(results)}); prompts parsed "
+          f"{sum(r.intent.known for r in results)}/{len(results)}")
+    print("  " + ", ".join(f"{k[len('intent_'):]} {v:.3f}" for k, v in rates.items() if k != "intent_ok"))
+    failures = [{"name": fs.meta[i].get("name", str(i)), "text": fs.texts[i][0], "reason": r.reason}
+                for i, r in enumerate(results) if not r.ok]
+    for f in failures:
+        print(f"FAIL {f['name']}: {f['text']!r}: {f['reason']}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rates": rates, "n": len(results), "failures": failures}, indent=1))
+    return 0
+
+
 def cmd_render(args) -> int:
     from ..body_model import make_body_model
     from ..grab.reader import load_sequence
@@ -152,6 +190,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", default=None)
     body_args(s)
     s.set_defaults(fn=cmd_check)
+
+    s = sub.add_parser("check-intent", help="share of sequences whose motion obeys their (first) text")
+    s.add_argument("data", help="a `prepare` output folder or features_*.npz, or a raw GRAB-layout root")
+    s.add_argument("--part", default="test", help="which prepared part (or split part of a raw root)")
+    s.add_argument("--split", default=None, help="raw root: a split name (default: every sequence)")
+    s.add_argument("--limit", type=int, default=None)
+    s.add_argument("--fps", type=float, default=30.0, help="raw root: the feature frame rate")
+    s.add_argument("--json", default=None)
+    body_args(s)
+    s.set_defaults(fn=cmd_check_intent)
 
     s = sub.add_parser("render", help="render a sequence to an animated GIF or a PNG strip")
     s.add_argument("file")

@@ -49,7 +49,7 @@ def cmd_train_gpt(args) -> int:
     from ..train.vq_trainer import load_vq
 
     _, vq_cfg, _ = load_vq(Path(args.vq))
-    text = TextConfig(args.text_encoder, args.clip_checkpoint)
+    text = TextConfig(args.text_encoder, args.clip_checkpoint, weights=args.text_weights)
     dim = load_text_encoder(text.backend, checkpoint=text.checkpoint).dim
     cfg = preset(args.preset, codebook_sizes=tuple(c.codebook_size for c in vq_cfg.model.components), d_text=dim)
     train = GPTTrainConfig(total_iters=args.iters, batch_size=args.batch, lr=args.lr or GPTTrainConfig.lr,
@@ -83,7 +83,8 @@ def cmd_generate(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from ..evaluate import evaluate_generation, evaluate_reconstruction, summarize, summarize_repeats, write_report
+    from ..evaluate import (evaluate_generation, evaluate_ground_truth_intent, evaluate_reconstruction, summarize,
+                            summarize_repeats, write_report)
     from ..inference import MotionModel
     from ..normalization import Normalizer
     from ..train.vq_trainer import load_prepared, load_vq
@@ -97,6 +98,7 @@ def cmd_evaluate(args) -> int:
         reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
                                    limit=args.limit)
         results[f"generation ({args.repeats} repeats)"] = summarize_repeats(reps)
+        results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs, args.limit))
     write_report(results, Path(args.out))
     print(Path(args.out).read_text())
     return 0
@@ -153,6 +155,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
     s.add_argument("--text-encoder", default="minilm", choices=("minilm", "clip"))
     s.add_argument("--clip-checkpoint", default=None, help="a Hugging Face CLIP text model folder")
+    s.add_argument("--text-weights", default="fp32", choices=("fp32", "int8"),
+                   help="int8: train with, and export, the text encoder's weights rounded to int8 per row")
     s.add_argument("--iters", type=int, default=20000)
     s.add_argument("--batch", type=int, default=64)
     s.add_argument("--lr", type=float, default=None)
