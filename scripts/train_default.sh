@@ -9,8 +9,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 P=.venv/bin
 SEQS=${SEQS:-1000}
-VQ_ITERS=${VQ_ITERS:-900}
-GPT_ITERS=${GPT_ITERS:-2500}
+VQ_ITERS=${VQ_ITERS:-450}
+GPT_ITERS=${GPT_ITERS:-2000}
 DATA=data/sg$SEQS
 RUN=${RUN:-runs/default}
 OUT=${OUT:-models/default}
