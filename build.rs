@@ -3,16 +3,21 @@
 //! it is also written to `include/comgrasp.h`, so a developer's build keeps it current and CI
 //! catches a header that was not committed.
 //!
-//! With feature `embedded-default` it also embeds `models/default` (see `build/embed.rs`).
+//! With feature `embedded-default` it also embeds `models/default` (see `build/embed.rs`),
+//! and it writes the pkg-config file and CMake package next to the libraries in
+//! `target/<profile>/` (see `build/packaging.rs`).
 use std::{env, fs, path::PathBuf};
 
 #[path = "build/embed.rs"]
 mod embed;
+#[path = "build/packaging.rs"]
+mod packaging;
 
 fn main() {
     let crate_dir = PathBuf::from(env::var("CARGO_MANIFEST_DIR").unwrap());
     let out_dir = PathBuf::from(env::var("OUT_DIR").unwrap());
     embed::generate(&crate_dir, &out_dir);
+    packaging::generate(&crate_dir, &out_dir);
     let out = out_dir.join("comgrasp.h");
     println!("cargo:rerun-if-changed=src");
     println!("cargo:rerun-if-changed=cbindgen.toml");

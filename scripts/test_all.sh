@@ -2,6 +2,10 @@
 # Install everything and run every test suite (README command 2; CI runs this).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# System tools (apt, only when missing): cmake, pkg-config, mono (mcs + runtime), python3,
+# cc/c++; the native-host tests (tests/cmake_package.rs, csharp_binding.rs,
+# python_binding.rs) fail without them.
+bash scripts/setup_system.sh
 bash scripts/setup_python.sh
 bash scripts/setup_node.sh
 log=$(mktemp)

@@ -50,18 +50,29 @@ enum class Poll : int {
     Cancelled = CG_CANCELLED,
 };
 
+/// The library's version ("MAJOR.MINOR.PATCH"; a static string).
+inline const char *version() noexcept { return cg_version_string(); }
+
+/// The name and description of a status code (a static string; any value is safe).
+inline const char *status_string(Status status) noexcept {
+    return cg_status_string(static_cast<int32_t>(status));
+}
+
 /// A failed `cg_*` call: its status plus the library's message, copied when thrown.
 class Error : public std::runtime_error {
 public:
-    Error(const char *call, Status status)
-        : std::runtime_error(std::string(call) + ": " + cg_status_string(status) + ": " +
-                             cg_last_error()),
-          status_(status) {}
+    Error(const char *call, Status status) : Error(call, status, cg_last_error()) {}
     /// The `CG_ERR_*` code.
     Status status() const noexcept { return status_; }
+    /// The library's message alone (`what()` also names the call and the status).
+    const std::string &native_message() const noexcept { return message_; }
 
 private:
+    Error(const char *call, Status status, std::string message)
+        : std::runtime_error(std::string(call) + ": " + cg_status_string(status) + ": " + message),
+          status_(status), message_(std::move(message)) {}
     Status status_;
+    std::string message_;
 };
 
 namespace detail {
@@ -148,8 +159,12 @@ public:
 
     /// `cg_stream_wait`: blocks up to `timeout` for a frame (never on a game's main thread).
     Poll wait(Frame &out, std::chrono::milliseconds timeout) {
-        auto ms = timeout.count() < 0 ? 0 : timeout.count() > UINT32_MAX ? UINT32_MAX : timeout.count();
-        return static_cast<Poll>(detail::check("cg_stream_wait", cg_stream_wait(h_, static_cast<uint32_t>(ms), &out)));
+        return static_cast<Poll>(detail::check("cg_stream_wait", cg_stream_wait(h_, clamp_ms(timeout), &out)));
+    }
+
+    /// Never throws: the raw `cg_stream_wait` status (for a consumer thread without exceptions).
+    Status wait_status(Frame &out, std::chrono::milliseconds timeout) noexcept {
+        return cg_stream_wait(h_, clamp_ms(timeout), &out);
     }
 
     /// Stops generation within about one token step; any thread, also while another
@@ -171,6 +186,10 @@ public:
     explicit operator bool() const noexcept { return h_ != nullptr; }
 
 private:
+    static uint32_t clamp_ms(std::chrono::milliseconds t) noexcept {
+        auto ms = t.count();
+        return static_cast<uint32_t>(ms < 0 ? 0 : ms > static_cast<decltype(ms)>(UINT32_MAX) ? UINT32_MAX : ms);
+    }
     cg_stream *h_ = nullptr;
 };
 

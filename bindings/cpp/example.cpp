@@ -26,6 +26,8 @@ int main(int argc, char **argv) {
                                     .coordinate_system(comgrasp::Coords::Gltf)
                                     .enable_fk());
 
+        std::printf("comgrasp %s\n", comgrasp::version());
+
         // 1. A whole stream with the throwing API.
         comgrasp::Stream stream = engine.start(prompt, comgrasp::StreamConfig().seed(3).temperature(0.8));
         comgrasp::Frame f{};
@@ -55,7 +57,7 @@ int main(int argc, char **argv) {
             std::fprintf(stderr, "blank prompt was accepted\n");
             return 1;
         } catch (const comgrasp::Error &e) {
-            if (e.status() != CG_ERR_INVALID_ARGUMENT) throw;
+            if (e.status() != CG_ERR_INVALID_ARGUMENT || e.native_message().empty()) throw;
             std::printf("blank prompt rejected: %s\n", e.what());
         }
 
@@ -66,10 +68,15 @@ int main(int argc, char **argv) {
         while ((st = s2.poll_status(f)) == CG_OK || st == CG_PENDING) std::this_thread::sleep_for(1ms);
         canceller.join();
         if (st != CG_CANCELLED && st != CG_END) {
-            std::fprintf(stderr, "unexpected status after cancel: %s\n", cg_status_string(st));
+            std::fprintf(stderr, "unexpected status after cancel: %s\n", comgrasp::status_string(st));
             return 1;
         }
-        std::printf("second stream: %s, %u streams alive\n", cg_status_string(st), engine.stream_count());
+        // The noexcept wait keeps reporting the final status.
+        if (s2.wait_status(f, 10ms) != st) {
+            std::fprintf(stderr, "wait_status after the end changed the status\n");
+            return 1;
+        }
+        std::printf("second stream: %s, %u streams alive\n", comgrasp::status_string(st), engine.stream_count());
 
         // 4. Moves transfer ownership; the moved-from object is empty and destroys nothing.
         comgrasp::Stream moved = std::move(s2);

@@ -29,7 +29,8 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert (vq / "ckpt.pt").is_file() and (vq / "config.json").is_file() and (vq / "stats.npz").is_file()
     assert json.loads((vq / "config.json").read_text())["vq"]["preset"] == "tiny"
     assert train_main(["-q", "train-gpt", "--data", str(prepared), "--vq", str(vq), "--out", str(gpt),
-                       "--preset", "tiny", "--iters", "6", "--batch", "4", "--device", "cpu"]) == 0
+                       "--preset", "tiny", "--iters", "6", "--batch", "4", "--device", "cpu",
+                       "--text-weights", "int8"]) == 0
     log = [json.loads(line) for line in (gpt / "log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 6 and np.isfinite(log[-1]["loss"])
     motion = tmp_path / "m.npz"
@@ -48,6 +49,18 @@ def test_train_generate_evaluate(prepared, tmp_path):
         assert 0 <= res[row]["intent_ok"]["mean"] <= 1 and "intent_grasp" in res[row]
     assert 0 <= res["VQ reconstruction"]["contact_accuracy"]["mean"] <= 1
     assert "| VQ reconstruction |" in table.read_text()
+
+    # export: the trained runs become a bundle with the int8 text encoder they were trained
+    # with and the training subjects' mean skeleton
+    bundle = tmp_path / "bundle"
+    assert train_main(["export", "--vq", str(vq), "--gpt", str(gpt), "--out", str(bundle),
+                       "--max-len", "3", "--min-len", "1"]) == 0
+    man = json.loads((bundle / "manifest.json").read_text())
+    assert man["provenance"]["text_encoder_weights"]["tensors"] > 0
+    assert man["provenance"]["run_configs"]["gpt"]["text"]["weights"] == "int8"
+    rest = np.load(prepared / "features_train.npz")["rest_joints"].mean(axis=0)
+    np.testing.assert_allclose(np.array(man["skeleton"]["rest_joints"]), rest, atol=1e-6)
+    assert man["files"]["text_encoder.onnx"]["bytes"] < 30e6  # int8, not the 87 MB fp32 graph
 
 
 def test_vq_training_resumes_exactly(prepared, tmp_path):

@@ -316,6 +316,20 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
     return manifest
 
 
+def training_rest_skeleton(data_dir: str | None) -> np.ndarray:
+    """The bundle's one skeleton: the mean (55, 3) rest joints over the training split the VQ
+    run used (SynthGrasp's subjects, or the user's SMPL-X subjects on GRAB), so the engine's
+    FK matches the bodies the model learnt from."""
+    from ..train.vq_trainer import load_prepared
+
+    if not data_dir:
+        raise ValueError("the VQ run's config.json names no data folder; cannot derive the bundle skeleton")
+    fs, _ = load_prepared(Path(data_dir), "train")
+    if not fs.rest_joints:
+        raise ValueError(f"{data_dir}: the training split holds no rest skeletons")
+    return np.mean(np.stack(fs.rest_joints), axis=0).astype(np.float64)
+
+
 def _last_metrics(run_dir: Path) -> dict | None:
     log = run_dir / "log.jsonl"
     lines = log.read_text().splitlines() if log.is_file() else []
@@ -342,7 +356,9 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         "data": {k: r.get("data") for k, r in runs.items()}, "git": git_info(Path(__file__).parent),
         "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
     }
+    rest = training_rest_skeleton(runs["vq"].get("data"))
+    provenance["skeleton"] = f"mean rest joints of the {runs['vq'].get('data')} training subjects"
     return export_bundle(out_dir, vq=model.vq, vq_config=VQConfig.from_dict(runs["vq"]["vq"]), gpt=model.gpt,
                          gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
-                         fps=model.fps, sampling=sampling, seed=seed,
+                         fps=model.fps, sampling=sampling, seed=seed, rest_joints=rest,
                          objects=list(CATALOGUE) if objects is None else objects, provenance=provenance)

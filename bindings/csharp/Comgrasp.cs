@@ -1,0 +1,537 @@
+// Comgrasp.cs: C# binding of the ComGrasp C ABI (include/comgrasp.h), for Unity and .NET.
+//
+// One file, no dependencies beyond the base class library. It needs unsafe code (the frame
+// struct uses fixed buffers, exactly like the C struct): in Unity tick "Allow 'unsafe' Code"
+// (Player Settings, or the assembly definition holding this file); with csc/mcs pass -unsafe.
+//
+// The native library is loaded by name, "comgrasp": libcomgrasp.so (Linux/Android),
+// libcomgrasp.dylib (macOS), comgrasp.dll (Windows). In Unity put it under Assets/Plugins/
+// (e.g. Assets/Plugins/x86_64/libcomgrasp.so) and select the platform in its import settings.
+// On iOS (static library) the DllImport name becomes "__Internal".
+//
+//   using (var engine = new ComGraspEngine(new ComGraspEngineOptions {
+//              BundlePath = "models/tiny", Coordinates = CgCoordinateSystem.Unity }))
+//   using (var stream = engine.Start("A woman drinks from the mug")) {
+//       var frame = new CgFrame();              // reused: polling never allocates
+//       CgStatus st;
+//       while ((st = stream.Poll(ref frame)) != CgStatus.End) {   // once per Update()
+//           if (st == CgStatus.Ok) { CgVec3 p = frame.GetRootTranslation(); ... }
+//       }
+//   }
+//
+// Layers: `ComGraspNative` is the raw P/Invoke surface (every cg_* function, pointers and
+// status codes as in C). `ComGraspEngine` / `ComGraspStream` are IDisposable wrappers that
+// throw `ComGraspException` (status + the library's thread-local message) on errors and
+// poll into a caller-provided `ref CgFrame` without allocating. Thread rules are the C
+// ABI's: an engine may be used from any thread; a stream from one thread at a time, except
+// Cancel(), which any thread may call at any time.
+using System;
+using System.Runtime.InteropServices;
+using System.Text;
+
+namespace ComGrasp
+{
+    /// <summary>Result of every cg_* call (enum cg_status, a 32-bit signed integer).
+    /// Non-negative values are normal outcomes, negative values are errors.</summary>
+    public enum CgStatus : int
+    {
+        /// <summary>Success (polling: a frame was written).</summary>
+        Ok = 0,
+        /// <summary>No frame available yet; poll again later.</summary>
+        Pending = 1,
+        /// <summary>The stream finished and every frame has been delivered.</summary>
+        End = 2,
+        /// <summary>The stream was cancelled (Cancel, or its engine was destroyed).</summary>
+        Cancelled = 3,
+        ErrNullPointer = -1,
+        ErrInvalidUtf8 = -2,
+        /// <summary>Empty or whitespace-only text, text over CG_MAX_TEXT_BYTES, a bad config value.</summary>
+        ErrInvalidArgument = -3,
+        /// <summary>Destroyed, never created, or a handle of the wrong type.</summary>
+        ErrInvalidHandle = -4,
+        /// <summary>The call is not allowed now (e.g. another thread is using the stream).</summary>
+        ErrWrongState = -5,
+        /// <summary>The model bundle is missing, corrupt or inconsistent.</summary>
+        ErrBundle = -6,
+        ErrInference = -7,
+        ErrIo = -8,
+        /// <summary>A limit such as the engine's max_streams is reached.</summary>
+        ErrLimit = -9,
+        /// <summary>A bug in the library was caught; the handle involved is poisoned.</summary>
+        ErrPanic = -10,
+    }
+
+    /// <summary>Coordinate system of an engine's frames (enum cg_coordinate_system).</summary>
+    public enum CgCoordinateSystem : int
+    {
+        /// <summary>z up, right-handed, metres (the bundle's own).</summary>
+        Native = 0,
+        /// <summary>y up, right-handed, metres.</summary>
+        Gltf = 1,
+        /// <summary>y up, left-handed, metres: Unity's. Use this in Unity.</summary>
+        Unity = 2,
+        /// <summary>z up, left-handed, centimetres: Unreal's.</summary>
+        Unreal = 3,
+    }
+
+    /// <summary>A position or vector (x, y, z), in the engine's coordinate system.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgVec3
+    {
+        public float X, Y, Z;
+        public CgVec3(float x, float y, float z) { X = x; Y = y; Z = z; }
+        public override string ToString() { return string.Format("({0:F3}, {1:F3}, {2:F3})", X, Y, Z); }
+#if UNITY_5_3_OR_NEWER
+        public static implicit operator UnityEngine.Vector3(CgVec3 v) { return new UnityEngine.Vector3(v.X, v.Y, v.Z); }
+#endif
+    }
+
+    /// <summary>A unit quaternion (x, y, z, w), w >= 0.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgQuat
+    {
+        public float X, Y, Z, W;
+        public CgQuat(float x, float y, float z, float w) { X = x; Y = y; Z = z; W = w; }
+        public override string ToString() { return string.Format("({0:F3}, {1:F3}, {2:F3}, {3:F3})", X, Y, Z, W); }
+#if UNITY_5_3_OR_NEWER
+        public static implicit operator UnityEngine.Quaternion(CgQuat q) { return new UnityEngine.Quaternion(q.X, q.Y, q.Z, q.W); }
+#endif
+    }
+
+    /// <summary>One frame of generated motion: exactly the layout of the C struct cg_frame
+    /// (1608 bytes; <see cref="ComGraspNative.FrameSize"/> is checked against the library's
+    /// cg_frame_size() when an engine is created). Blittable: passed to the library by pointer,
+    /// never copied by the marshaller. The fixed buffers need an unsafe context; the Get*
+    /// methods read them from safe code.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgFrame
+    {
+        public const int BodyJoints = 21;
+        public const int HandJoints = 15;
+        public const int NumJoints = 55;
+
+        /// <summary>Id of the stream that produced the frame (unique per engine).</summary>
+        public ulong StreamId;
+        /// <summary>0-based index of the frame in its stream.</summary>
+        public ulong FrameIndex;
+        /// <summary>FrameIndex / fps, seconds.</summary>
+        public double TimeS;
+        /// <summary>World position of the pelvis (root joint).</summary>
+        public fixed float RootTranslation[3];
+        /// <summary>Global rotation of the pelvis (x, y, z, w).</summary>
+        public fixed float RootRotation[4];
+        /// <summary>Local rotations of SMPL-X joints 1..21, [21][4] (x, y, z, w).</summary>
+        public fixed float BodyRotations[BodyJoints * 4];
+        /// <summary>Local rotations of the left-hand finger joints (SMPL-X 25..39), [15][4].</summary>
+        public fixed float LeftHandRotations[HandJoints * 4];
+        /// <summary>Local rotations of the right-hand finger joints (SMPL-X 40..54), [15][4].</summary>
+        public fixed float RightHandRotations[HandJoints * 4];
+        /// <summary>World position of the object's origin.</summary>
+        public fixed float ObjectTranslation[3];
+        /// <summary>Global rotation of the object (x, y, z, w).</summary>
+        public fixed float ObjectRotation[4];
+        /// <summary>World position of the object's bounding-box centre.</summary>
+        public fixed float ObjectCentre[3];
+        /// <summary>Left wrist position minus the object centre.</summary>
+        public fixed float LeftWristToObject[3];
+        /// <summary>Right wrist position minus the object centre.</summary>
+        public fixed float RightWristToObject[3];
+        /// <summary>Contact probability per hand [left, right], 0..1.</summary>
+        public fixed float ContactProbability[2];
+        /// <summary>Contact flag per hand [left, right], 0 or 1.</summary>
+        public fixed byte Contact[2];
+        /// <summary>1 on the last frame of the stream, else 0.</summary>
+        public byte IsLast;
+        /// <summary>1 when JointPositions is filled (forward kinematics enabled).</summary>
+        public byte HasJointPositions;
+        /// <summary>Padding, always 0.</summary>
+        public fixed byte Reserved[4];
+        /// <summary>World positions of the 55 SMPL-X joints, [55][3] (only when HasJointPositions is 1).</summary>
+        public fixed float JointPositions[NumJoints * 3];
+
+        public bool IsLastFrame { get { return IsLast != 0; } }
+
+        public CgVec3 GetRootTranslation() { fixed (float* p = RootTranslation) return V3(p, 0, 1); }
+        public CgQuat GetRootRotation() { fixed (float* p = RootRotation) return Q(p, 0, 1); }
+        /// <summary>Local rotation of SMPL-X joint <paramref name="index"/> + 1 (index 0..20).</summary>
+        public CgQuat GetBodyRotation(int index) { fixed (float* p = BodyRotations) return Q(p, index, BodyJoints); }
+        /// <summary>Local rotation of left-hand finger joint <paramref name="index"/> (0..14 = SMPL-X 25..39).</summary>
+        public CgQuat GetLeftHandRotation(int index) { fixed (float* p = LeftHandRotations) return Q(p, index, HandJoints); }
+        /// <summary>Local rotation of right-hand finger joint <paramref name="index"/> (0..14 = SMPL-X 40..54).</summary>
+        public CgQuat GetRightHandRotation(int index) { fixed (float* p = RightHandRotations) return Q(p, index, HandJoints); }
+        public CgVec3 GetObjectTranslation() { fixed (float* p = ObjectTranslation) return V3(p, 0, 1); }
+        public CgQuat GetObjectRotation() { fixed (float* p = ObjectRotation) return Q(p, 0, 1); }
+        public CgVec3 GetObjectCentre() { fixed (float* p = ObjectCentre) return V3(p, 0, 1); }
+        public CgVec3 GetLeftWristToObject() { fixed (float* p = LeftWristToObject) return V3(p, 0, 1); }
+        public CgVec3 GetRightWristToObject() { fixed (float* p = RightWristToObject) return V3(p, 0, 1); }
+        /// <summary>Contact probability of hand 0 (left) or 1 (right).</summary>
+        public float GetContactProbability(int hand) { Check(hand, 2); fixed (float* p = ContactProbability) return p[hand]; }
+        /// <summary>Contact flag of hand 0 (left) or 1 (right).</summary>
+        public bool GetContact(int hand) { Check(hand, 2); fixed (byte* p = Contact) return p[hand] != 0; }
+        /// <summary>World position of SMPL-X joint <paramref name="joint"/> (0..54; zero unless HasJointPositions).</summary>
+        public CgVec3 GetJointPosition(int joint) { fixed (float* p = JointPositions) return V3(p, joint, NumJoints); }
+
+        static void Check(int i, int n)
+        {
+            if ((uint)i >= (uint)n) throw new ArgumentOutOfRangeException("index", i, "must be 0.." + (n - 1));
+        }
+        static CgVec3 V3(float* p, int i, int n) { Check(i, n); p += 3 * i; return new CgVec3(p[0], p[1], p[2]); }
+        static CgQuat Q(float* p, int i, int n) { Check(i, n); p += 4 * i; return new CgQuat(p[0], p[1], p[2], p[3]); }
+    }
+
+    /// <summary>struct cg_engine_config. Fill with cg_engine_config_init before changing fields.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgEngineConfig
+    {
+        public uint StructSize;
+        public CgCoordinateSystem CoordinateSystem;
+        /// <summary>const char*: NUL-terminated UTF-8, borrowed during cg_engine_create only; IntPtr.Zero = default bundle.</summary>
+        public IntPtr BundlePath;
+        public uint EnableFk;
+        public uint RingCapacity;
+        public uint MaxStreams;
+        public uint Reserved;
+    }
+
+    /// <summary>struct cg_stream_config. Fill with cg_stream_config_init; to override a field set
+    /// it AND clear its UseDefault* bit in UseDefaults.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgStreamConfig
+    {
+        public const uint UseDefaultSeed = 1u << 0;
+        public const uint UseDefaultTemperature = 1u << 1;
+        public const uint UseDefaultTopK = 1u << 2;
+        public const uint UseDefaultMinLen = 1u << 3;
+        public const uint UseDefaultMaxLen = 1u << 4;
+        public const uint UseDefaultAll = 31;
+
+        public uint StructSize;
+        public uint UseDefaults;
+        public ulong Seed;
+        public double Temperature;
+        public uint TopK;
+        public uint MinLen;
+        public uint MaxLen;
+        public uint Reserved;
+    }
+
+    /// <summary>The raw C ABI: one declaration per cg_* function of comgrasp.h. Handles are
+    /// IntPtr (opaque; the library validates them, so a stale one gives ErrInvalidHandle).</summary>
+    public static unsafe class ComGraspNative
+    {
+#if (UNITY_IOS || UNITY_WEBGL) && !UNITY_EDITOR
+        public const string Lib = "__Internal";
+#else
+        public const string Lib = "comgrasp";
+#endif
+        /// <summary>CG_ABI_VERSION of the header this file mirrors.</summary>
+        public const uint AbiVersion = 1;
+        /// <summary>sizeof(cg_frame) in the header this file mirrors.</summary>
+        public const int FrameSize = 1608;
+        /// <summary>CG_MAX_TEXT_BYTES: longest accepted prompt in UTF-8 bytes.</summary>
+        public const int MaxTextBytes = 4096;
+
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern uint cg_abi_version();
+        /// <summary>Static NUL-terminated string; see <see cref="ComGraspEngine.Version"/>.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern IntPtr cg_version_string();
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern UIntPtr cg_frame_size();
+        /// <summary>Static NUL-terminated description of a status code.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern IntPtr cg_status_string(int status);
+        /// <summary>The calling thread's last error message (valid until its next failing call).</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern IntPtr cg_last_error();
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern UIntPtr cg_last_error_message(byte* buf, UIntPtr len);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_last_error_status();
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_config_init(CgEngineConfig* cfg);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_config_init(CgStreamConfig* cfg);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_create(CgEngineConfig* cfg, IntPtr* engine);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_destroy(IntPtr engine);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_stream_count(IntPtr engine, uint* count);
+        /// <summary>text: NUL-terminated UTF-8.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_start(IntPtr engine, byte* text, CgStreamConfig* cfg, IntPtr* stream);
+        /// <summary>text: len bytes of UTF-8, no NUL needed.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_start_utf8(IntPtr engine, byte* text, UIntPtr len, CgStreamConfig* cfg, IntPtr* stream);
+        /// <summary>Never blocks, never allocates.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_poll_frame(IntPtr stream, CgFrame* frame);
+        /// <summary>Blocks up to timeoutMs; never on a game's main thread.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_wait(IntPtr stream, uint timeoutMs, CgFrame* frame);
+        /// <summary>Any thread, any time; idempotent.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_cancel(IntPtr stream);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_destroy(IntPtr stream);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_id(IntPtr stream, ulong* id);
+
+        /// <summary>A NUL-terminated UTF-8 C string as a .NET string ("" for NULL).</summary>
+        public static string Utf8ToString(IntPtr p)
+        {
+            if (p == IntPtr.Zero) return "";
+            byte* s = (byte*)p;
+            int n = 0;
+            while (s[n] != 0) n++;
+            return Encoding.UTF8.GetString(s, n);
+        }
+
+        /// <summary>The calling thread's last error message, copied.</summary>
+        public static string LastError() { return Utf8ToString(cg_last_error()); }
+
+        /// <summary>The status code's description (cg_status_string).</summary>
+        public static string StatusString(CgStatus status) { return Utf8ToString(cg_status_string((int)status)); }
+    }
+
+    /// <summary>A failed cg_* call: its status and the library's message, copied on the
+    /// calling thread right after the call.</summary>
+    public sealed class ComGraspException : Exception
+    {
+        public CgStatus Status { get; private set; }
+        /// <summary>The library's message alone (Message also names the call and status).</summary>
+        public string NativeMessage { get; private set; }
+
+        public ComGraspException(string call, CgStatus status, string nativeMessage)
+            : base(call + ": " + status + ": " + nativeMessage)
+        {
+            Status = status;
+            NativeMessage = nativeMessage;
+        }
+
+        /// <summary>Throws for errors (negative codes); passes normal outcomes through.</summary>
+        internal static CgStatus Check(string call, CgStatus status)
+        {
+            if ((int)status < 0) throw new ComGraspException(call, status, ComGraspNative.LastError());
+            return status;
+        }
+    }
+
+    /// <summary>Engine settings (see struct cg_engine_config); null fields keep the defaults.</summary>
+    public sealed class ComGraspEngineOptions
+    {
+        /// <summary>Model bundle directory; null: $COMGRASP_BUNDLE, else the bundle embedded in the library.</summary>
+        public string BundlePath;
+        public CgCoordinateSystem Coordinates = CgCoordinateSystem.Native;
+        /// <summary>Fill CgFrame.JointPositions by forward kinematics.</summary>
+        public bool EnableFk;
+        /// <summary>Frames buffered per stream, 1..65536 (default 256).</summary>
+        public uint? RingCapacity;
+        /// <summary>Streams alive at once, 1..1024 (default 16).</summary>
+        public uint? MaxStreams;
+    }
+
+    /// <summary>Sampling overrides of one stream; null fields keep the bundle's defaults.</summary>
+    public struct ComGraspStreamOptions
+    {
+        public ulong? Seed;
+        public double? Temperature;
+        public uint? TopK;
+        /// <summary>End not allowed before this many token steps (16 frames each).</summary>
+        public uint? MinLen;
+        /// <summary>End forced at this many token steps.</summary>
+        public uint? MaxLen;
+    }
+
+    /// <summary>A loaded model bundle (cg_engine). Create once (it takes a fraction of a second),
+    /// start many streams. Dispose cancels the streams still generating (they then report
+    /// Cancelled) and frees the model; their ComGraspStream objects stay valid.</summary>
+    public sealed unsafe class ComGraspEngine : IDisposable
+    {
+        IntPtr handle;
+
+        /// <summary>The library's version, "MAJOR.MINOR.PATCH".</summary>
+        public static string Version { get { return ComGraspNative.Utf8ToString(ComGraspNative.cg_version_string()); } }
+
+        /// <summary>Throws if the loaded library does not match this file (ABI version or frame size).</summary>
+        public static void CheckAbi()
+        {
+            uint abi = ComGraspNative.cg_abi_version();
+            ulong size = ComGraspNative.cg_frame_size().ToUInt64();
+            if (abi != ComGraspNative.AbiVersion || size != (ulong)sizeof(CgFrame) || sizeof(CgFrame) != ComGraspNative.FrameSize)
+                throw new InvalidOperationException(string.Format(
+                    "comgrasp: library ABI {0} / frame size {1} does not match Comgrasp.cs (ABI {2}, frame {3} bytes)",
+                    abi, size, ComGraspNative.AbiVersion, sizeof(CgFrame)));
+        }
+
+        public ComGraspEngine(ComGraspEngineOptions options = null)
+        {
+            CheckAbi();
+            if (options == null) options = new ComGraspEngineOptions();
+            CgEngineConfig cfg;
+            ComGraspNative.cg_engine_config_init(&cfg);
+            cfg.CoordinateSystem = options.Coordinates;
+            cfg.EnableFk = options.EnableFk ? 1u : 0u;
+            if (options.RingCapacity.HasValue) cfg.RingCapacity = options.RingCapacity.Value;
+            if (options.MaxStreams.HasValue) cfg.MaxStreams = options.MaxStreams.Value;
+            byte[] path = options.BundlePath == null ? null : NulTerminated(options.BundlePath);
+            IntPtr h = IntPtr.Zero;
+            fixed (byte* p = path)
+            {
+                cfg.BundlePath = (IntPtr)p;
+                ComGraspException.Check("cg_engine_create", ComGraspNative.cg_engine_create(&cfg, &h));
+            }
+            handle = h;
+        }
+
+        /// <summary>Starts generating motion for <paramref name="text"/> on a worker thread and
+        /// returns at once. null text gives ErrNullPointer; empty or blank text ErrInvalidArgument.</summary>
+        public ComGraspStream Start(string text, ComGraspStreamOptions options = default(ComGraspStreamOptions))
+        {
+            return Start(text == null ? null : Encoding.UTF8.GetBytes(text), options);
+        }
+
+        /// <summary>Starts a stream from raw UTF-8 bytes (invalid UTF-8 gives ErrInvalidUtf8).</summary>
+        public ComGraspStream Start(byte[] utf8, ComGraspStreamOptions options = default(ComGraspStreamOptions))
+        {
+            CgStreamConfig cfg;
+            ComGraspNative.cg_stream_config_init(&cfg);
+            if (options.Seed.HasValue) { cfg.Seed = options.Seed.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultSeed; }
+            if (options.Temperature.HasValue) { cfg.Temperature = options.Temperature.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTemperature; }
+            if (options.TopK.HasValue) { cfg.TopK = options.TopK.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTopK; }
+            if (options.MinLen.HasValue) { cfg.MinLen = options.MinLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMinLen; }
+            if (options.MaxLen.HasValue) { cfg.MaxLen = options.MaxLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMaxLen; }
+            IntPtr s = IntPtr.Zero;
+            // `fixed` on an empty array gives NULL, which the library reads as a missing
+            // text: pin a one-byte buffer instead so "" is reported as empty text.
+            byte[] buf = utf8 != null && utf8.Length == 0 ? EmptyText : utf8;
+            fixed (byte* p = buf)
+            {
+                int len = utf8 == null ? 0 : utf8.Length;
+                ComGraspException.Check("cg_start", ComGraspNative.cg_start_utf8(Handle, p, (UIntPtr)len, &cfg, &s));
+            }
+            return new ComGraspStream(s);
+        }
+
+        /// <summary>Streams of this engine alive (started and not yet disposed).</summary>
+        public uint StreamCount
+        {
+            get
+            {
+                uint n;
+                ComGraspException.Check("cg_engine_stream_count", ComGraspNative.cg_engine_stream_count(Handle, &n));
+                return n;
+            }
+        }
+
+        /// <summary>The cg_engine* handle (for ComGraspNative calls).</summary>
+        public IntPtr Handle
+        {
+            get
+            {
+                if (handle == IntPtr.Zero) throw new ObjectDisposedException("ComGraspEngine");
+                return handle;
+            }
+        }
+
+        public void Dispose()
+        {
+            Release();
+            GC.SuppressFinalize(this);
+        }
+
+        ~ComGraspEngine() { Release(); }
+
+        void Release()
+        {
+            IntPtr h = handle;
+            handle = IntPtr.Zero;
+            if (h != IntPtr.Zero) ComGraspNative.cg_engine_destroy(h);
+        }
+
+        static readonly byte[] EmptyText = new byte[1];
+
+        static byte[] NulTerminated(string s)
+        {
+            byte[] b = new byte[Encoding.UTF8.GetByteCount(s) + 1];
+            Encoding.UTF8.GetBytes(s, 0, s.Length, b, 0);
+            return b;
+        }
+    }
+
+    /// <summary>One generation (cg_stream). Poll it once per frame/tick into a reused CgFrame;
+    /// Dispose stops the worker and frees the stream.</summary>
+    public sealed unsafe class ComGraspStream : IDisposable
+    {
+        IntPtr handle;
+        readonly ulong id;
+
+        internal ComGraspStream(IntPtr h)
+        {
+            handle = h;
+            ulong v;
+            ComGraspException.Check("cg_stream_id", ComGraspNative.cg_stream_id(h, &v));
+            id = v;
+        }
+
+        /// <summary>The stream's id (unique per engine, from 1); frames carry it as StreamId.</summary>
+        public ulong Id { get { return id; } }
+
+        /// <summary>Ok (a frame was written to <paramref name="frame"/>), Pending (nothing yet),
+        /// End (every frame delivered) or Cancelled. Never blocks; allocates nothing unless it
+        /// throws ComGraspException (the worker's error, e.g. ErrInference).</summary>
+        public CgStatus Poll(ref CgFrame frame)
+        {
+            fixed (CgFrame* p = &frame)
+                return ComGraspException.Check("cg_poll_frame", ComGraspNative.cg_poll_frame(Handle, p));
+        }
+
+        /// <summary>Like Poll, but waits up to <paramref name="timeoutMs"/> for a frame
+        /// (Pending only on timeout). For a consumer thread; never on a game's main thread.</summary>
+        public CgStatus Wait(ref CgFrame frame, uint timeoutMs)
+        {
+            fixed (CgFrame* p = &frame)
+                return ComGraspException.Check("cg_stream_wait", ComGraspNative.cg_stream_wait(Handle, timeoutMs, p));
+        }
+
+        /// <summary>Poll without exceptions: the raw status, errors included.</summary>
+        public CgStatus PollStatus(ref CgFrame frame)
+        {
+            fixed (CgFrame* p = &frame)
+                return ComGraspNative.cg_poll_frame(Handle, p);
+        }
+
+        /// <summary>Stops generation within about one token step; Poll then returns Cancelled.
+        /// Any thread, also while another thread is in Poll/Wait. Idempotent.</summary>
+        public void Cancel()
+        {
+            ComGraspException.Check("cg_cancel", ComGraspNative.cg_cancel(Handle));
+        }
+
+        /// <summary>The cg_stream* handle (for ComGraspNative calls).</summary>
+        public IntPtr Handle
+        {
+            get
+            {
+                if (handle == IntPtr.Zero) throw new ObjectDisposedException("ComGraspStream");
+                return handle;
+            }
+        }
+
+        public void Dispose()
+        {
+            Release();
+            GC.SuppressFinalize(this);
+        }
+
+        ~ComGraspStream() { Release(); }
+
+        void Release()
+        {
+            IntPtr h = handle;
+            handle = IntPtr.Zero;
+            if (h != IntPtr.Zero) ComGraspNative.cg_stream_destroy(h);
+        }
+    }
+}

@@ -1,0 +1,423 @@
+// Test of Comgrasp.cs against the real library (tests/csharp_binding.rs builds and runs it):
+//
+//   mcs -unsafe -out:target/tmp/comgrasp_cs_test.exe bindings/csharp/Comgrasp.cs bindings/csharp/Test.cs
+//   LD_LIBRARY_PATH=target/debug mono target/tmp/comgrasp_cs_test.exe models/tiny [LAYOUT_FILE]
+//
+// LAYOUT_FILE is the output of tests/host_support/layout.c (the C compiler's sizes and
+// offsets of cg_frame and the config structs); without it the sizes are checked against
+// the values documented in comgrasp.h only. Prints "ok NAME" per check group and a closing
+// "csharp: N passed, M failed" line; exit code 0 only when every group passed.
+using System;
+using System.Collections.Generic;
+using System.IO;
+using System.Runtime.InteropServices;
+using System.Text;
+using System.Threading;
+using ComGrasp;
+
+static unsafe class ComGraspTest
+{
+    static string bundle;
+    static string layoutFile;
+    static int passed, failed;
+
+    static int Main(string[] args)
+    {
+        if (args.Length < 1)
+        {
+            Console.Error.WriteLine("usage: Test.exe BUNDLE_DIR [LAYOUT_FILE]");
+            return 2;
+        }
+        bundle = args[0];
+        layoutFile = args.Length > 1 ? args[1] : null;
+
+        Run("layout", Layout);
+        Run("version", VersionInfo);
+        Run("stream_to_end", StreamToEnd);
+        Run("polling_allocates_nothing", PollingAllocatesNothing);
+        Run("stream_ids_and_determinism", StreamIdsAndDeterminism);
+        Run("errors", Errors);
+        Run("last_error_is_per_thread", LastErrorIsPerThread);
+        Run("cancel", Cancel);
+        Run("cancel_from_another_thread", CancelFromAnotherThread);
+        Run("engine_dispose_cancels_streams", EngineDisposeCancelsStreams);
+        Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
+        return failed == 0 ? 0 : 1;
+    }
+
+    static void Run(string name, Action test)
+    {
+        try
+        {
+            test();
+            passed++;
+            Console.WriteLine("ok " + name);
+        }
+        catch (Exception e)
+        {
+            failed++;
+            Console.WriteLine("FAILED " + name + ": " + e);
+        }
+    }
+
+    static void Check(bool cond, string what)
+    {
+        if (!cond) throw new Exception("check failed: " + what);
+    }
+
+    static void Eq<T>(T actual, T expected, string what)
+    {
+        if (!EqualityComparer<T>.Default.Equals(actual, expected))
+            throw new Exception(string.Format("{0}: got {1}, expected {2}", what, actual, expected));
+    }
+
+    static ComGraspException Throws(string what, Action a)
+    {
+        try
+        {
+            a();
+        }
+        catch (ComGraspException e)
+        {
+            return e;
+        }
+        throw new Exception(what + ": no ComGraspException");
+    }
+
+    static ComGraspEngine NewEngine(CgCoordinateSystem coords = CgCoordinateSystem.Native, bool fk = false,
+                                    uint? ring = null, uint? maxStreams = null)
+    {
+        return new ComGraspEngine(new ComGraspEngineOptions
+        {
+            BundlePath = bundle, Coordinates = coords, EnableFk = fk, RingCapacity = ring, MaxStreams = maxStreams,
+        });
+    }
+
+    static string Pascal(string snake)
+    {
+        var sb = new StringBuilder();
+        foreach (string part in snake.Split('_'))
+            if (part.Length > 0) sb.Append(char.ToUpperInvariant(part[0])).Append(part.Substring(1));
+        return sb.ToString();
+    }
+
+    // Sizes and field offsets agree with the C compiler's (layout file) and with comgrasp.h.
+    static void Layout()
+    {
+        Eq(sizeof(CgFrame), 1608, "sizeof(CgFrame)");
+        Eq(Marshal.SizeOf(typeof(CgFrame)), 1608, "Marshal.SizeOf(CgFrame)");
+        Eq(ComGraspNative.cg_frame_size().ToUInt64(), (ulong)sizeof(CgFrame), "cg_frame_size()");
+        Eq(ComGraspNative.FrameSize, sizeof(CgFrame), "ComGraspNative.FrameSize");
+        Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 32 : 28, "sizeof(CgEngineConfig)");
+        Eq(sizeof(CgStreamConfig), 40, "sizeof(CgStreamConfig)");
+        Eq((int)Marshal.OffsetOf(typeof(CgFrame), "JointPositions"), 948, "offset of JointPositions");
+        Eq((int)Marshal.OffsetOf(typeof(CgFrame), "Contact"), 940, "offset of Contact");
+        if (layoutFile == null) return;
+
+        var types = new Dictionary<string, Type>
+        {
+            { "cg_frame", typeof(CgFrame) }, { "cg_engine_config", typeof(CgEngineConfig) },
+            { "cg_stream_config", typeof(CgStreamConfig) },
+        };
+        var sizes = new Dictionary<Type, int>
+        {
+            { typeof(CgFrame), sizeof(CgFrame) }, { typeof(CgEngineConfig), sizeof(CgEngineConfig) },
+            { typeof(CgStreamConfig), sizeof(CgStreamConfig) },
+        };
+        int facts = 0;
+        var seenFields = new Dictionary<Type, int>();
+        foreach (string line in File.ReadAllLines(layoutFile))
+        {
+            string[] w = line.Split(' ');
+            if (w.Length == 3 && w[0] == "size")
+            {
+                Type t = types[w[1]];
+                Eq(sizes[t], int.Parse(w[2]), "sizeof " + t.Name + " (C: " + w[1] + ")");
+                Eq(Marshal.SizeOf(t), int.Parse(w[2]), "Marshal.SizeOf " + t.Name);
+                facts++;
+            }
+            else if (w.Length == 4 && w[0] == "offset")
+            {
+                Type t = types[w[1]];
+                string field = Pascal(w[2]);
+                Eq((int)Marshal.OffsetOf(t, field), int.Parse(w[3]), "offset of " + t.Name + "." + field + " (C: " + w[2] + ")");
+                seenFields[t] = (seenFields.ContainsKey(t) ? seenFields[t] : 0) + 1;
+                facts++;
+            }
+        }
+        // Every C field was checked and C# has no extra field.
+        foreach (var kv in seenFields)
+            Eq(kv.Key.GetFields(System.Reflection.BindingFlags.Instance | System.Reflection.BindingFlags.Public).Length,
+               kv.Value, "number of fields of " + kv.Key.Name);
+        Check(facts >= 30, "layout file has " + facts + " facts");
+    }
+
+    static void VersionInfo()
+    {
+        Eq(ComGraspNative.cg_abi_version(), ComGraspNative.AbiVersion, "cg_abi_version()");
+        string v = ComGraspEngine.Version;
+        Check(System.Text.RegularExpressions.Regex.IsMatch(v, @"^\d+\.\d+\.\d+"), "version string " + v);
+        ComGraspEngine.CheckAbi();
+        Eq(ComGraspNative.StatusString(CgStatus.End).Length > 0, true, "status string");
+        Eq(ComGraspNative.Utf8ToString(ComGraspNative.cg_status_string(12345)), "unknown cg_status value", "unknown status");
+    }
+
+    // One whole stream through Poll: indices, ids, times, flags and values are sane.
+    static void StreamToEnd()
+    {
+        using (var engine = NewEngine(CgCoordinateSystem.Unity, fk: true))
+        using (var stream = engine.Start("A woman drinks from the mug", new ComGraspStreamOptions { Seed = 7 }))
+        {
+            Check(stream.Id >= 1, "stream id >= 1");
+            Eq(engine.StreamCount, 1u, "StreamCount");
+            var f = new CgFrame();
+            ulong n = 0;
+            bool sawLast = false;
+            double lastTime = -1;
+            CgStatus st;
+            var deadline = DateTime.UtcNow.AddSeconds(120);
+            while ((st = stream.Poll(ref f)) != CgStatus.End)
+            {
+                Check(DateTime.UtcNow < deadline, "stream finished in time");
+                if (st == CgStatus.Pending) { Thread.Sleep(1); continue; }
+                Eq(st, CgStatus.Ok, "poll status");
+                Check(!sawLast, "no frame after the is_last frame");
+                Eq(f.FrameIndex, n, "frame_index");
+                Eq(f.StreamId, stream.Id, "stream_id");
+                Check(f.TimeS > lastTime, "time_s increases");
+                lastTime = f.TimeS;
+                Eq(f.HasJointPositions, (byte)1, "has_joint_positions with FK");
+                CgQuat q = f.GetRootRotation();
+                double norm = Math.Sqrt(q.X * q.X + q.Y * q.Y + q.Z * q.Z + q.W * q.W);
+                Check(Math.Abs(norm - 1) < 1e-3 && q.W >= 0, "root rotation is a unit quaternion with w >= 0: " + q);
+                CgQuat b = f.GetBodyRotation(CgFrame.BodyJoints - 1);
+                Check(Math.Abs(Math.Sqrt(b.X * b.X + b.Y * b.Y + b.Z * b.Z + b.W * b.W) - 1) < 1e-3, "body rotation 21 unit");
+                for (int h = 0; h < 2; h++)
+                {
+                    float p = f.GetContactProbability(h);
+                    Check(p >= 0 && p <= 1, "contact probability in 0..1");
+                    Eq(f.GetContact(h), p > 0.5f, "contact flag = probability > 0.5");
+                }
+                byte* r = f.Reserved;
+                Check(r[0] == 0 && r[1] == 0 && r[2] == 0 && r[3] == 0, "reserved bytes are 0");
+                sawLast = f.IsLastFrame;
+                n++;
+            }
+            Check(n > 0 && n % 16 == 0, "frames: " + n + " (a multiple of 16)");
+            Check(sawLast, "the last frame has is_last = 1");
+            Eq(Math.Round(f.TimeS * 30), (double)(n - 1), "time_s = frame_index / fps");
+            Eq(stream.Poll(ref f), CgStatus.End, "End repeats");
+            Eq(stream.Wait(ref f, 10), CgStatus.End, "Wait after End");
+            Console.WriteLine("  {0} frames, last root {1}, object {2}", n, f.GetRootTranslation(), f.GetObjectTranslation());
+            stream.Dispose();
+            Eq(engine.StreamCount, 0u, "StreamCount after Dispose");
+        }
+    }
+
+    // Poll/Wait on a reused frame allocate no managed memory (after the first call).
+    static void PollingAllocatesNothing()
+    {
+        using (var engine = NewEngine())
+        using (var stream = engine.Start("The man lifts a small cube."))
+        {
+            var f = new CgFrame();
+            CgStatus st = stream.Wait(ref f, 5000);
+            stream.PollStatus(ref f);
+            long before = GC.GetAllocatedBytesForCurrentThread();
+            int frames = 0;
+            while ((st = stream.Wait(ref f, 1000)) != CgStatus.End)
+            {
+                if (st == CgStatus.Ok) frames++;
+                if (stream.Poll(ref f) == CgStatus.Ok) frames++;
+            }
+            long allocated = GC.GetAllocatedBytesForCurrentThread() - before;
+            Check(frames > 0, "frames were polled");
+            Eq(allocated, 0L, "bytes allocated while polling " + frames + " frames");
+        }
+    }
+
+    // Ids are distinct per stream; the same seed and text give the same frames.
+    static void StreamIdsAndDeterminism()
+    {
+        using (var engine = NewEngine(CgCoordinateSystem.Gltf))
+        {
+            var opts = new ComGraspStreamOptions { Seed = 3, Temperature = 0.9, TopK = 4, MinLen = 2, MaxLen = 6 };
+            using (var a = engine.Start("The man lifts a small cube.", opts))
+            using (var b = engine.Start("The man lifts a small cube.", opts))
+            {
+                Check(a.Id != b.Id && a.Id >= 1 && b.Id >= 1, "distinct ids " + a.Id + ", " + b.Id);
+                Eq(engine.StreamCount, 2u, "two streams alive");
+                List<CgFrame> fa = Drain(a), fb = Drain(b);
+                Eq(fa.Count, fb.Count, "same frame count");
+                Check(fa.Count >= 32 && fa.Count <= 96, "min_len/max_len respected: " + fa.Count);
+                for (int i = 0; i < fa.Count; i++)
+                {
+                    CgFrame x = fa[i], y = fb[i];
+                    Eq(x.StreamId, a.Id, "frames of a carry a's id");
+                    Eq(y.StreamId, b.Id, "frames of b carry b's id");
+                    // Everything after the id must be equal byte for byte.
+                    byte* px = (byte*)&x, py = (byte*)&y;
+                    for (int k = 8; k < sizeof(CgFrame); k++)
+                        if (px[k] != py[k]) throw new Exception("frame " + i + " differs at byte " + k);
+                }
+            }
+        }
+    }
+
+    static List<CgFrame> Drain(ComGraspStream s)
+    {
+        var list = new List<CgFrame>();
+        var f = new CgFrame();
+        CgStatus st;
+        while ((st = s.Wait(ref f, 1000)) != CgStatus.End)
+            if (st == CgStatus.Ok) list.Add(f);
+        return list;
+    }
+
+    static void Errors()
+    {
+        // Engine creation.
+        var e = Throws("missing bundle", () => new ComGraspEngine(new ComGraspEngineOptions { BundlePath = "/nonexistent/bundle" }));
+        Eq(e.Status, CgStatus.ErrBundle, "missing bundle status");
+        Check(e.NativeMessage.Contains("/nonexistent/bundle"), "message names the path: " + e.NativeMessage);
+        Check(e.Message.StartsWith("cg_engine_create: ErrBundle: "), "exception message: " + e.Message);
+        Eq(ComGraspNative.cg_last_error_status(), CgStatus.ErrBundle, "cg_last_error_status");
+        e = Throws("ring 0", () => NewEngine(ring: 0));
+        Eq(e.Status, CgStatus.ErrInvalidArgument, "ring_capacity 0");
+
+        using (var engine = NewEngine(maxStreams: 2))
+        {
+            e = Throws("null text", () => engine.Start((string)null));
+            Eq(e.Status, CgStatus.ErrNullPointer, "null text status");
+            Check(e.NativeMessage.Contains("text"), "null text message: " + e.NativeMessage);
+            e = Throws("empty text", () => engine.Start(""));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "empty text status");
+            Check(e.NativeMessage.Length > 0, "empty text message");
+            Console.WriteLine("  empty text: " + e.NativeMessage);
+            e = Throws("blank text", () => engine.Start(" \t "));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "blank text status");
+            Check(e.NativeMessage.Contains("whitespace"), "blank text message: " + e.NativeMessage);
+            e = Throws("invalid utf-8", () => engine.Start(new byte[] { 0x41, 0xff, 0xfe }));
+            Eq(e.Status, CgStatus.ErrInvalidUtf8, "invalid UTF-8 status");
+            e = Throws("embedded NUL", () => engine.Start("a\0b"));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "embedded NUL status");
+            e = Throws("long text", () => engine.Start(new string('a', ComGraspNative.MaxTextBytes + 1)));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "over-long text status");
+            Check(e.NativeMessage.Contains("4096"), "over-long text message: " + e.NativeMessage);
+            e = Throws("max_len 0", () => engine.Start("a mug", new ComGraspStreamOptions { MaxLen = 0 }));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "max_len 0 status");
+
+            // The message API: size query, truncating copy, pointer form agree.
+            string msg = ComGraspNative.LastError();
+            int need = (int)ComGraspNative.cg_last_error_message(null, UIntPtr.Zero).ToUInt32();
+            Eq(need, Encoding.UTF8.GetByteCount(msg) + 1, "cg_last_error_message size query");
+            byte* buf = stackalloc byte[8];
+            ComGraspNative.cg_last_error_message(buf, (UIntPtr)8);
+            Eq(buf[7], (byte)0, "truncated copy is NUL-terminated");
+            Eq(Encoding.UTF8.GetString(buf, 7), msg.Substring(0, 7), "truncated copy");
+
+            // max_streams.
+            using (var s1 = engine.Start("a mug"))
+            using (var s2 = engine.Start("a mug"))
+            {
+                e = Throws("third stream", () => engine.Start("a mug"));
+                Eq(e.Status, CgStatus.ErrLimit, "max_streams status");
+            }
+
+            // Raw calls with NULL and stale handles: error codes, never a crash.
+            var f = new CgFrame();
+            Eq(ComGraspNative.cg_poll_frame(IntPtr.Zero, &f), CgStatus.ErrNullPointer, "poll NULL stream");
+            Eq(ComGraspNative.cg_engine_create(null, null), CgStatus.ErrNullPointer, "create NULL config");
+            var s = engine.Start("a mug");
+            IntPtr h = s.Handle;
+            Eq(ComGraspNative.cg_poll_frame(h, null), CgStatus.ErrNullPointer, "poll into NULL frame");
+            s.Dispose();
+            ulong id;
+            Eq(ComGraspNative.cg_stream_id(h, &id), CgStatus.ErrInvalidHandle, "stale stream handle");
+            Eq(ComGraspNative.cg_stream_destroy(h), CgStatus.ErrInvalidHandle, "double destroy");
+            Eq(ComGraspNative.cg_engine_destroy(h), CgStatus.ErrInvalidHandle, "stream handle as engine");
+            Check(ComGraspNative.LastError().Length > 0, "stale handle message");
+            try
+            {
+                s.Poll(ref f);
+                throw new Exception("Poll on a disposed stream did not throw");
+            }
+            catch (ObjectDisposedException) { }
+            s.Dispose(); // twice is fine
+        }
+    }
+
+    // The message is thread-local: another thread's failure does not overwrite this one's.
+    static void LastErrorIsPerThread()
+    {
+        using (var engine = NewEngine())
+        {
+            Throws("blank", () => engine.Start("   "));
+            string mine = ComGraspNative.LastError();
+            CgStatus other = CgStatus.Ok;
+            var t = new Thread(() =>
+            {
+                try { engine.Start((string)null); } catch (ComGraspException ex) { other = ex.Status; }
+            });
+            t.Start();
+            t.Join();
+            Eq(other, CgStatus.ErrNullPointer, "other thread's error");
+            Eq(ComGraspNative.LastError(), mine, "this thread's message unchanged");
+            Eq(ComGraspNative.cg_last_error_status(), CgStatus.ErrInvalidArgument, "this thread's status unchanged");
+        }
+    }
+
+    // A 64-frame stream with a 16-frame ring cannot finish before it is drained, so a cancel
+    // after the first frame is always seen.
+    static void Cancel()
+    {
+        using (var engine = NewEngine(ring: 16))
+        using (var s = engine.Start("A woman drinks from the mug", new ComGraspStreamOptions { MinLen = 4, MaxLen = 4 }))
+        {
+            var f = new CgFrame();
+            Eq(s.Wait(ref f, 30000), CgStatus.Ok, "first frame");
+            s.Cancel();
+            s.Cancel(); // idempotent
+            Eq(s.Poll(ref f), CgStatus.Cancelled, "poll after cancel");
+            Eq(s.Poll(ref f), CgStatus.Cancelled, "cancelled repeats");
+            Eq(s.Wait(ref f, 10), CgStatus.Cancelled, "wait after cancel");
+            Eq(engine.StreamCount, 1u, "a cancelled stream is alive until disposed");
+        }
+    }
+
+    static void CancelFromAnotherThread()
+    {
+        using (var engine = NewEngine(ring: 16))
+        using (var s = engine.Start("A woman drinks from the mug", new ComGraspStreamOptions { MinLen = 18, MaxLen = 18 }))
+        {
+            var first = new ManualResetEvent(false);
+            var canceller = new Thread(() => { first.WaitOne(); s.Cancel(); });
+            canceller.Start();
+            var f = new CgFrame();
+            CgStatus st;
+            int frames = 0;
+            while ((st = s.Wait(ref f, 1000)) == CgStatus.Ok || st == CgStatus.Pending)
+                if (st == CgStatus.Ok && ++frames == 1) first.Set();
+            canceller.Join();
+            Eq(st, CgStatus.Cancelled, "status after a cancel from another thread (" + frames + " frames)");
+            Check(frames < 18 * 16, "the cancel cut the stream short");
+        }
+    }
+
+    static void EngineDisposeCancelsStreams()
+    {
+        var engine = NewEngine(ring: 16);
+        var s = engine.Start("A woman drinks from the mug", new ComGraspStreamOptions { MinLen = 4, MaxLen = 4 });
+        var f = new CgFrame();
+        Eq(s.Wait(ref f, 30000), CgStatus.Ok, "first frame");
+        engine.Dispose();
+        Eq(s.Poll(ref f), CgStatus.Cancelled, "stream of a disposed engine");
+        try
+        {
+            engine.Start("a mug");
+            throw new Exception("Start on a disposed engine did not throw");
+        }
+        catch (ObjectDisposedException) { }
+        s.Dispose();
+    }
+}

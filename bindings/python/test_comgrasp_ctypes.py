@@ -1,0 +1,241 @@
+"""Tests of comgrasp_ctypes against the real library: plain asserts, runnable either way:
+
+    python3 bindings/python/test_comgrasp_ctypes.py        # runs every test_* function
+    python3 -m pytest bindings/python/test_comgrasp_ctypes.py
+
+Environment: COMGRASP_LIB (the library; default: comgrasp_ctypes.find_library()),
+COMGRASP_TEST_BUNDLE (default: models/tiny of this source tree), COMGRASP_C_LAYOUT (the
+output of tests/host_support/layout.c: the C compiler's struct layout; without it the
+layout is checked against the sizes documented in comgrasp.h). tests/python_binding.rs sets
+all three.
+"""
+
+import ctypes
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import comgrasp_ctypes as cg  # noqa: E402
+from comgrasp_ctypes import CgFrame, Coords, ComgraspError, Engine, Status  # noqa: E402
+
+BUNDLE = os.environ.get("COMGRASP_TEST_BUNDLE", str(HERE.parent.parent / "models" / "tiny"))
+PROMPT = "A woman drinks from the mug"
+
+
+def raises(fn, *args, **kwargs) -> ComgraspError:
+    try:
+        fn(*args, **kwargs)
+    except ComgraspError as e:
+        return e
+    raise AssertionError(f"{fn.__name__}{args} raised no ComgraspError")
+
+
+def engine(**kw) -> Engine:
+    return Engine(BUNDLE, **kw)
+
+
+def test_layout_matches_c():
+    assert ctypes.sizeof(CgFrame) == cg.FRAME_SIZE == 1608
+    lib = cg.load()
+    assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
+    assert ctypes.sizeof(cg.CgStreamConfig) == 40
+    assert ctypes.sizeof(cg.CgEngineConfig) == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
+    assert CgFrame.contact.offset == 940 and CgFrame.joint_positions.offset == 948
+    path = os.environ.get("COMGRASP_C_LAYOUT")
+    if not path:
+        return
+    types = {"cg_frame": CgFrame, "cg_engine_config": cg.CgEngineConfig, "cg_stream_config": cg.CgStreamConfig}
+    seen = {t: 0 for t in types.values()}
+    for line in Path(path).read_text().splitlines():
+        w = line.split()
+        if w[0] == "size":
+            assert ctypes.sizeof(types[w[1]]) == int(w[2]), line
+        elif w[0] == "offset":
+            t = types[w[1]]
+            assert getattr(t, w[2]).offset == int(w[3]), f"{line}: ctypes has {getattr(t, w[2]).offset}"
+            seen[t] += 1
+    for t, n in seen.items():
+        assert n == len(t._fields_), f"{t.__name__}: C has {n} fields, ctypes {len(t._fields_)}"
+
+
+def test_version():
+    lib = cg.load()
+    assert lib.cg_abi_version() == cg.ABI_VERSION
+    major, minor, patch = cg.version().split(".")[:3]
+    assert major.isdigit() and minor.isdigit()
+    assert lib.cg_status_string(-3) and lib.cg_status_string(12345) == b"unknown cg_status value"
+
+
+def test_stream_to_end():
+    with engine(coords=Coords.UNITY, enable_fk=True) as e, e.start(PROMPT, seed=7) as s:
+        assert s.id >= 1 and e.stream_count == 1
+        frames = []
+        f = CgFrame()
+        deadline = time.monotonic() + 120
+        while True:
+            st = s.poll_into(f)
+            assert time.monotonic() < deadline
+            if st == Status.PENDING:
+                time.sleep(0.001)
+                continue
+            if st != Status.OK:
+                break
+            frames.append(CgFrame.from_buffer_copy(f))
+        assert st == Status.END and s.done
+        assert len(frames) > 0 and len(frames) % 16 == 0, len(frames)
+        for i, fr in enumerate(frames):
+            assert fr.frame_index == i and fr.stream_id == s.id
+            assert fr.is_last == (1 if i == len(frames) - 1 else 0)
+            assert abs(fr.time_s - i / 30.0) < 1e-9
+            assert fr.has_joint_positions == 1
+            q = list(fr.root_rotation)
+            assert abs(sum(x * x for x in q) - 1) < 1e-3 and q[3] >= 0
+            for h in range(2):
+                assert 0 <= fr.contact_probability[h] <= 1
+                assert fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0)
+            assert list(fr.reserved) == [0, 0, 0, 0]
+        assert s.poll_into(f) == Status.END and s.poll() is None
+        d = frames[-1].to_dict()
+        assert len(d["body_rotations"]) == 21 and len(d["joint_positions"][54]) == 3 and d["is_last"] == 1
+        s.close()
+        assert e.stream_count == 0
+
+
+def test_iteration_ids_and_determinism():
+    with engine(coords=Coords.GLTF) as e:
+        opts = dict(seed=3, temperature=0.9, top_k=4, min_len=2, max_len=6)
+        with e.start("The man lifts a small cube.", **opts) as a, e.start(b"The man lifts a small cube.", **opts) as b:
+            assert a.id != b.id
+            fa, fb = list(a), b.frames()
+            assert a.status == b.status == Status.END
+            assert 32 <= len(fa) == len(fb) <= 96
+            for x, y in zip(fa, fb):
+                assert x.stream_id == a.id and y.stream_id == b.id
+                assert bytes(x)[8:] == bytes(y)[8:]  # all but the stream id
+
+
+def test_errors():
+    e = raises(Engine, "/nonexistent/bundle")
+    assert e.status == Status.ERR_BUNDLE and "/nonexistent/bundle" in e.message
+    assert str(e).startswith("cg_engine_create: ERR_BUNDLE: ")
+    assert cg.load().cg_last_error_status() == Status.ERR_BUNDLE
+    assert raises(engine, ring_capacity=0).status == Status.ERR_INVALID_ARGUMENT
+
+    with engine(max_streams=2) as eng:
+        e = raises(eng.start, None)
+        assert e.status == Status.ERR_NULL_POINTER and "text" in e.message
+        e = raises(eng.start, "")
+        assert e.status == Status.ERR_INVALID_ARGUMENT and e.message
+        e = raises(eng.start, " \t ")
+        assert e.status == Status.ERR_INVALID_ARGUMENT and "whitespace" in e.message
+        assert raises(eng.start, b"A\xff\xfe").status == Status.ERR_INVALID_UTF8
+        assert raises(eng.start, "lone \udc80 surrogate").status == Status.ERR_INVALID_UTF8
+        assert raises(eng.start, "a\0b").status == Status.ERR_INVALID_ARGUMENT
+        e = raises(eng.start, "a" * (cg.MAX_TEXT_BYTES + 1))
+        assert e.status == Status.ERR_INVALID_ARGUMENT and "4096" in e.message
+        assert raises(eng.start, "a mug", max_len=0).status == Status.ERR_INVALID_ARGUMENT
+
+        lib = cg.load()
+        msg = lib.cg_last_error()
+        assert lib.cg_last_error_message(None, 0) == len(msg) + 1
+        buf = ctypes.create_string_buffer(8)
+        lib.cg_last_error_message(buf, 8)
+        assert buf.raw[7] == 0 and buf.value == msg[:7]
+
+        with eng.start("a mug"), eng.start("a mug"):
+            assert raises(eng.start, "a mug").status == Status.ERR_LIMIT
+
+        f = CgFrame()
+        assert lib.cg_poll_frame(None, ctypes.byref(f)) == Status.ERR_NULL_POINTER
+        s = eng.start("a mug")
+        h = s.handle
+        assert lib.cg_poll_frame(h, None) == Status.ERR_NULL_POINTER
+        s.close()
+        s.close()  # idempotent
+        assert lib.cg_stream_id(h, ctypes.byref(ctypes.c_uint64())) == Status.ERR_INVALID_HANDLE
+        assert lib.cg_stream_destroy(h) == Status.ERR_INVALID_HANDLE
+        assert lib.cg_last_error()
+        try:
+            s.poll()
+            raise AssertionError("poll on a closed stream")
+        except ValueError:
+            pass
+
+
+def test_last_error_is_per_thread():
+    with engine() as e:
+        raises(e.start, "   ")
+        lib = cg.load()
+        mine = lib.cg_last_error()
+        other = []
+        t = threading.Thread(target=lambda: other.append(raises(e.start, None).status))
+        t.start()
+        t.join()
+        assert other == [Status.ERR_NULL_POINTER]
+        assert lib.cg_last_error() == mine and lib.cg_last_error_status() == Status.ERR_INVALID_ARGUMENT
+
+
+def test_cancel():
+    # 64 frames through a 16-frame ring: the stream cannot finish before it is drained.
+    with engine(ring_capacity=16) as e, e.start(PROMPT, min_len=4, max_len=4) as s:
+        assert s.wait(30000) is not None
+        s.cancel()
+        s.cancel()
+        f = CgFrame()
+        assert s.poll_into(f) == Status.CANCELLED and s.done
+        assert s.wait_into(f, 10) == Status.CANCELLED
+        assert list(s) == [] and s.status == Status.CANCELLED
+        assert e.stream_count == 1
+
+
+def test_cancel_from_another_thread():
+    with engine(ring_capacity=16) as e, e.start(PROMPT, min_len=18, max_len=18) as s:
+        first = threading.Event()
+        t = threading.Thread(target=lambda: (first.wait(), s.cancel()))
+        t.start()
+        n = 0
+        for _ in s:
+            n += 1
+            first.set()
+        t.join()
+        assert s.status == Status.CANCELLED and 0 < n < 18 * 16
+
+
+def test_engine_close_cancels_streams():
+    e = engine(ring_capacity=16)
+    s = e.start(PROMPT, min_len=4, max_len=4)
+    assert s.wait(30000) is not None
+    e.close()
+    assert s.poll() is None and s.status == Status.CANCELLED
+    try:
+        e.start("a mug")
+        raise AssertionError("start on a closed engine")
+    except ValueError:
+        pass
+    s.close()
+
+
+def main() -> int:
+    tests = [(n, f) for n, f in sorted(globals().items()) if n.startswith("test_") and callable(f)]
+    failed = 0
+    for name, fn in tests:
+        try:
+            fn()
+            print(f"ok {name}")
+        except Exception as e:  # noqa: BLE001
+            import traceback
+
+            failed += 1
+            print(f"FAILED {name}: {e!r}")
+            traceback.print_exc()
+    print(f"python: {len(tests) - failed} passed, {failed} failed")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

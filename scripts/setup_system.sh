@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# Install the system tools the host-binding tests need, with apt, only when missing:
+#   cmake, pkg-config     tests/cmake_package.rs (CMake package + pkg-config file)
+#   mcs, mono             tests/csharp_binding.rs (bindings/csharp, the Unity binding)
+#   python3               tests/python_binding.rs (bindings/python, stdlib ctypes only)
+#   cc, c++, readelf      tests/c_example.rs, tests/cmake_package.rs
+# Idempotent: does nothing (and needs no network) when every tool is already there.
+# Works as root (apt-get directly) or as a user with sudo.
+set -euo pipefail
+
+# tool -> Debian package
+declare -A PKG=(
+  [cmake]=cmake
+  [pkg-config]=pkg-config
+  [mcs]=mono-mcs
+  [mono]=mono-runtime
+  [python3]=python3
+  [cc]=gcc
+  [c++]=g++
+  [make]=make
+  [readelf]=binutils
+)
+missing=()
+for tool in cmake pkg-config mcs mono python3 cc c++ make readelf; do
+  command -v "$tool" >/dev/null 2>&1 || missing+=("${PKG[$tool]}")
+done
+[ ${#missing[@]} -eq 0 ] && exit 0
+
+if [ "$(id -u)" -eq 0 ]; then
+  SUDO=()
+elif command -v sudo >/dev/null 2>&1; then
+  SUDO=(sudo)
+else
+  echo "setup_system: missing ${missing[*]}, and not root and no sudo to install them with apt" >&2
+  exit 1
+fi
+command -v apt-get >/dev/null 2>&1 || {
+  echo "setup_system: missing ${missing[*]}; apt-get is not available, install them by hand" >&2
+  exit 1
+}
+echo "setup_system: installing ${missing[*]}" >&2
+export DEBIAN_FRONTEND=noninteractive
+"${SUDO[@]}" apt-get update -qq
+"${SUDO[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null

@@ -1,0 +1,55 @@
+/* Prints the C compiler's layout of the ABI structs of include/comgrasp.h, one fact per line:
+ *   size STRUCT BYTES
+ *   offset STRUCT FIELD BYTES
+ * The C# and Python binding tests compare their struct declarations with it (field names
+ * as in C; the C# test maps snake_case to PascalCase). Built and run by tests/host_support. */
+#include <stddef.h>
+#include <stdio.h>
+
+#include "comgrasp.h"
+
+#define SIZE(s) printf("size %s %zu\n", #s, sizeof(s))
+#define OFF(s, f) printf("offset %s %s %zu\n", #s, #f, offsetof(s, f))
+
+int main(void) {
+    SIZE(cg_frame);
+    OFF(cg_frame, stream_id);
+    OFF(cg_frame, frame_index);
+    OFF(cg_frame, time_s);
+    OFF(cg_frame, root_translation);
+    OFF(cg_frame, root_rotation);
+    OFF(cg_frame, body_rotations);
+    OFF(cg_frame, left_hand_rotations);
+    OFF(cg_frame, right_hand_rotations);
+    OFF(cg_frame, object_translation);
+    OFF(cg_frame, object_rotation);
+    OFF(cg_frame, object_centre);
+    OFF(cg_frame, left_wrist_to_object);
+    OFF(cg_frame, right_wrist_to_object);
+    OFF(cg_frame, contact_probability);
+    OFF(cg_frame, contact);
+    OFF(cg_frame, is_last);
+    OFF(cg_frame, has_joint_positions);
+    OFF(cg_frame, reserved);
+    OFF(cg_frame, joint_positions);
+
+    SIZE(cg_engine_config);
+    OFF(cg_engine_config, struct_size);
+    OFF(cg_engine_config, coordinate_system);
+    OFF(cg_engine_config, bundle_path);
+    OFF(cg_engine_config, enable_fk);
+    OFF(cg_engine_config, ring_capacity);
+    OFF(cg_engine_config, max_streams);
+    OFF(cg_engine_config, reserved);
+
+    SIZE(cg_stream_config);
+    OFF(cg_stream_config, struct_size);
+    OFF(cg_stream_config, use_defaults);
+    OFF(cg_stream_config, seed);
+    OFF(cg_stream_config, temperature);
+    OFF(cg_stream_config, top_k);
+    OFF(cg_stream_config, min_len);
+    OFF(cg_stream_config, max_len);
+    OFF(cg_stream_config, reserved);
+    return 0;
+}
