@@ -13,6 +13,8 @@ trap 'rm -f "$log"' EXIT
 .venv/bin/python -m pytest training/tests -q -p no:cacheprovider 2>&1 | tee "$log"
 # No doc tests (the crate has none), so the last result line is a real test binary's.
 cargo test --locked --lib --bins --tests 2>&1 | tee -a "$log"
+# The shipped default's PyTorch parity vectors, replayed by the same tests as models/tiny's.
+COMGRASP_PARITY_BUNDLE=models/default cargo test --locked --test parity_tiny 2>&1 | tee -a "$log"
 # One closing line over both runners (pytest's "N passed" and cargo's "ok. N passed; M failed").
 # awk, not grep, so a count that is absent reads 0 instead of tripping `set -e` under pipefail.
 py_line=$(awk '/^[0-9]+ (passed|failed)/ {l=$0} END {print l}' "$log")

@@ -94,13 +94,6 @@ fn run_example(exe: &Path) -> String {
     stdout
 }
 
-fn field<'a>(stdout: &'a str, key: &str) -> &'a str {
-    stdout
-        .lines()
-        .find_map(|l| l.strip_prefix(key))
-        .unwrap_or_else(|| panic!("no {key:?} line in:\n{stdout}"))
-        .trim()
-}
 
 /// `readelf -d` of a binary.
 fn dynamic_section(exe: &Path) -> String {

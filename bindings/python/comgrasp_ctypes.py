@@ -263,9 +263,46 @@ def _check(lib: ctypes.CDLL, call: str, status: int) -> Status:
     return Status(status)
 
 
-class Stream:
+class _Owned:
+    """A C handle this object owns: ``handle`` while open, ``close()`` (idempotent, also on
+    leaving a ``with`` block or on garbage collection) calls the C destroy function once."""
+
+    _kind = "handle"
+    _destroy = ""
+
+    _lib: ctypes.CDLL
+    _h: Optional[ctypes.c_void_p]
+
+    @property
+    def handle(self) -> ctypes.c_void_p:
+        """The raw C pointer (for the functions of :func:`load`)."""
+        if self._h is None:
+            raise ValueError(f"the {self._kind} is closed")
+        return self._h
+
+    def close(self) -> None:
+        h, self._h = self._h, None
+        if h is not None:
+            getattr(self._lib, self._destroy)(h)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class Stream(_Owned):
     """One generation (cg_stream). Poll it, iterate it, or wait on it; ``close()`` (or leaving
-    the ``with`` block) stops the worker and frees it."""
+    the ``with`` block) stops the worker and frees it (cg_stream_destroy)."""
+
+    _kind, _destroy = "stream", "cg_stream_destroy"
 
     def __init__(self, lib: ctypes.CDLL, handle: ctypes.c_void_p):
         self._lib = lib
@@ -280,13 +317,6 @@ class Stream:
     def id(self) -> int:
         """The stream's id (unique per engine, from 1); frames carry it as ``stream_id``."""
         return self._id
-
-    @property
-    def handle(self) -> ctypes.c_void_p:
-        """The raw cg_stream* (for the functions of :func:`load`)."""
-        if self._h is None:
-            raise ValueError("the stream is closed")
-        return self._h
 
     @property
     def done(self) -> bool:
@@ -333,29 +363,14 @@ class Stream:
         """Stops generation within about one token step; any thread, any time; idempotent."""
         _check(self._lib, "cg_cancel", self._lib.cg_cancel(self.handle))
 
-    def close(self) -> None:
-        """cg_stream_destroy (cancels a running worker first). Idempotent."""
-        h, self._h = self._h, None
-        if h is not None:
-            self._lib.cg_stream_destroy(h)
-
-    def __enter__(self) -> "Stream":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:
-            pass
 
 
-class Engine:
+class Engine(_Owned):
     """A loaded model bundle (cg_engine). ``bundle_path=None`` uses ``$COMGRASP_BUNDLE``, else
     the bundle embedded in the library. Closing it cancels the streams still running (their
     Stream objects stay usable and report CANCELLED)."""
+
+    _kind, _destroy = "engine", "cg_engine_destroy"
 
     def __init__(self, bundle_path: Union[str, os.PathLike, None] = None, *, coords: Coords = Coords.NATIVE,
                  enable_fk: bool = False, ring_capacity: Optional[int] = None,
@@ -374,13 +389,6 @@ class Engine:
         h = ctypes.c_void_p()
         _check(self._lib, "cg_engine_create", self._lib.cg_engine_create(ctypes.byref(cfg), ctypes.byref(h)))
         self._h: Optional[ctypes.c_void_p] = h
-
-    @property
-    def handle(self) -> ctypes.c_void_p:
-        """The raw cg_engine* (for the functions of :func:`load`)."""
-        if self._h is None:
-            raise ValueError("the engine is closed")
-        return self._h
 
     def start(self, text: Union[str, bytes, None], *, seed: Optional[int] = None,
               temperature: Optional[float] = None, top_k: Optional[int] = None,
@@ -408,20 +416,3 @@ class Engine:
         _check(self._lib, "cg_engine_stream_count", self._lib.cg_engine_stream_count(self.handle, ctypes.byref(n)))
         return n.value
 
-    def close(self) -> None:
-        """cg_engine_destroy. Idempotent."""
-        h, self._h = self._h, None
-        if h is not None:
-            self._lib.cg_engine_destroy(h)
-
-    def __enter__(self) -> "Engine":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:
-            pass

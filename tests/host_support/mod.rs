@@ -143,3 +143,12 @@ pub fn check_closing_line(stdout: &str, at_least: u32) {
     let nums: Vec<u32> = line.split(|c: char| !c.is_ascii_digit()).filter(|s| !s.is_empty()).map(|s| s.parse().unwrap()).collect();
     assert!(nums.len() == 2 && nums[1] == 0 && nums[0] >= at_least, "{line}\n{stdout}");
 }
+
+/// The value after `key` on the first line of `stdout` that starts with it.
+pub fn field<'a>(stdout: &'a str, key: &str) -> &'a str {
+    stdout
+        .lines()
+        .find_map(|l| l.strip_prefix(key))
+        .unwrap_or_else(|| panic!("no {key:?} line in:\n{stdout}"))
+        .trim()
+}
