@@ -23,4 +23,4 @@ $P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small \
 $P/comgrasp-train -q train-gpt --data ${DATA}_prep --vq $RUN/vq --out $RUN/gpt --preset small \
   --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8
 $P/comgrasp-train evaluate --data ${DATA}_prep --vq $RUN/vq --gpt $RUN/gpt --out $RUN/eval/table.md --limit 60
-$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT"
+$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights

@@ -27,30 +27,33 @@ MIN_NUMEL = 4096
 @dataclass(frozen=True)
 class QuantizedWeight:
     name: str  # parameter name in the module
-    q: np.ndarray  # (rows, cols) int8
+    q: np.ndarray  # (rows, ...) int8: a Linear/Embedding matrix or a Conv1d kernel
     scale: np.ndarray  # (rows,) float32
 
     def dequantized(self) -> np.ndarray:
-        return self.q.astype(np.float32) * self.scale[:, None]
+        return self.q.astype(np.float32) * self.scale.reshape((-1,) + (1,) * (self.q.ndim - 1))
 
 
 def quantize_rows(w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Per-row symmetric int8 of a 2-D float tensor: (q int8, scale float32). A zero row
-    gets scale 1 (its q is 0), so dequantization never divides by zero."""
+    """Per-row (first axis: output channel) symmetric int8 of a float tensor: (q int8 of the
+    same shape, scale float32 per row). A zero row gets scale 1 (its q is 0), so
+    dequantization never divides by zero."""
     w = w.detach().float().cpu().numpy()
-    amax = np.abs(w).max(axis=1)
+    flat = w.reshape(w.shape[0], -1)
+    amax = np.abs(flat).max(axis=1)
     scale = np.where(amax > 0, amax / 127.0, 1.0).astype(np.float32)
-    q = np.clip(np.rint(w / scale[:, None]), -127, 127).astype(np.int8)
+    q = np.clip(np.rint(flat / scale[:, None]), -127, 127).astype(np.int8).reshape(w.shape)
     return q, scale
 
 
 @torch.no_grad()
 def fake_quantize_int8(module: nn.Module, min_numel: int = MIN_NUMEL) -> list[QuantizedWeight]:
-    """Round every Linear/Embedding weight of ``module`` with at least ``min_numel`` elements
-    to int8 per row, in place; returns what was quantized (for the ONNX rewrite)."""
+    """Round every Linear/Embedding/Conv1d weight of ``module`` with at least ``min_numel``
+    elements to int8 per output row, in place; returns what was quantized (for the ONNX
+    rewrite)."""
     out = []
     for mod_name, mod in module.named_modules():
-        if not isinstance(mod, (nn.Linear, nn.Embedding)) or mod.weight.numel() < min_numel:
+        if not isinstance(mod, (nn.Linear, nn.Embedding, nn.Conv1d)) or mod.weight.numel() < min_numel:
             continue
         q, scale = quantize_rows(mod.weight)
         qw = QuantizedWeight(f"{mod_name}.weight", q, scale)
@@ -63,11 +66,13 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a, dtype=np.float32).tobytes()).hexdigest()
 
 
-def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight]) -> dict:
+def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight], *,
+                            require_all: bool = True) -> dict:
     """Rewrite ``onnx_path`` in place: every float initializer equal (bit for bit) to a
     quantized weight or its transpose (the exporter folds Linear's transpose into the
-    initializer) becomes int8 + scale + Cast + Mul. Returns a summary; raises if a quantized
-    weight was not found, because then the file would silently stay fp32."""
+    initializer) becomes int8 + scale + Cast + Mul. Returns a summary; with ``require_all``
+    raises if a quantized weight was not found (the file would silently stay fp32); without
+    it, weights the exporter folded into other constants stay fp32 and are counted."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -77,19 +82,21 @@ def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight
     wanted = {}
     for w in weights:
         deq = w.dequantized()
-        wanted[_digest(deq)] = (w, False)
-        wanted[_digest(deq.T)] = (w, True)
+        wanted[(deq.shape, _digest(deq))] = (w, False)
+        if deq.ndim == 2:
+            wanted[(deq.T.shape, _digest(deq.T))] = (w, True)
     found: set[str] = set()
     new_inits, new_nodes = [], []
     for init in list(graph.initializer):
-        if init.data_type != TensorProto.FLOAT or len(init.dims) != 2:
+        if init.data_type != TensorProto.FLOAT or len(init.dims) < 2:
             continue
-        hit = wanted.get(_digest(numpy_helper.to_array(init)))
+        arr = numpy_helper.to_array(init)
+        hit = wanted.get((arr.shape, _digest(arr)))
         if hit is None:
             continue
         w, transposed = hit
         q = w.q.T if transposed else w.q
-        scale = w.scale[None, :] if transposed else w.scale[:, None]
+        scale = w.scale[None, :] if transposed else w.scale.reshape((-1,) + (1,) * (w.q.ndim - 1))
         name = init.name
         graph.initializer.remove(init)
         new_inits += [numpy_helper.from_array(np.ascontiguousarray(q), f"{name}__int8"),
@@ -99,7 +106,7 @@ def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight
                       helper.make_node("Mul", [f"{name}__f32", f"{name}__scale"], [name], name=f"{name}__dequant_mul")]
         found.add(w.name)
     missing = sorted({w.name for w in weights} - found)
-    if missing:
+    if missing and require_all:
         raise RuntimeError(f"{onnx_path}: quantized weights not found among the initializers: {missing}")
     graph.initializer.extend(new_inits)
     # Dequantization first, so the node list stays topologically sorted.
@@ -109,4 +116,5 @@ def store_int8_initializers(onnx_path: str | Path, weights: list[QuantizedWeight
     onnx.checker.check_model(model)
     onnx.save(model, str(onnx_path))
     return {"scheme": "int8 per row, symmetric, q*scale via Cast+Mul; fp32 compute",
-            "tensors": len(found), "int8_params": int(sum(w.q.size for w in weights))}
+            "tensors": len(found), "int8_params": int(sum(w.q.size for w in weights if w.name in found)),
+            "left_fp32": missing}

@@ -107,8 +107,10 @@ def cmd_evaluate(args) -> int:
 def cmd_export(args) -> int:
     from ..export.bundle import export_trained_bundle
 
-    manifest = export_trained_bundle(Path(args.vq), Path(args.gpt), Path(args.out), _sampling(args), seed=args.seed)
-    print(f"wrote {args.out} ({len(manifest['files'])} files)")
+    manifest = export_trained_bundle(Path(args.vq), Path(args.gpt), Path(args.out), _sampling(args), seed=args.seed,
+                                     int8=args.int8_weights)
+    size = sum(f["bytes"] for f in manifest["files"].values())
+    print(f"wrote {args.out} ({len(manifest['files'])} files, {size / 2**20:.1f} MiB)")
     return 0
 
 
@@ -190,6 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--vq", required=True)
     s.add_argument("--gpt", required=True)
     s.add_argument("--out", required=True)
+    s.add_argument("--int8-weights", action="store_true",
+                   help="store the step graph's and decoder's weights as int8 per row (~4x smaller files)")
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_export)

@@ -256,7 +256,8 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
                   seed: int = 0, rest_joints: np.ndarray = DEFAULT_REST_JOINTS, objects: Sequence[str] = (),
                   provenance: dict | None = None, expected_frames_per_token: int | None = 16,
                   object_max_edge: float = 0.05, parity_prompts: Sequence[str] = DEFAULT_STEP_PROMPTS,
-                  text_parity_prompts: Sequence[str] = DEFAULT_PARITY_PROMPTS) -> dict:
+                  text_parity_prompts: Sequence[str] = DEFAULT_PARITY_PROMPTS,
+                  int8_weights: dict | None = None) -> dict:
     """Write the bundle to ``out_dir`` (replacing an older bundle there) and return its manifest.
 
     vq / vq_config: the component VQ-VAEs (causal decoder) and their VQConfig; gpt / gpt_config:
@@ -288,6 +289,13 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
         prov["text_encoder_weights"] = text.pop("weights", {"scheme": "fp32"})
         step_spec = step_graph.export_step_onnx(gpt, tmp / STEP_FILE, batch=1)
         dec_spec = decoder_graph.export_decoder_onnx(vq, tmp / DECODER_FILE, batch=1)
+        if int8_weights:
+            # int8 storage of the (already fake-quantized) step/decoder weights, before the
+            # parity vectors and hashes are taken from the files
+            from ..weight_quant import store_int8_initializers
+
+            prov["graph_weights"] = {name: store_int8_initializers(tmp / name, ws, require_all=False)
+                                     for name, ws in int8_weights.items()}
         objs = write_objects(tmp, objects, object_max_edge)
         parity = write_parity(tmp, gpt=gpt, vq=vq, encoder=text_encoder, normalizer=normalizer,
                               step_path=tmp / STEP_FILE, decoder_path=tmp / DECODER_FILE,
@@ -338,7 +346,7 @@ def _last_metrics(run_dir: Path) -> dict | None:
 
 def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str | Path,
                           sampling: SamplingParams = SamplingParams(), *, seed: int = 0,
-                          objects: Sequence[str] | None = None) -> dict:
+                          objects: Sequence[str] | None = None, int8: bool = False) -> dict:
     """``comgrasp-train export``: the bundle of a VQ run and a GPT run (their ``ckpt.pt``,
     ``config.json``, ``stats.npz``, ``log.jsonl``), every catalogue object unless ``objects``
     says otherwise. The run configs, data paths, last logged metrics, the command line and
@@ -357,8 +365,16 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
     }
     rest = training_rest_skeleton(runs["vq"].get("data"))
+    int8_weights = None
+    if int8:
+        # Round the step and decoder weights to int8 per row in PyTorch too, so the parity
+        # vectors (and any evaluation of this model) describe exactly what the files hold.
+        from ..weight_quant import fake_quantize_int8
+
+        int8_weights = {STEP_FILE: fake_quantize_int8(model.gpt), DECODER_FILE: fake_quantize_int8(model.vq)}
     provenance["skeleton"] = f"mean rest joints of the {runs['vq'].get('data')} training subjects"
     return export_bundle(out_dir, vq=model.vq, vq_config=VQConfig.from_dict(runs["vq"]["vq"]), gpt=model.gpt,
                          gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
                          fps=model.fps, sampling=sampling, seed=seed, rest_joints=rest,
-                         objects=list(CATALOGUE) if objects is None else objects, provenance=provenance)
+                         objects=list(CATALOGUE) if objects is None else objects, provenance=provenance,
+                         int8_weights=int8_weights)
