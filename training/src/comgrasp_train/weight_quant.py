@@ -47,16 +47,16 @@ def quantize_rows(w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
 
 
 @torch.no_grad()
-def fake_quantize_int8(module: nn.Module, min_numel: int = MIN_NUMEL) -> list[QuantizedWeight]:
+def fake_quantize_int8(module: nn.Module, min_numel: int = MIN_NUMEL, prefix: str = "") -> list[QuantizedWeight]:
     """Round every Linear/Embedding/Conv1d weight of ``module`` with at least ``min_numel``
     elements to int8 per output row, in place; returns what was quantized (for the ONNX
-    rewrite)."""
+    rewrite), named ``prefix`` + the parameter name."""
     out = []
     for mod_name, mod in module.named_modules():
         if not isinstance(mod, (nn.Linear, nn.Embedding, nn.Conv1d)) or mod.weight.numel() < min_numel:
             continue
         q, scale = quantize_rows(mod.weight)
-        qw = QuantizedWeight(f"{mod_name}.weight", q, scale)
+        qw = QuantizedWeight(f"{prefix}{mod_name}.weight", q, scale)
         mod.weight.copy_(torch.from_numpy(qw.dequantized()).to(mod.weight))
         out.append(qw)
     return out

@@ -376,7 +376,10 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         # vectors (and any evaluation of this model) describe exactly what the files hold.
         from ..weight_quant import fake_quantize_int8
 
-        int8_weights = {STEP_FILE: fake_quantize_int8(model.gpt), DECODER_FILE: fake_quantize_int8(model.vq)}
+        # Only the decoders are in decoder.onnx; the encoders stay as trained.
+        decoders = [w for name, part in model.vq.parts.items()
+                    for w in fake_quantize_int8(part.decoder, prefix=f"parts.{name}.decoder.")]
+        int8_weights = {STEP_FILE: fake_quantize_int8(model.gpt), DECODER_FILE: decoders}
     provenance["skeleton"] = f"mean rest joints of the {runs['vq'].get('data')} training subjects"
     return export_bundle(out_dir, vq=model.vq, vq_config=VQConfig.from_dict(runs["vq"]["vq"]), gpt=model.gpt,
                          gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
