@@ -11,6 +11,11 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+// Largest `manifest.json` accepted, in bytes. The shipped manifests are 36-60 KB (the
+// provenance section included); a file far larger is not a manifest, and refusing it
+// before reading bounds the loader's memory and time on a hostile bundle.
+#define MANIFEST_MAX_BYTES (16 << 20)
+
 // Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
 // signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
 #define CG_ABI_VERSION 1
@@ -44,6 +49,28 @@
 
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
+
+// `cg_stream_event.kind`: the stream started (its first frame follows).
+#define CG_STREAM_EVENT_STARTED 1
+
+// `cg_stream_event.kind`: the stream ended; `frame_count` frames were generated.
+#define CG_STREAM_EVENT_ENDED 2
+
+// `cg_stream_event.kind`: the stream was cancelled after `frame_count` frames.
+#define CG_STREAM_EVENT_CANCELLED 3
+
+// `cg_stream_event.kind`: the stream's worker failed after `frame_count` frames.
+#define CG_STREAM_EVENT_FAILED 4
+
+// Bytes of `cg_stream_event.text`, the terminating NUL included.
+#define CG_EVENT_TEXT_BYTES 256
+
+// Longest accepted publish name, in bytes.
+#define CG_MAX_PUBLISH_NAME_BYTES 64
+
+// Largest subscriber buffer, in frames (~8.5 s at 30 fps). The shared memory a publisher
+// maps grows with `MAX_SUBSCRIBERS * MAX_SUBSCRIBER_BUFFER` frames (~3.3 MiB).
+#define CG_MAX_SUBSCRIBER_BUFFER 256
 
 // Result of every `cg_*` function that can fail. Non-negative values are normal outcomes,
 // negative values are errors; after an error, `cg_last_error()` on the same thread has a
@@ -84,6 +111,10 @@ enum cg_status
   // A panic (a bug in the library) was caught. The handle involved is poisoned: further
   // calls on it return this code; destroy it.
   CG_ERR_PANIC = -10,
+  // Shared memory (iceoryx2) failed: the publish or subscribe service could not be
+  // created or opened (another process uses the name with incompatible settings, or
+  // /dev/shm is unavailable), or receiving failed.
+  CG_ERR_SHM = -11,
 };
 #ifndef __cplusplus
 #if __STDC_VERSION__ >= 202311L
@@ -114,6 +145,10 @@ typedef struct cg_engine cg_engine;
 // `cg_stream_destroy`. Never dereference it.
 typedef struct cg_stream cg_stream;
 
+// Opaque handle to a shared-memory subscriber. Create with `cg_subscriber_open`, destroy
+// with `cg_subscriber_close`. Never dereference it.
+typedef struct cg_subscriber cg_subscriber;
+
 // Settings of a new engine. Initialize with `cg_engine_config_init`, then change fields.
 typedef struct cg_engine_config {
   // `sizeof(cg_engine_config)` of the header the host was compiled with (set by
@@ -142,6 +177,16 @@ typedef struct cg_engine_config {
   uint32_t max_streams;
   // Reserved, must be 0.
   uint32_t reserved;
+  // Publish name, NUL-terminated: when not NULL, every frame of every stream (exactly as
+  // `cg_poll_frame` returns it) and a `cg_stream_event` when a stream starts, ends, is
+  // cancelled or fails are also published over iceoryx2 shared memory on
+  // `comgrasp/<name>/frames` and `comgrasp/<name>/events`, for `cg_subscriber_open(name)`
+  // in other processes. 1..=`CG_MAX_PUBLISH_NAME_BYTES` bytes of ASCII letters, digits,
+  // '_', '-', '.' (else `CG_ERR_INVALID_ARGUMENT`); the services cannot be opened:
+  // `CG_ERR_SHM`. Slow or dead subscribers never slow the engine. Borrowed only during
+  // `cg_engine_create`. Default NULL (no shared memory). Appended after the first version
+  // of this struct (32 bytes, which stays accepted).
+  const char *publish_name;
 } cg_engine_config;
 
 // Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets
@@ -213,6 +258,67 @@ typedef struct cg_frame {
   // World positions of the 55 joints (only when has_joint_positions is 1).
   float joint_positions[CG_NUM_JOINTS][3];
 } cg_frame;
+
+// Settings of a subscriber. Initialize with `cg_subscriber_config_init`, then change fields.
+typedef struct cg_subscriber_config {
+  // `sizeof(cg_subscriber_config)` of the host's header (set by the `_init` function).
+  uint32_t struct_size;
+  // Frames kept for this subscriber between two reads, 1..=`CG_MAX_SUBSCRIBER_BUFFER`;
+  // when it is full the oldest frame is overwritten and counted in
+  // `cg_subscriber_stats.frames_dropped` (the publisher never waits). Default 256.
+  uint32_t buffer_frames;
+  // Reserved, must be 0.
+  uint64_t reserved;
+} cg_subscriber_config;
+
+// A stream's lifecycle record, published on `comgrasp/<name>/events`.
+typedef struct cg_stream_event {
+  // The stream's id (the `stream_id` of its frames).
+  uint64_t stream_id;
+  // Frames the stream had generated when the event was sent (0 for STARTED; the total
+  // for ENDED).
+  uint64_t frame_count;
+  // A `CG_STREAM_EVENT_*` value.
+  uint32_t kind;
+  // Frames per second of the engine's model (`time_s = frame_index / fps`).
+  float fps;
+  // The prompt, UTF-8, NUL-terminated, cut at a character boundary to at most 255 bytes.
+  uint8_t text[CG_EVENT_TEXT_BYTES];
+} cg_stream_event;
+
+// Counters of a subscriber since it was opened (`cg_subscriber_get_stats`). Fixed layout.
+typedef struct cg_subscriber_stats {
+  // Frames received.
+  uint64_t frames_received;
+  // Frames lost: overwritten because this subscriber read too slowly, or skipped by the
+  // publisher (counted from gaps in the publisher's sequence numbers, from the first
+  // frame this subscriber received from that publisher on).
+  uint64_t frames_dropped;
+  // Stream events received.
+  uint64_t events_received;
+  // Stream events lost.
+  uint64_t events_dropped;
+  // Times the frames started coming from another publisher (a publisher restarted, or
+  // several engines publish under the name).
+  uint64_t publisher_changes;
+  // Frame publishers connected right now.
+  uint64_t publishers;
+} cg_subscriber_stats;
+
+// Counters of an engine's shared-memory publisher (`cg_engine_publisher_stats`). Fixed
+// layout.
+typedef struct cg_publisher_stats {
+  // Frames published (each reaches every subscriber connected at that moment).
+  uint64_t frames_published;
+  // Frames skipped because no shared-memory sample was free (never waited for).
+  uint64_t frames_skipped;
+  // Stream events published.
+  uint64_t events_published;
+  // Stream events skipped.
+  uint64_t events_skipped;
+  // Frame subscribers connected right now, in all processes.
+  uint64_t subscribers;
+} cg_publisher_stats;
 
 #ifdef __cplusplus
 extern "C" {
@@ -347,6 +453,46 @@ cg_status cg_stream_destroy(struct cg_stream *stream);
 // Writes the stream's id (unique per engine, starting at 1; frames carry it as
 // `stream_id`) to `*out`. Any thread (it only reads an immutable value).
 cg_status cg_stream_id(struct cg_stream *stream, uint64_t *out);
+
+// Fills `*cfg` with the defaults and the right `struct_size`. `CG_ERR_NULL_POINTER` if
+// `cfg` is NULL. Any thread.
+cg_status cg_subscriber_config_init(struct cg_subscriber_config *cfg);
+
+// Subscribes to the frames and stream events an engine publishes under `name` (its
+// `cg_engine_config.publish_name`), in this or another process. Works before the
+// publisher exists and keeps working when it restarts; frames arrive from now on (no
+// history). `cfg` may be NULL (defaults). On success writes a new handle to `*out`; close
+// it exactly once with `cg_subscriber_close`. Errors: `CG_ERR_NULL_POINTER` (name or out),
+// `CG_ERR_INVALID_UTF8`, `CG_ERR_INVALID_ARGUMENT` (bad name or cfg), `CG_ERR_LIMIT` (the
+// name already has the most subscribers a service allows, 8), `CG_ERR_SHM`. Any thread.
+cg_status cg_subscriber_open(const char *name,
+                             const struct cg_subscriber_config *cfg,
+                             struct cg_subscriber **out);
+
+// Copies the oldest unread frame to `*out` and returns `CG_OK`, or returns `CG_PENDING`
+// when there is none (nothing written). Never blocks. Frames of all the publisher's
+// streams arrive interleaved in the order they were generated; tell them apart by
+// `stream_id`. Errors: `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`,
+// `CG_ERR_WRONG_STATE` (another thread is using the subscriber), `CG_ERR_SHM`.
+// One thread at a time per subscriber.
+cg_status cg_subscriber_receive(struct cg_subscriber *sub, struct cg_frame *out);
+
+// Like `cg_subscriber_receive`, for the stream events (`CG_STREAM_EVENT_*`: started,
+// ended, cancelled, failed). Events and frames are separate queues: a stream's ENDED event
+// may be read before its last frames.
+cg_status cg_subscriber_receive_event(struct cg_subscriber *sub, struct cg_stream_event *out);
+
+// Writes the subscriber's counters to `*out`. One thread at a time per subscriber.
+cg_status cg_subscriber_get_stats(struct cg_subscriber *sub, struct cg_subscriber_stats *out);
+
+// Closes a subscriber and frees its shared-memory resources. After it the handle is
+// invalid (a second close gives `CG_ERR_INVALID_HANDLE`). NULL is accepted and ignored.
+// Any thread, but not while another thread still uses the subscriber.
+cg_status cg_subscriber_close(struct cg_subscriber *sub);
+
+// Writes the counters of the engine's shared-memory publisher to `*out`.
+// `CG_ERR_WRONG_STATE` if the engine was created without a `publish_name`. Any thread.
+cg_status cg_engine_publisher_stats(struct cg_engine *engine, struct cg_publisher_stats *out);
 
 #ifdef __cplusplus
 }  // extern "C"

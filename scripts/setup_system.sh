@@ -4,6 +4,8 @@
 #   mcs, mono             tests/csharp_binding.rs (bindings/csharp, the Unity binding)
 #   python3               tests/python_binding.rs (bindings/python, stdlib ctypes only)
 #   cc, c++, readelf      tests/c_example.rs, tests/cmake_package.rs
+#   libclang              building the library at all: iceoryx2's platform layer runs
+#                         bindgen over the system headers (libclang-dev)
 # Idempotent: does nothing (and needs no network) when every tool is already there.
 # Works as root (apt-get directly) or as a user with sudo.
 set -euo pipefail
@@ -21,9 +23,17 @@ declare -A PKG=(
   [readelf]=binutils
 )
 missing=()
-for tool in cmake pkg-config mcs mono python3 cc c++ make readelf; do
+# --build-only: just what building the library needs (README command 1).
+tools=(cmake pkg-config mcs mono python3 cc c++ make readelf)
+[ "${1:-}" = "--build-only" ] && tools=(cc)
+for tool in "${tools[@]}"; do
   command -v "$tool" >/dev/null 2>&1 || missing+=("${PKG[$tool]}")
 done
+# A library, not a command: bindgen finds it through LIBCLANG_PATH or llvm-config's paths.
+if [ -z "${LIBCLANG_PATH:-}" ] && ! compgen -G "/usr/lib/llvm-*/lib/libclang*.so*" >/dev/null \
+    && ! compgen -G "/usr/lib/*/libclang*.so*" >/dev/null; then
+  missing+=(libclang-dev)
+fi
 [ ${#missing[@]} -eq 0 ] && exit 0
 
 if [ "$(id -u)" -eq 0 ]; then

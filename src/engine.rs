@@ -23,6 +23,8 @@ use parking_lot::{Condvar, Mutex};
 use crate::bundle::Bundle;
 use crate::error::{Error, Result};
 use crate::frame::CoordinateSystem;
+use crate::shm::publisher::StreamPublication;
+use crate::shm::{FramePublisher, PublisherStats};
 use crate::stream::{ChunkSource, Stream, StreamShared};
 
 /// Longest accepted prompt, in UTF-8 bytes. (C: `CG_MAX_TEXT_BYTES`.)
@@ -58,6 +60,10 @@ pub struct EngineConfig {
     /// Sampling settings every stream inherits unless its own [`StreamConfig`] sets them;
     /// unset here too means the bundle's defaults.
     pub default_stream: StreamConfig,
+    /// Also publish every frame and stream event over iceoryx2 shared memory on
+    /// `comgrasp/<name>/frames` and `comgrasp/<name>/events` ([`crate::shm`]). `None`: no
+    /// shared memory is touched.
+    pub publish_name: Option<String>,
 }
 
 impl Default for EngineConfig {
@@ -69,6 +75,7 @@ impl Default for EngineConfig {
             ring_capacity: 256,
             max_streams: 16,
             default_stream: StreamConfig::default(),
+            publish_name: None,
         }
     }
 }
@@ -86,6 +93,9 @@ impl EngineConfig {
                 "max_streams must be 1..={MAX_STREAMS_LIMIT}, got {}",
                 self.max_streams
             )));
+        }
+        if let Some(name) = &self.publish_name {
+            crate::shm::service_names(name)?;
         }
         self.default_stream.validate()
     }
@@ -178,6 +188,7 @@ pub struct Engine {
     bundle: Option<Arc<Bundle>>,
     factory: SourceFactory,
     streams: Arc<StreamSet>,
+    publisher: Option<Arc<FramePublisher>>,
 }
 
 impl Engine {
@@ -186,7 +197,7 @@ impl Engine {
     pub fn new(config: EngineConfig) -> Result<Engine> {
         config.validate()?;
         let (bundle, factory) = crate::generator::source_factory(&config)?;
-        Ok(Engine::from_parts(config, Some(bundle), factory))
+        Engine::from_parts(config, Some(bundle), factory)
     }
 
     /// An engine whose streams come from `factory` instead of a bundle. For tests and
@@ -194,12 +205,16 @@ impl Engine {
     #[doc(hidden)]
     pub fn with_source_factory(config: EngineConfig, factory: SourceFactory) -> Result<Engine> {
         config.validate()?;
-        Ok(Engine::from_parts(config, None, factory))
+        Engine::from_parts(config, None, factory)
     }
 
-    fn from_parts(config: EngineConfig, bundle: Option<Arc<Bundle>>, factory: SourceFactory) -> Engine {
+    fn from_parts(config: EngineConfig, bundle: Option<Arc<Bundle>>, factory: SourceFactory) -> Result<Engine> {
         let streams = Arc::new(StreamSet::new(config.max_streams));
-        Engine { config, bundle, factory, streams }
+        let publisher = match &config.publish_name {
+            Some(name) => Some(Arc::new(FramePublisher::new(name)?)),
+            None => None,
+        };
+        Ok(Engine { config, bundle, factory, streams, publisher })
     }
 
     /// The loaded bundle (manifest: fps, skeleton, object catalogue; files such as the
@@ -212,6 +227,11 @@ impl Engine {
     /// The configuration the engine was created with.
     pub fn config(&self) -> &EngineConfig {
         &self.config
+    }
+
+    /// Shared-memory publishing counters; `None` without a publish name.
+    pub fn publisher_stats(&self) -> Option<PublisherStats> {
+        self.publisher.as_ref().map(|p| p.stats())
     }
 
     /// Streams alive right now (started and not yet dropped).
@@ -233,7 +253,11 @@ impl Engine {
         let reservation = self.streams.reserve(&shared)?;
         let request = StreamRequest { stream_id: id, text, config: &config };
         let source = (self.factory)(&request)?;
-        let stream = Stream::spawn(shared, source, self.config.ring_capacity, Arc::clone(&self.streams))?;
+        let publication = self.publisher.as_ref().map(|p| {
+            let fps = self.bundle.as_ref().map_or(0.0, |b| b.manifest.fps as f32);
+            StreamPublication::new(Arc::clone(p), id, text, fps)
+        });
+        let stream = Stream::spawn(shared, source, self.config.ring_capacity, Arc::clone(&self.streams), publication)?;
         // From here on the stream removes itself from the set when it is dropped.
         reservation.keep();
         Ok(stream)

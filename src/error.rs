@@ -29,6 +29,10 @@ pub enum Error {
     /// panic message. The object it happened in is no longer trusted.
     #[error("internal panic: {0}")]
     Panic(String),
+    /// Shared memory (iceoryx2) failed: a service could not be created or opened (e.g. its
+    /// settings disagree with an existing one of the same name), or receiving failed.
+    #[error("shared memory: {0}")]
+    SharedMemory(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

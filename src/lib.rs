@@ -6,7 +6,8 @@
 //! streaming VQ decoder), [`sampler`] (the cross-language deterministic sampler),
 //! [`frame`] (the C frame and its assembly from 335-D features), [`generator`] (one
 //! generation: text -> tokens -> 16-frame chunks), [`engine`] / [`stream`] (threads, ring
-//! buffers, cancellation) and [`ffi`], the C ABI, a thin wrapper with a panic boundary.
+//! buffers, cancellation), [`shm`] (frames shared with other processes over iceoryx2) and
+//! [`ffi`], the C ABI, a thin wrapper with a panic boundary.
 #![allow(non_camel_case_types)]
 
 pub mod assemble;
@@ -18,6 +19,7 @@ pub mod frame;
 pub mod generator;
 pub mod model;
 pub mod sampler;
+pub mod shm;
 pub mod skeleton;
 pub mod stream;
 pub mod text;

@@ -33,6 +33,8 @@ use ringbuf::{HeapCons, HeapProd, HeapRb};
 use crate::engine::StreamSet;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
+use crate::shm::publisher::StreamPublication;
+use crate::shm::{CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED};
 
 pub use crate::engine::StreamConfig;
 
@@ -180,6 +182,7 @@ impl Stream {
         source: Box<dyn ChunkSource>,
         ring_capacity: usize,
         set: Arc<StreamSet>,
+        publication: Option<StreamPublication>,
     ) -> Result<Stream> {
         if ring_capacity == 0 {
             return Err(Error::InvalidArgument("ring capacity must be at least 1 frame".into()));
@@ -191,7 +194,7 @@ impl Stream {
         set.worker_started();
         let spawned = thread::Builder::new()
             .name(format!("comgrasp-stream-{}", shared.id))
-            .spawn(move || worker_main(worker_shared, source, prod, worker_set));
+            .spawn(move || worker_main(worker_shared, source, prod, worker_set, publication));
         let join = match spawned {
             Ok(j) => j,
             Err(e) => {
@@ -337,6 +340,7 @@ fn worker_main(
     source: Box<dyn ChunkSource>,
     prod: HeapProd<Frame>,
     set: Arc<StreamSet>,
+    publication: Option<StreamPublication>,
 ) {
     // Decrement the engine's worker count even if something below panics.
     struct Finished(Arc<StreamSet>);
@@ -349,7 +353,11 @@ fn worker_main(
 
     let mut source = source;
     let mut prod = prod;
-    let outcome = match catch_unwind(AssertUnwindSafe(|| run(&shared, &mut *source, &mut prod))) {
+    let mut publication = publication;
+    if let Some(p) = publication.as_mut() {
+        p.started();
+    }
+    let outcome = match catch_unwind(AssertUnwindSafe(|| run(&shared, &mut *source, &mut prod, publication.as_mut()))) {
         Ok(o) => o,
         Err(payload) => Outcome::Failed(Error::Panic(panic_message(&*payload))),
     };
@@ -357,6 +365,13 @@ fn worker_main(
     // end, so a host that sees End/Cancelled can rely on the memory being released.
     drop(catch_unwind(AssertUnwindSafe(move || drop(source))));
     drop(prod);
+    if let Some(p) = publication.as_mut() {
+        p.finished(match outcome {
+            Outcome::Ended => CG_STREAM_EVENT_ENDED,
+            Outcome::Cancelled => CG_STREAM_EVENT_CANCELLED,
+            Outcome::Failed(_) => CG_STREAM_EVENT_FAILED,
+        });
+    }
     let state = match outcome {
         Outcome::Ended => ENDED,
         Outcome::Cancelled => CANCELLED,
@@ -369,7 +384,12 @@ fn worker_main(
     shared.wake_consumer_always();
 }
 
-fn run(shared: &StreamShared, source: &mut dyn ChunkSource, prod: &mut HeapProd<Frame>) -> Outcome {
+fn run(
+    shared: &StreamShared,
+    source: &mut dyn ChunkSource,
+    prod: &mut HeapProd<Frame>,
+    mut publication: Option<&mut StreamPublication>,
+) -> Outcome {
     // Reused for every chunk: the steady state allocates nothing.
     let mut chunk: Vec<Frame> = Vec::with_capacity(16);
     loop {
@@ -382,6 +402,10 @@ fn run(shared: &StreamShared, source: &mut dyn ChunkSource, prod: &mut HeapProd<
             Err(e) => return Outcome::Failed(e),
         };
         for frame in chunk.drain(..) {
+            // Published before it enters the ring: subscribers never wait for the host.
+            if let Some(p) = publication.as_deref_mut() {
+                p.frame(&frame);
+            }
             if !push_waiting(shared, prod, frame) {
                 return Outcome::Cancelled;
             }

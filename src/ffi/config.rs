@@ -43,6 +43,16 @@ pub struct cg_engine_config {
     pub max_streams: u32,
     /// Reserved, must be 0.
     pub reserved: u32,
+    /// Publish name, NUL-terminated: when not NULL, every frame of every stream (exactly as
+    /// `cg_poll_frame` returns it) and a `cg_stream_event` when a stream starts, ends, is
+    /// cancelled or fails are also published over iceoryx2 shared memory on
+    /// `comgrasp/<name>/frames` and `comgrasp/<name>/events`, for `cg_subscriber_open(name)`
+    /// in other processes. 1..=`CG_MAX_PUBLISH_NAME_BYTES` bytes of ASCII letters, digits,
+    /// '_', '-', '.' (else `CG_ERR_INVALID_ARGUMENT`); the services cannot be opened:
+    /// `CG_ERR_SHM`. Slow or dead subscribers never slow the engine. Borrowed only during
+    /// `cg_engine_create`. Default NULL (no shared memory). Appended after the first version
+    /// of this struct (32 bytes, which stays accepted).
+    pub publish_name: *const c_char,
 }
 
 /// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
@@ -84,8 +94,9 @@ pub struct cg_stream_config {
 }
 
 /// Size of the first published version of each struct: the smallest `struct_size`
-/// accepted. Freeze these at their current values when fields are appended.
-const ENGINE_CONFIG_V1_SIZE: usize = size_of::<cg_engine_config>();
+/// accepted. Frozen: fields appended later take their defaults when a host's struct is
+/// shorter (`cg_engine_config` v1 ended at `reserved`, before `publish_name`).
+const ENGINE_CONFIG_V1_SIZE: usize = 32;
 const STREAM_CONFIG_V1_SIZE: usize = size_of::<cg_stream_config>();
 
 impl Default for cg_engine_config {
@@ -99,6 +110,7 @@ impl Default for cg_engine_config {
             ring_capacity: d.ring_capacity as u32,
             max_streams: d.max_streams as u32,
             reserved: 0,
+            publish_name: std::ptr::null(),
         }
     }
 }
@@ -124,7 +136,7 @@ impl Default for cg_stream_config {
 ///
 /// SAFETY: `src` is non-NULL and points to at least `struct_size` readable bytes (the
 /// caller's promise when it sets `struct_size`).
-unsafe fn read_versioned<T: Copy + Default>(src: *const T, min_size: usize, name: &str) -> Result<MaybeUninit<T>, Failure> {
+pub(crate) unsafe fn read_versioned<T: Copy + Default>(src: *const T, min_size: usize, name: &str) -> Result<MaybeUninit<T>, Failure> {
     let declared = unsafe { std::ptr::read_unaligned(src as *const u32) } as usize;
     if declared < min_size {
         return Err(Failure::new(
@@ -165,13 +177,14 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
         )
     })?;
     // SAFETY: the remaining fields are integers and a raw pointer: any bit pattern is valid.
-    let (bundle_path, enable_fk, ring_capacity, max_streams, reserved) = unsafe {
+    let (bundle_path, enable_fk, ring_capacity, max_streams, reserved, publish_name) = unsafe {
         (
             std::ptr::addr_of!((*p).bundle_path).read(),
             std::ptr::addr_of!((*p).enable_fk).read(),
             std::ptr::addr_of!((*p).ring_capacity).read(),
             std::ptr::addr_of!((*p).max_streams).read(),
             std::ptr::addr_of!((*p).reserved).read(),
+            std::ptr::addr_of!((*p).publish_name).read(),
         )
     };
     let invalid = |msg: String| Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, msg);
@@ -181,17 +194,8 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
     if reserved != 0 {
         return Err(invalid("cg_engine_config.reserved must be 0".into()));
     }
-    let bundle_path = if bundle_path.is_null() {
-        None
-    } else {
-        let s = unsafe { CStr::from_ptr(bundle_path) }.to_str().map_err(|_| {
-            Failure::new(cg_status::CG_ERR_INVALID_UTF8, "cg_engine_config.bundle_path is not valid UTF-8")
-        })?;
-        if s.is_empty() {
-            return Err(invalid("cg_engine_config.bundle_path is empty".into()));
-        }
-        Some(PathBuf::from(s))
-    };
+    let bundle_path = unsafe { optional_str(bundle_path, "cg_engine_config.bundle_path")? }.map(PathBuf::from);
+    let publish_name = unsafe { optional_str(publish_name, "cg_engine_config.publish_name")? }.map(String::from);
     Ok(EngineConfig {
         bundle_path,
         coordinate_system,
@@ -199,7 +203,24 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
         ring_capacity: ring_capacity as usize,
         max_streams: max_streams as usize,
         default_stream: StreamConfig::default(),
+        publish_name,
     })
+}
+
+/// A NULL-or-string config field: NULL is `None`; otherwise it must be non-empty UTF-8.
+///
+/// SAFETY: `p` is NULL or a NUL-terminated string valid for the call.
+pub(crate) unsafe fn optional_str<'a>(p: *const c_char, field: &str) -> Result<Option<&'a str>, Failure> {
+    if p.is_null() {
+        return Ok(None);
+    }
+    let s = unsafe { CStr::from_ptr(p) }
+        .to_str()
+        .map_err(|_| Failure::new(cg_status::CG_ERR_INVALID_UTF8, format_args!("{field} is not valid UTF-8")))?;
+    if s.is_empty() {
+        return Err(Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, format_args!("{field} is empty")));
+    }
+    Ok(Some(s))
 }
 
 /// Converts a C stream config (NULL = all defaults).
@@ -273,11 +294,29 @@ mod tests {
         struct FromC {
             struct_size: u32,
             coordinate_system: u32,
-            rest: [u64; 3],
+            rest: [u64; 4],
         }
         assert_eq!(size_of::<FromC>(), size_of::<cg_engine_config>());
-        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 3] };
+        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 4] };
         let r = unsafe { engine_config_from_c(&bad as *const FromC as *const cg_engine_config) };
         assert_eq!(r.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+
+        // A host compiled against the v1 header (32 bytes, no publish_name): the bytes after
+        // its struct are never read, and publish_name takes its default.
+        #[repr(C)]
+        struct V1 {
+            struct_size: u32,
+            coordinate_system: u32,
+            rest: [u64; 3],
+            trailing_garbage: usize,
+        }
+        let v1 = V1 { struct_size: 32, coordinate_system: 0, rest: [0; 3], trailing_garbage: 0xdead_beef };
+        let c = unsafe { engine_config_from_c(&v1 as *const V1 as *const cg_engine_config) }.unwrap();
+        assert_eq!(c.publish_name, None);
+        let mut named = cg_engine_config::default();
+        named.publish_name = c"game".as_ptr();
+        assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap().publish_name.as_deref(), Some("game"));
+        named.publish_name = c"".as_ptr();
+        assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
     }
 }

@@ -14,7 +14,7 @@ fn null(what: &str) -> Failure {
     Failure::new(cg_status::CG_ERR_NULL_POINTER, format_args!("{what} is NULL"))
 }
 
-fn lookup_engine(engine: *mut cg_engine) -> Result<Arc<EngineEntry>, Failure> {
+pub(crate) fn lookup_engine(engine: *mut cg_engine) -> Result<Arc<EngineEntry>, Failure> {
     if engine.is_null() {
         return Err(null("engine"));
     }

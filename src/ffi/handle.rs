@@ -32,6 +32,12 @@ pub struct cg_stream {
     _private: [u8; 0],
 }
 
+/// Opaque handle to a shared-memory subscriber. Create with `cg_subscriber_open`, destroy
+/// with `cg_subscriber_close`. Never dereference it.
+pub struct cg_subscriber {
+    _private: [u8; 0],
+}
+
 const TAG_BITS: u32 = 4;
 const TAG_MASK: usize = (1 << TAG_BITS) - 1;
 #[cfg(target_pointer_width = "64")]
@@ -49,6 +55,8 @@ const GEN_MAX: u64 = (1u64 << GEN_BITS) - 1;
 pub(crate) const TAG_ENGINE: usize = 0x5;
 /// Tag of stream handles.
 pub(crate) const TAG_STREAM: usize = 0x9;
+/// Tag of subscriber handles.
+pub(crate) const TAG_SUBSCRIBER: usize = 0xD;
 
 struct Slot<T> {
     generation: u64,
@@ -147,7 +155,14 @@ pub(crate) struct StreamEntry {
     pub(crate) poisoned: AtomicBool,
 }
 
+/// The registry's view of a shared-memory subscriber (one thread at a time: `try_lock`).
+pub(crate) struct SubscriberEntry {
+    pub(crate) subscriber: Mutex<crate::shm::FrameSubscriber>,
+    pub(crate) poisoned: AtomicBool,
+}
+
 pub(crate) static ENGINES: Registry<EngineEntry> = Registry::new(TAG_ENGINE);
+pub(crate) static SUBSCRIBERS: Registry<SubscriberEntry> = Registry::new(TAG_SUBSCRIBER);
 pub(crate) static STREAMS: Registry<StreamEntry> = Registry::new(TAG_STREAM);
 
 /// Registers an engine built in Rust (e.g. [`Engine::with_source_factory`] in tests) and

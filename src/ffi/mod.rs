@@ -26,12 +26,15 @@ pub mod config;
 pub mod handle;
 pub mod engine;
 pub mod stream;
+pub mod subscriber;
 pub mod panic;
 
 pub use config::*;
 pub use engine::*;
-pub use handle::{cg_engine, cg_stream};
+pub use handle::{cg_engine, cg_stream, cg_subscriber};
 pub use last_error::*;
 pub use status::*;
 pub use stream::*;
+pub use subscriber::*;
+pub use crate::shm::records::{cg_stream_event, CG_EVENT_TEXT_BYTES, CG_MAX_PUBLISH_NAME_BYTES, CG_MAX_SUBSCRIBER_BUFFER, CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED, CG_STREAM_EVENT_STARTED};
 pub use version::*;

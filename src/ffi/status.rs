@@ -43,6 +43,10 @@ pub enum cg_status {
     /// A panic (a bug in the library) was caught. The handle involved is poisoned: further
     /// calls on it return this code; destroy it.
     CG_ERR_PANIC = -10,
+    /// Shared memory (iceoryx2) failed: the publish or subscribe service could not be
+    /// created or opened (another process uses the name with incompatible settings, or
+    /// /dev/shm is unavailable), or receiving failed.
+    CG_ERR_SHM = -11,
 }
 
 impl cg_status {
@@ -57,6 +61,7 @@ impl cg_status {
             Error::Io(_) => cg_status::CG_ERR_IO,
             Error::LimitReached(_) => cg_status::CG_ERR_LIMIT,
             Error::Panic(_) => cg_status::CG_ERR_PANIC,
+            Error::SharedMemory(_) => cg_status::CG_ERR_SHM,
         }
     }
 
@@ -76,6 +81,7 @@ impl cg_status {
             -8 => c"CG_ERR_IO: an operating-system I/O error",
             -9 => c"CG_ERR_LIMIT: a limit is reached",
             -10 => c"CG_ERR_PANIC: internal error (panic); the handle is poisoned",
+            -11 => c"CG_ERR_SHM: shared memory (iceoryx2) failed",
             _ => c"unknown cg_status value",
         }
     }

@@ -129,8 +129,11 @@ unsafe impl Sync for TestEngine {}
 
 impl TestEngine {
     pub fn new(ring_capacity: usize, max_streams: usize) -> TestEngine {
+        TestEngine::with_config(EngineConfig { ring_capacity, max_streams, ..Default::default() })
+    }
+
+    pub fn with_config(config: EngineConfig) -> TestEngine {
         let counters = Arc::new(Counters::default());
-        let config = EngineConfig { ring_capacity, max_streams, ..Default::default() };
         let engine = Engine::with_source_factory(config, factory(Arc::clone(&counters))).unwrap();
         let handle = comgrasp::ffi::handle::engine_into_handle(engine).unwrap();
         TestEngine { handle, counters }

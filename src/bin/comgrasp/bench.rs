@@ -406,6 +406,7 @@ fn bench(o: &Options) -> Result<Value, String> {
         ring_capacity: (steps * f + 16).max(256),
         max_streams: 2,
         default_stream: StreamConfig::default(),
+        publish_name: None,
     };
     let assembler = FrameAssembler::new(&m.normalization.mean, &m.normalization.std, &m.skeleton.parents,
                                         &m.skeleton.rest_joints, config.coordinate_system, config.enable_fk, m.fps)

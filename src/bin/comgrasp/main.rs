@@ -11,9 +11,11 @@ mod generate;
 mod gltf;
 mod npz;
 mod obj;
+mod opts;
 mod png;
 mod preview;
 mod scene;
+mod shm;
 
 use std::process::ExitCode;
 
@@ -24,6 +26,9 @@ usage:
   comgrasp generate [--bundle DIR] --text PROMPT [options]
                     [--out FILE.json|FILE.npz] [--glb FILE.glb] [--preview FILE.png]
   comgrasp bench [options]
+  comgrasp publish --name NAME --text PROMPT [options]   (iceoryx2 shared memory)
+  comgrasp subscribe --name NAME [options]
+  comgrasp shm-bench [options]
   comgrasp --help | --version
 
 Run `comgrasp generate --help` for the generate options.";
@@ -57,6 +62,9 @@ fn main() -> ExitCode {
         }
         Some("generate") => generate::run(&args[1..]),
         Some("bench") => bench::run(&args[1..]).map_err(Failure::Run),
+        Some("publish") => shm::publish(&args[1..]),
+        Some("subscribe") => shm::subscribe(&args[1..]),
+        Some("shm-bench") => shm::bench(&args[1..]),
         Some(other) => Err(Failure::Usage(format!("unknown command {other:?}\n\n{USAGE}"))),
     };
     match result {
