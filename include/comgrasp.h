@@ -10,11 +10,10 @@
 #include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
-
-// Largest `manifest.json` accepted, in bytes. The shipped manifests are 36-60 KB (the
-// provenance section included); a file far larger is not a manifest, and refusing it
-// before reading bounds the loader's memory and time on a hostile bundle.
-#define MANIFEST_MAX_BYTES (16 << 20)
+// Fills a cg_engine_config of THIS header's size with its defaults (struct_size included):
+// call it before changing fields. A macro over cg_engine_config_init_sized, so the library
+// never writes past the caller's struct, whichever of the two is newer.
+#define cg_engine_config_init(cfg) cg_engine_config_init_sized((cfg), sizeof(*(cfg)))
 
 // Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
 // signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
@@ -149,7 +148,8 @@ typedef struct cg_stream cg_stream;
 // with `cg_subscriber_close`. Never dereference it.
 typedef struct cg_subscriber cg_subscriber;
 
-// Settings of a new engine. Initialize with `cg_engine_config_init`, then change fields.
+// Settings of a new engine. Initialize with `cg_engine_config_init(&cfg)` (a macro that
+// passes `sizeof cfg` to `cg_engine_config_init_sized`), then change fields.
 typedef struct cg_engine_config {
   // `sizeof(cg_engine_config)` of the header the host was compiled with (set by
   // `cg_engine_config_init`). Smaller than the first version's size:
@@ -357,10 +357,14 @@ size_t cg_last_error_message(char *buf, size_t len);
 // none failed yet). Any thread.
 cg_status cg_last_error_status(void);
 
-// Fills `*cfg` with the defaults and the right `struct_size`. Call it before changing
-// fields, so fields added in later versions get their defaults. Returns
-// `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
-cg_status cg_engine_config_init(struct cg_engine_config *cfg);
+// Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
+// `size` (capped at this library's `sizeof(cg_engine_config)`). `size` is the HOST's
+// `sizeof(cg_engine_config)`: the header's `cg_engine_config_init(cfg)` macro passes it, so
+// a library never writes past a host's struct, whichever of the two is newer. Call it
+// before changing fields, so fields added in later versions get their defaults. Errors:
+// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_ARGUMENT` (`size` below the first version's 32
+// bytes). Any thread.
+cg_status cg_engine_config_init_sized(struct cg_engine_config *cfg, size_t size);
 
 // Fills `*cfg` with the defaults (`use_defaults = CG_USE_DEFAULT_ALL`) and the right
 // `struct_size`. Returns `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.

@@ -64,7 +64,7 @@ fn env_var_naming_a_missing_directory_is_an_error_not_a_fallback() {
     let mut cfg = cg_engine_config::default();
     let mut out: *mut cg_engine = null_mut();
     unsafe {
-        assert_eq!(cg_engine_config_init(&mut cfg), cg_status::CG_OK);
+        assert_eq!(cg_engine_config_init_sized(&mut cfg, std::mem::size_of::<cg_engine_config>()), cg_status::CG_OK);
         assert_eq!(cg_engine_create(&cfg, &mut out), cg_status::CG_ERR_BUNDLE);
         assert!(out.is_null());
         let last = CStr::from_ptr(cg_last_error()).to_string_lossy().into_owned();

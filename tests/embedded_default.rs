@@ -136,7 +136,7 @@ fn c_abi_create_with_null_bundle_path() {
     let mut cfg = cg_engine_config::default();
     let mut e: *mut cg_engine = null_mut();
     unsafe {
-        assert_eq!(cg_engine_config_init(&mut cfg), cg_status::CG_OK);
+        assert_eq!(cg_engine_config_init_sized(&mut cfg, std::mem::size_of::<cg_engine_config>()), cg_status::CG_OK);
         assert!(cfg.bundle_path.is_null());
         let st = cg_engine_create(&cfg, &mut e);
         assert_eq!(st, cg_status::CG_OK, "{}", CStr::from_ptr(cg_last_error()).to_string_lossy());

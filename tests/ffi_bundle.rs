@@ -23,7 +23,7 @@ fn last_error() -> String {
 fn engine(enable_fk: bool) -> Eng {
     let path = CString::new(tiny_dir().to_str().unwrap()).unwrap();
     let mut cfg = cg_engine_config::default();
-    unsafe { cg_engine_config_init(&mut cfg) };
+    unsafe { cg_engine_config_init_sized(&mut cfg, std::mem::size_of::<cg_engine_config>()) };
     cfg.bundle_path = path.as_ptr();
     cfg.enable_fk = enable_fk as u32;
     let mut e = null_mut();

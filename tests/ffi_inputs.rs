@@ -169,7 +169,7 @@ fn engine_config_validation() {
     let mut cfg = cg_engine_config::default();
     let mut out: *mut cg_engine = null_mut();
     unsafe {
-        assert_eq!(cg_engine_config_init(&mut cfg), cg_status::CG_OK);
+        assert_eq!(cg_engine_config_init_sized(&mut cfg, std::mem::size_of::<cg_engine_config>()), cg_status::CG_OK);
         assert_eq!(cfg.ring_capacity, 256);
         assert!(cfg.bundle_path.is_null());
         // NULL selects the embedded default bundle (tests/embedded_default.rs, bundle_env.rs);

@@ -33,10 +33,18 @@ fn python_binding_passes_its_tests_against_the_library() {
             .env("COMGRASP_C_LAYOUT", c_layout()),
         Duration::from_secs(600),
     );
-    for t in ["test_layout_matches_c", "test_stream_to_end", "test_errors", "test_cancel", "test_cancel_from_another_thread"] {
+    for t in [
+        "test_layout_matches_c",
+        "test_stream_to_end",
+        "test_errors",
+        "test_cancel",
+        "test_cancel_from_another_thread",
+        "test_shm_subscriber_receives_the_polled_frames",
+        "test_shm_errors",
+    ] {
         assert!(stdout.lines().any(|l| l == format!("ok {t}")), "no `ok {t}` in:\n{stdout}");
     }
-    check_closing_line(&stdout, 9);
+    check_closing_line(&stdout, 11);
 }
 
 #[test]

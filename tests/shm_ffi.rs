@@ -208,7 +208,7 @@ fn misuse_gives_clear_errors() {
     }
     // A bad publish name fails engine creation cleanly.
     let mut cfg = cg_engine_config::default();
-    unsafe { cg_engine_config_init(&mut cfg) };
+    unsafe { cg_engine_config_init_sized(&mut cfg, std::mem::size_of::<cg_engine_config>()) };
     cfg.publish_name = c"no/slash".as_ptr();
     cfg.bundle_path = c"/nonexistent".as_ptr();
     let mut eng = null_mut();

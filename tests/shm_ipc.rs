@@ -138,12 +138,39 @@ fn number(text: &str, key: &str) -> u64 {
     rest.split_whitespace().next().unwrap().parse().unwrap()
 }
 
+/// The iceoryx2 entries in /dev/shm, but iceoryx2's own machine-wide management segment.
+fn shm_segments() -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir("/dev/shm")
+        .map(|d| d.filter_map(|e| e.ok()?.file_name().into_string().ok()).collect())
+        .unwrap_or_default();
+    v.retain(|n| n.starts_with("iox2_") && !n.ends_with("global_mgmt"));
+    v.sort();
+    v
+}
+
+/// Tests here kill processes and count segments, so they run one at a time.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// After every process of a test is gone: nothing a killed process held stays behind once
+/// dead nodes are reclaimed (what the next publisher or subscriber does by itself).
+fn assert_no_stale_segments(before: &[String]) {
+    comgrasp::shm::reclaim_dead_nodes().unwrap();
+    let after = shm_segments();
+    let stale: Vec<&String> = after.iter().filter(|s| !before.contains(s)).collect();
+    assert!(stale.is_empty(), "shared-memory segments left behind: {stale:?}");
+}
+
 fn name(tag: &str) -> String {
     format!("ipc-{}-{tag}", std::process::id())
 }
 
 #[test]
 fn a_whole_stream_arrives_in_order_and_bit_identical_in_another_process() {
+    let _serial = serial();
+    let before = shm_segments();
     let dir = scratch("shm_ipc");
     let n = name("whole");
     let (sub_bin, prod_bin) = (dir.join("whole-sub.bin"), dir.join("whole-prod.bin"));
@@ -161,10 +188,13 @@ fn a_whole_stream_arrives_in_order_and_bit_identical_in_another_process() {
     // ENDED may be read before or after the last frames; the C program reads events first
     // in each round, so it may exit before ENDED arrives: the producer's count is the truth.
     assert_eq!((number(&out, "published:"), number(&out, "skipped:")), (96, 0), "{out}");
+    assert_no_stale_segments(&before);
 }
 
 #[test]
 fn a_killed_subscriber_leaves_the_producer_healthy_and_a_late_one_gets_the_rest() {
+    let _serial = serial();
+    let before = shm_segments();
     let dir = scratch("shm_ipc");
     let n = name("kill");
     let prod_bin = dir.join("kill-prod.bin");
@@ -191,10 +221,13 @@ fn a_killed_subscriber_leaves_the_producer_healthy_and_a_late_one_gets_the_rest(
     assert!(first > 0 && first < 287, "the late subscriber should join mid-stream, got frames from {first}");
     assert!(got[..] == sent[first..], "the late subscriber must get every frame from its first on, bit-identical");
     assert_eq!(number(&late_out, "dropped:"), 0, "{late_out}");
+    assert_no_stale_segments(&before);
 }
 
 #[test]
 fn a_subscriber_stays_through_a_publisher_killed_and_restarted() {
+    let _serial = serial();
+    let before = shm_segments();
     let dir = scratch("shm_ipc");
     let n = name("restart");
     let sub_bin = dir.join("restart-sub.bin");
@@ -214,4 +247,5 @@ fn a_subscriber_stays_through_a_publisher_killed_and_restarted() {
     assert!(got.len() > sent.len(), "frames of the first publisher came before");
     assert!(got[got.len() - sent.len()..] == sent[..], "the restarted publisher's stream arrives whole and identical");
     assert_eq!(number(&out, "skipped:"), 0, "{out}");
+    assert_no_stale_segments(&before);
 }

@@ -15,13 +15,22 @@
 //   comgrasp::Frame f;
 //   while (stream.wait(f, std::chrono::milliseconds(100)) != comgrasp::Poll::End) { ... }
 //
-// Thread rules are the C ABI's: an Engine may be used from any thread at once; a Stream
-// from one thread at a time, except `cancel()`, which any thread may call at any time.
+// Shared memory (iceoryx2): an engine configured with `.publish_name("game")` also publishes
+// every frame and stream event; a `comgrasp::Subscriber` in any process reads them:
+//
+//   comgrasp::Subscriber sub("game");
+//   comgrasp::Frame f;
+//   while (sub.receive(f)) { ... f.stream_id, f.frame_index ... }    // never blocks
+//
+// Thread rules are the C ABI's: an Engine may be used from any thread at once; a Stream or
+// a Subscriber from one thread at a time, except `Stream::cancel()`, which any thread may
+// call at any time.
 #ifndef COMGRASP_HPP
 #define COMGRASP_HPP
 
 #include <chrono>
 #include <cstdint>
+#include <cstring>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -33,6 +42,9 @@ namespace comgrasp {
 
 using Frame = cg_frame;
 using Status = cg_status;
+using StreamEvent = cg_stream_event;
+using SubscriberStats = cg_subscriber_stats;
+using PublisherStats = cg_publisher_stats;
 
 /// Coordinate system of an engine's frames (see `cg_coordinate_system`).
 enum class Coords : int {
@@ -105,18 +117,29 @@ public:
     EngineConfig &enable_fk(bool on = true) { raw_.enable_fk = on ? 1u : 0u; return *this; }
     EngineConfig &ring_capacity(uint32_t frames) { raw_.ring_capacity = frames; return *this; }
     EngineConfig &max_streams(uint32_t n) { raw_.max_streams = n; return *this; }
+    /// Also publish every frame and stream event over shared memory under `name` (1..64
+    /// ASCII letters, digits, '_', '-', '.'), for `Subscriber`s in any process.
+    EngineConfig &publish_name(std::string name) {
+        publish_ = std::move(name);
+        has_publish_ = true;
+        return *this;
+    }
 
-    /// The C struct, its `bundle_path` pointing into this object: valid while it lives
-    /// unchanged. (The path is stored as a std::string so copies of the builder stay valid.)
+    /// The C struct, its `bundle_path` and `publish_name` pointing into this object: valid
+    /// while it lives unchanged. (The strings are std::strings so copies of the builder stay
+    /// valid.)
     cg_engine_config raw() const {
         cg_engine_config c = raw_;
         c.bundle_path = path_.empty() ? nullptr : path_.c_str();
+        c.publish_name = has_publish_ ? publish_.c_str() : nullptr;
         return c;
     }
 
 private:
     cg_engine_config raw_{};
     std::string path_;
+    std::string publish_;
+    bool has_publish_ = false;
 };
 
 /// Per-stream sampling overrides; a builder over `cg_stream_config`. Each setter also
@@ -231,6 +254,14 @@ public:
         return n;
     }
 
+    /// Counters of the shared-memory publisher; throws `Error` (`CG_ERR_WRONG_STATE`) when the
+    /// engine was created without a publish name.
+    PublisherStats publisher_stats() const {
+        PublisherStats s{};
+        detail::check("cg_engine_publisher_stats", cg_engine_publisher_stats(h_, &s));
+        return s;
+    }
+
     void reset() noexcept {
         if (h_) cg_engine_destroy(std::exchange(h_, nullptr));
     }
@@ -238,6 +269,75 @@ public:
 
 private:
     cg_engine *h_ = nullptr;
+};
+
+/// The prompt of a stream event (its `text` up to the NUL; a view into `ev`).
+inline std::string_view event_text(const StreamEvent &ev) noexcept {
+    const void *end = std::memchr(ev.text, 0, sizeof ev.text);
+    size_t n = end ? static_cast<size_t>(static_cast<const uint8_t *>(end) - ev.text) : sizeof ev.text;
+    return std::string_view(reinterpret_cast<const char *>(ev.text), n);
+}
+
+/// A shared-memory subscriber on the frames and stream events an engine publishes under a
+/// name (its `publish_name`), in this or another process. Works before the publisher exists
+/// and across its restarts; frames arrive from opening on (no history). Receiving never
+/// blocks and never allocates. Move-only; the destructor closes it. One thread at a time.
+class Subscriber {
+public:
+    Subscriber() noexcept = default;
+    /// Opens a subscriber keeping up to `buffer_frames` (1..`CG_MAX_SUBSCRIBER_BUFFER`) unread
+    /// frames; beyond that the oldest are overwritten (counted in `stats().frames_dropped`).
+    /// Throws `Error`: `CG_ERR_INVALID_ARGUMENT` (bad name or buffer), `CG_ERR_LIMIT`
+    /// (the name has 8 subscribers), `CG_ERR_SHM`.
+    explicit Subscriber(const std::string &name, uint32_t buffer_frames = CG_MAX_SUBSCRIBER_BUFFER) {
+        cg_subscriber_config cfg{};
+        detail::check("cg_subscriber_config_init", cg_subscriber_config_init(&cfg));
+        cfg.buffer_frames = buffer_frames;
+        detail::check("cg_subscriber_open", cg_subscriber_open(name.c_str(), &cfg, &h_));
+    }
+    /// Takes ownership of a handle from `cg_subscriber_open` (NULL gives an empty Subscriber).
+    explicit Subscriber(cg_subscriber *h) noexcept : h_(h) {}
+    Subscriber(Subscriber &&o) noexcept : h_(std::exchange(o.h_, nullptr)) {}
+    Subscriber &operator=(Subscriber &&o) noexcept {
+        if (this != &o) { reset(); h_ = std::exchange(o.h_, nullptr); }
+        return *this;
+    }
+    Subscriber(const Subscriber &) = delete;
+    Subscriber &operator=(const Subscriber &) = delete;
+    ~Subscriber() { reset(); }
+
+    /// Copies the oldest unread frame into `out` and returns true, or returns false when there
+    /// is none (`out` untouched). Frames of all the publisher's streams arrive interleaved;
+    /// tell them apart by `stream_id`. Throws `Error` on errors.
+    bool receive(Frame &out) {
+        return detail::check("cg_subscriber_receive", cg_subscriber_receive(h_, &out)) == CG_OK;
+    }
+
+    /// Never throws: the raw `cg_subscriber_receive` status (`CG_OK`, `CG_PENDING` or an error).
+    Status receive_status(Frame &out) noexcept { return cg_subscriber_receive(h_, &out); }
+
+    /// Like `receive`, for the stream events (a separate queue: a stream's ENDED event may
+    /// arrive before its last frames). `event_text(ev)` is the prompt.
+    bool receive_event(StreamEvent &out) {
+        return detail::check("cg_subscriber_receive_event", cg_subscriber_receive_event(h_, &out)) == CG_OK;
+    }
+
+    /// Counters since opening (received, dropped, publishers connected).
+    SubscriberStats stats() const {
+        SubscriberStats s{};
+        detail::check("cg_subscriber_get_stats", cg_subscriber_get_stats(h_, &s));
+        return s;
+    }
+
+    /// Closes the subscriber now (as the destructor would); the object becomes empty.
+    void reset() noexcept {
+        if (h_) cg_subscriber_close(std::exchange(h_, nullptr));
+    }
+    cg_subscriber *get() const noexcept { return h_; }
+    explicit operator bool() const noexcept { return h_ != nullptr; }
+
+private:
+    cg_subscriber *h_ = nullptr;
 };
 
 }  // namespace comgrasp

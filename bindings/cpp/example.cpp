@@ -1,5 +1,6 @@
 // Example and smoke test of comgrasp.hpp: streams one motion, checks that errors arrive as
-// comgrasp::Error with the right status, and that a cancel from another thread is seen.
+// comgrasp::Error with the right status, that a cancel from another thread is seen, and that
+// a shared-memory comgrasp::Subscriber receives exactly the frames an engine's stream polls.
 //
 //   c++ -std=c++17 -Wall -Wextra -I include -I bindings/cpp bindings/cpp/example.cpp
 //       -L target/debug -lcomgrasp -pthread -o example
@@ -8,11 +9,111 @@
 // Exit code 0 when every check passed, 1 otherwise (message on stderr).
 #include <chrono>
 #include <cstdio>
+#include <cstring>
+#include <string>
 #include <thread>
+#include <vector>
+
+#ifdef _WIN32
+#include <process.h>
+static long process_id() { return static_cast<long>(_getpid()); }
+#else
+#include <unistd.h>
+static long process_id() { return static_cast<long>(getpid()); }
+#endif
 
 #include "comgrasp.hpp"
 
 using namespace std::chrono_literals;
+
+// 5. Shared memory: an engine publishing under a name unique to this process, and a
+// subscriber on it in this same process, opened before the stream starts. It must receive
+// every polled frame (same stream id, index and bytes), STARTED and ENDED events, and drop
+// nothing. Returns the number of failed checks (printed on stderr).
+static int check_subscriber(const char *bundle, const char *prompt) {
+    int failures = 0;
+    auto fail = [&failures](const char *what) {
+        std::fprintf(stderr, "subscriber check failed: %s\n", what);
+        failures++;
+    };
+    const std::string name = "cpp-example-" + std::to_string(process_id());
+    comgrasp::Engine engine(comgrasp::EngineConfig().bundle_path(bundle).publish_name(name));
+    comgrasp::Subscriber sub(name);
+    if (engine.publisher_stats().subscribers != 1 || sub.stats().publishers != 1) fail("not connected");
+
+    std::vector<comgrasp::Frame> polled, received;
+    std::vector<comgrasp::StreamEvent> events;
+    comgrasp::Frame f{}, r{};
+    comgrasp::StreamEvent ev{};
+    comgrasp::Stream stream = engine.start(prompt, comgrasp::StreamConfig().seed(5));
+    const uint64_t id = stream.id();
+    auto drain = [&] {
+        while (sub.receive(r)) received.push_back(r);
+        while (sub.receive_event(ev)) events.push_back(ev);
+    };
+    const auto deadline = std::chrono::steady_clock::now() + 120s;
+    comgrasp::Poll p;
+    while ((p = stream.wait(f, 5ms)) != comgrasp::Poll::End) {
+        if (p == comgrasp::Poll::Frame) polled.push_back(f);
+        drain();
+        if (std::chrono::steady_clock::now() > deadline) {
+            fail("the stream did not end in time");
+            return failures;
+        }
+    }
+    // Every frame and the ENDED event were published before the stream reported End.
+    const auto grace = std::chrono::steady_clock::now() + 5s;
+    for (drain(); (received.size() < polled.size() || events.size() < 2) && std::chrono::steady_clock::now() < grace; drain())
+        std::this_thread::sleep_for(1ms);
+
+    std::printf("subscriber: %zu frames received, %zu polled, %zu events\n", received.size(), polled.size(),
+                events.size());
+    if (polled.empty() || received.size() != polled.size()) fail("frames received != frames polled");
+    for (size_t i = 0; i < received.size() && i < polled.size(); i++) {
+        const comgrasp::Frame &a = polled[i], &b = received[i];
+        if (b.stream_id != id || b.frame_index != i) { fail("received stream_id/frame_index sequence"); break; }
+        if (std::memcmp(&a, &b, sizeof a) != 0) { fail("a received frame differs from the polled one"); break; }
+    }
+    if (events.size() != 2 || events[0].kind != CG_STREAM_EVENT_STARTED || events[1].kind != CG_STREAM_EVENT_ENDED)
+        fail("events are not STARTED, ENDED");
+    else if (events[0].stream_id != id || events[1].stream_id != id || events[0].frame_count != 0 ||
+             events[1].frame_count != polled.size() || comgrasp::event_text(events[0]) != prompt)
+        fail("event contents");
+    comgrasp::SubscriberStats ss = sub.stats();
+    if (ss.frames_received != polled.size() || ss.frames_dropped != 0 || ss.events_received != 2 || ss.events_dropped != 0)
+        fail("subscriber stats");
+    comgrasp::PublisherStats ps = engine.publisher_stats();
+    if (ps.frames_published != polled.size() || ps.frames_skipped != 0 || ps.events_published != 2) fail("publisher stats");
+
+    // Move-only RAII: the moved-from subscriber is empty and a call on it throws.
+    comgrasp::Subscriber moved = std::move(sub);
+    if (sub || !moved) fail("move");
+    try {
+        sub.receive(r);
+        fail("receive on an empty subscriber did not throw");
+    } catch (const comgrasp::Error &e) {
+        if (e.status() != CG_ERR_NULL_POINTER) fail("receive on an empty subscriber: wrong status");
+    }
+    moved.reset();
+    if (engine.publisher_stats().subscribers != 0) fail("the publisher still counts the closed subscriber");
+    // Bad names are errors with a status.
+    try {
+        comgrasp::Subscriber bad("no/slash");
+        fail("a bad name was accepted");
+    } catch (const comgrasp::Error &e) {
+        if (e.status() != CG_ERR_INVALID_ARGUMENT) fail("bad name: wrong status");
+    }
+    try {
+        comgrasp::Engine quiet(comgrasp::EngineConfig().bundle_path(bundle));
+        quiet.publisher_stats();
+        fail("publisher_stats without a publish name did not throw");
+    } catch (const comgrasp::Error &e) {
+        if (e.status() != CG_ERR_WRONG_STATE) fail("publisher_stats without a publish name: wrong status");
+    }
+    if (failures == 0)
+        std::printf("subscriber received every polled frame: %zu, events STARTED ENDED, dropped 0\n", polled.size());
+    return failures;
+}
 
 int main(int argc, char **argv) {
     if (argc < 2) {
@@ -87,6 +188,9 @@ int main(int argc, char **argv) {
             std::fprintf(stderr, "streams still alive after reset\n");
             return 1;
         }
+
+        // 5. A shared-memory subscriber in this process (see check_subscriber).
+        if (check_subscriber(argv[1], prompt) != 0) return 1;
         std::printf("ok\n");
         return 0;
     } catch (const std::exception &e) {

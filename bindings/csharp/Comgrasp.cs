@@ -19,12 +19,23 @@
 //       }
 //   }
 //
+// Shared memory (iceoryx2): an engine created with `PublishName = "game"` also publishes
+// every frame and stream event; another process (or this one) reads them without running
+// the model:
+//
+//   using (var sub = ComGraspSubscriber.Open("game")) {
+//       var frame = new CgFrame(); var ev = new CgStreamEvent();
+//       while (sub.TryReceive(ref frame)) { ... frame.StreamId, frame.FrameIndex ... }
+//       while (sub.TryReceiveEvent(ref ev)) { ... ev.Kind, ev.GetText() ... }
+//   }
+//
 // Layers: `ComGraspNative` is the raw P/Invoke surface (every cg_* function, pointers and
-// status codes as in C). `ComGraspEngine` / `ComGraspStream` are IDisposable wrappers that
-// throw `ComGraspException` (status + the library's thread-local message) on errors and
-// poll into a caller-provided `ref CgFrame` without allocating. Thread rules are the C
-// ABI's: an engine may be used from any thread; a stream from one thread at a time, except
-// Cancel(), which any thread may call at any time.
+// status codes as in C). `ComGraspEngine` / `ComGraspStream` / `ComGraspSubscriber` are
+// IDisposable wrappers that throw `ComGraspException` (status + the library's thread-local
+// message) on errors and poll or receive into a caller-provided `ref CgFrame` without
+// allocating. Thread rules are the C ABI's: an engine may be used from any thread; a stream
+// or a subscriber from one thread at a time, except ComGraspStream.Cancel(), which any
+// thread may call at any time.
 using System;
 using System.Runtime.InteropServices;
 using System.Text;
@@ -59,6 +70,9 @@ namespace ComGrasp
         ErrLimit = -9,
         /// <summary>A bug in the library was caught; the handle involved is poisoned.</summary>
         ErrPanic = -10,
+        /// <summary>Shared memory (iceoryx2) failed: the publish or subscribe service could not
+        /// be created or opened, or receiving failed.</summary>
+        ErrShm = -11,
     }
 
     /// <summary>Coordinate system of an engine's frames (enum cg_coordinate_system).</summary>
@@ -191,6 +205,10 @@ namespace ComGrasp
         public uint RingCapacity;
         public uint MaxStreams;
         public uint Reserved;
+        /// <summary>const char*: the publish name (NUL-terminated ASCII letters, digits, '_', '-', '.';
+        /// 1..64 bytes), borrowed during cg_engine_create only; IntPtr.Zero = no shared memory.
+        /// Appended after the first version (an older library's init leaves StructSize at 32).</summary>
+        public IntPtr PublishName;
     }
 
     /// <summary>struct cg_stream_config. Fill with cg_stream_config_init; to override a field set
@@ -215,6 +233,89 @@ namespace ComGrasp
         public uint Reserved;
     }
 
+    /// <summary>struct cg_subscriber_config. Fill with cg_subscriber_config_init before changing fields.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgSubscriberConfig
+    {
+        public uint StructSize;
+        /// <summary>Frames kept between two reads, 1..CG_MAX_SUBSCRIBER_BUFFER (256, the default);
+        /// when full the oldest is overwritten and counted in FramesDropped.</summary>
+        public uint BufferFrames;
+        /// <summary>Must be 0.</summary>
+        public ulong Reserved;
+    }
+
+    /// <summary>cg_stream_event.kind (CG_STREAM_EVENT_*).</summary>
+    public enum CgStreamEventKind : uint
+    {
+        /// <summary>The stream started (its first frame follows).</summary>
+        Started = 1,
+        /// <summary>The stream ended; FrameCount frames were generated.</summary>
+        Ended = 2,
+        /// <summary>The stream was cancelled after FrameCount frames.</summary>
+        Cancelled = 3,
+        /// <summary>The stream's worker failed after FrameCount frames.</summary>
+        Failed = 4,
+    }
+
+    /// <summary>struct cg_stream_event (280 bytes): a stream's lifecycle record, received with
+    /// <see cref="ComGraspSubscriber.TryReceiveEvent"/>. Blittable, like CgFrame.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgStreamEvent
+    {
+        /// <summary>CG_EVENT_TEXT_BYTES: bytes of Text, the terminating NUL included.</summary>
+        public const int TextBytes = 256;
+
+        /// <summary>The stream's id (the StreamId of its frames).</summary>
+        public ulong StreamId;
+        /// <summary>Frames generated when the event was sent (0 for Started; the total for Ended).</summary>
+        public ulong FrameCount;
+        public CgStreamEventKind Kind;
+        /// <summary>Frames per second of the engine's model (TimeS = FrameIndex / Fps).</summary>
+        public float Fps;
+        /// <summary>The prompt, UTF-8, NUL-terminated (at most 255 bytes); read it with GetText().</summary>
+        public fixed byte Text[TextBytes];
+
+        /// <summary>The prompt as a string (allocates it; the bytes up to the first NUL).</summary>
+        public string GetText()
+        {
+            fixed (byte* p = Text)
+            {
+                int n = 0;
+                while (n < TextBytes && p[n] != 0) n++;
+                return Encoding.UTF8.GetString(p, n);
+            }
+        }
+    }
+
+    /// <summary>struct cg_subscriber_stats: counters of a subscriber since it was opened.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgSubscriberStats
+    {
+        public ulong FramesReceived;
+        /// <summary>Frames lost: overwritten (this subscriber read too slowly) or skipped by the publisher.</summary>
+        public ulong FramesDropped;
+        public ulong EventsReceived;
+        public ulong EventsDropped;
+        /// <summary>Times the frames started coming from another publisher.</summary>
+        public ulong PublisherChanges;
+        /// <summary>Frame publishers connected right now.</summary>
+        public ulong Publishers;
+    }
+
+    /// <summary>struct cg_publisher_stats: counters of an engine's shared-memory publisher.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgPublisherStats
+    {
+        public ulong FramesPublished;
+        /// <summary>Frames skipped because no shared-memory sample was free (never waited for).</summary>
+        public ulong FramesSkipped;
+        public ulong EventsPublished;
+        public ulong EventsSkipped;
+        /// <summary>Frame subscribers connected right now, in all processes.</summary>
+        public ulong Subscribers;
+    }
+
     /// <summary>The raw C ABI: one declaration per cg_* function of comgrasp.h. Handles are
     /// IntPtr (opaque; the library validates them, so a stale one gives ErrInvalidHandle).</summary>
     public static unsafe class ComGraspNative
@@ -230,6 +331,10 @@ namespace ComGrasp
         public const int FrameSize = 1608;
         /// <summary>CG_MAX_TEXT_BYTES: longest accepted prompt in UTF-8 bytes.</summary>
         public const int MaxTextBytes = 4096;
+        /// <summary>CG_MAX_PUBLISH_NAME_BYTES: longest accepted publish name in bytes.</summary>
+        public const int MaxPublishNameBytes = 64;
+        /// <summary>CG_MAX_SUBSCRIBER_BUFFER: largest subscriber buffer, in frames (the default).</summary>
+        public const uint MaxSubscriberBuffer = 256;
 
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern uint cg_abi_version();
@@ -249,7 +354,7 @@ namespace ComGrasp
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_last_error_status();
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
-        public static extern CgStatus cg_engine_config_init(CgEngineConfig* cfg);
+        public static extern CgStatus cg_engine_config_init_sized(CgEngineConfig* cfg, UIntPtr size);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_stream_config_init(CgStreamConfig* cfg);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
@@ -277,6 +382,25 @@ namespace ComGrasp
         public static extern CgStatus cg_stream_destroy(IntPtr stream);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_stream_id(IntPtr stream, ulong* id);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_config_init(CgSubscriberConfig* cfg);
+        /// <summary>name: NUL-terminated publish name; cfg may be NULL (defaults).</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_open(byte* name, CgSubscriberConfig* cfg, IntPtr* subscriber);
+        /// <summary>Ok (frame written) or Pending (none); never blocks, never allocates.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_receive(IntPtr subscriber, CgFrame* frame);
+        /// <summary>Ok (event written) or Pending (none); never blocks.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_receive_event(IntPtr subscriber, CgStreamEvent* ev);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_get_stats(IntPtr subscriber, CgSubscriberStats* stats);
+        /// <summary>NULL is ignored; a closed handle gives ErrInvalidHandle.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_subscriber_close(IntPtr subscriber);
+        /// <summary>ErrWrongState when the engine has no publish name.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_publisher_stats(IntPtr engine, CgPublisherStats* stats);
 
         /// <summary>A NUL-terminated UTF-8 C string as a .NET string ("" for NULL).</summary>
         public static string Utf8ToString(IntPtr p)
@@ -293,6 +417,14 @@ namespace ComGrasp
 
         /// <summary>The status code's description (cg_status_string).</summary>
         public static string StatusString(CgStatus status) { return Utf8ToString(cg_status_string((int)status)); }
+
+        /// <summary><paramref name="s"/> as NUL-terminated UTF-8, for a `fixed` pin during one call.</summary>
+        internal static byte[] NulTerminated(string s)
+        {
+            byte[] b = new byte[Encoding.UTF8.GetByteCount(s) + 1];
+            Encoding.UTF8.GetBytes(s, 0, s.Length, b, 0);
+            return b;
+        }
     }
 
     /// <summary>A failed cg_* call: its status and the library's message, copied on the
@@ -330,6 +462,10 @@ namespace ComGrasp
         public uint? RingCapacity;
         /// <summary>Streams alive at once, 1..1024 (default 16).</summary>
         public uint? MaxStreams;
+        /// <summary>Also publish every frame and stream event over shared memory under this name
+        /// (1..64 ASCII letters, digits, '_', '-', '.'), for <see cref="ComGraspSubscriber"/>s in
+        /// any process; null (default): no shared memory.</summary>
+        public string PublishName;
     }
 
     /// <summary>Sampling overrides of one stream; null fields keep the bundle's defaults.</summary>
@@ -370,16 +506,23 @@ namespace ComGrasp
             CheckAbi();
             if (options == null) options = new ComGraspEngineOptions();
             CgEngineConfig cfg;
-            ComGraspNative.cg_engine_config_init(&cfg);
+            ComGraspNative.cg_engine_config_init_sized(&cfg, (UIntPtr)sizeof(CgEngineConfig));
             cfg.CoordinateSystem = options.Coordinates;
             cfg.EnableFk = options.EnableFk ? 1u : 0u;
             if (options.RingCapacity.HasValue) cfg.RingCapacity = options.RingCapacity.Value;
             if (options.MaxStreams.HasValue) cfg.MaxStreams = options.MaxStreams.Value;
-            byte[] path = options.BundlePath == null ? null : NulTerminated(options.BundlePath);
+            if (options.PublishName != null && cfg.StructSize < sizeof(CgEngineConfig))
+                throw new InvalidOperationException(
+                    "comgrasp: the loaded library predates cg_engine_config.publish_name (library 0.2)");
+            byte[] path = options.BundlePath == null ? null : ComGraspNative.NulTerminated(options.BundlePath);
+            byte[] publish = options.PublishName == null ? null : ComGraspNative.NulTerminated(options.PublishName);
             IntPtr h = IntPtr.Zero;
+            // Both strings are pinned only for the call (the library copies what it keeps).
             fixed (byte* p = path)
+            fixed (byte* n = publish)
             {
                 cfg.BundlePath = (IntPtr)p;
+                cfg.PublishName = (IntPtr)n;
                 ComGraspException.Check("cg_engine_create", ComGraspNative.cg_engine_create(&cfg, &h));
             }
             handle = h;
@@ -425,6 +568,18 @@ namespace ComGrasp
             }
         }
 
+        /// <summary>Counters of the shared-memory publisher; throws ErrWrongState when the engine
+        /// was created without a PublishName.</summary>
+        public CgPublisherStats PublisherStats
+        {
+            get
+            {
+                CgPublisherStats s;
+                ComGraspException.Check("cg_engine_publisher_stats", ComGraspNative.cg_engine_publisher_stats(Handle, &s));
+                return s;
+            }
+        }
+
         /// <summary>The cg_engine* handle (for ComGraspNative calls).</summary>
         public IntPtr Handle
         {
@@ -451,13 +606,6 @@ namespace ComGrasp
         }
 
         static readonly byte[] EmptyText = new byte[1];
-
-        static byte[] NulTerminated(string s)
-        {
-            byte[] b = new byte[Encoding.UTF8.GetByteCount(s) + 1];
-            Encoding.UTF8.GetBytes(s, 0, s.Length, b, 0);
-            return b;
-        }
     }
 
     /// <summary>One generation (cg_stream). Poll it once per frame/tick into a reused CgFrame;
@@ -532,6 +680,96 @@ namespace ComGrasp
             IntPtr h = handle;
             handle = IntPtr.Zero;
             if (h != IntPtr.Zero) ComGraspNative.cg_stream_destroy(h);
+        }
+    }
+
+    /// <summary>A shared-memory subscriber (cg_subscriber): receives the frames and stream events
+    /// an engine publishes under a name (its PublishName), in this or another process. Works
+    /// before the publisher exists and across its restarts; frames arrive from opening on (no
+    /// history). Receiving never blocks and allocates nothing: call TryReceive in a loop once
+    /// per Update(). One thread at a time; Dispose closes it.</summary>
+    public sealed unsafe class ComGraspSubscriber : IDisposable
+    {
+        IntPtr handle;
+
+        /// <summary>Opens a subscriber on <paramref name="name"/> keeping up to
+        /// <paramref name="bufferFrames"/> (1..256) unread frames; beyond that the oldest are
+        /// overwritten and counted in Stats.FramesDropped. Errors: ErrInvalidArgument (bad name
+        /// or buffer), ErrNullPointer (null name), ErrLimit (8 subscribers already), ErrShm.</summary>
+        public ComGraspSubscriber(string name, uint bufferFrames = ComGraspNative.MaxSubscriberBuffer)
+        {
+            CgSubscriberConfig cfg;
+            ComGraspException.Check("cg_subscriber_config_init", ComGraspNative.cg_subscriber_config_init(&cfg));
+            cfg.BufferFrames = bufferFrames;
+            byte[] n = name == null ? null : ComGraspNative.NulTerminated(name);
+            IntPtr h = IntPtr.Zero;
+            fixed (byte* p = n)
+                ComGraspException.Check("cg_subscriber_open", ComGraspNative.cg_subscriber_open(p, &cfg, &h));
+            handle = h;
+        }
+
+        /// <summary>Same as the constructor.</summary>
+        public static ComGraspSubscriber Open(string name, uint bufferFrames = ComGraspNative.MaxSubscriberBuffer)
+        {
+            return new ComGraspSubscriber(name, bufferFrames);
+        }
+
+        /// <summary>Copies the oldest unread frame into <paramref name="frame"/> and returns true, or
+        /// returns false when there is none (frame untouched). Frames of all the publisher's
+        /// streams arrive interleaved; tell them apart by StreamId. Never blocks; allocates
+        /// nothing unless it throws.</summary>
+        public bool TryReceive(ref CgFrame frame)
+        {
+            fixed (CgFrame* p = &frame)
+                return ComGraspException.Check("cg_subscriber_receive", ComGraspNative.cg_subscriber_receive(Handle, p)) == CgStatus.Ok;
+        }
+
+        /// <summary>Like TryReceive, for the stream events (a separate queue: a stream's Ended event
+        /// may arrive before its last frames). The prompt is <c>ev.GetText()</c>.</summary>
+        public bool TryReceiveEvent(ref CgStreamEvent ev)
+        {
+            fixed (CgStreamEvent* p = &ev)
+                return ComGraspException.Check("cg_subscriber_receive_event", ComGraspNative.cg_subscriber_receive_event(Handle, p)) == CgStatus.Ok;
+        }
+
+        /// <summary>The prompt of <paramref name="ev"/> as a string (see CgStreamEvent.GetText).</summary>
+        public static string EventText(ref CgStreamEvent ev) { return ev.GetText(); }
+
+        /// <summary>Counters since opening (received, dropped, publishers connected).</summary>
+        public CgSubscriberStats Stats
+        {
+            get
+            {
+                CgSubscriberStats s;
+                ComGraspException.Check("cg_subscriber_get_stats", ComGraspNative.cg_subscriber_get_stats(Handle, &s));
+                return s;
+            }
+        }
+
+        /// <summary>The cg_subscriber* handle (for ComGraspNative calls).</summary>
+        public IntPtr Handle
+        {
+            get
+            {
+                if (handle == IntPtr.Zero) throw new ObjectDisposedException("ComGraspSubscriber");
+                return handle;
+            }
+        }
+
+        /// <summary>Closes the subscriber (cg_subscriber_close); twice is fine.</summary>
+        public void Dispose()
+        {
+            Release();
+            GC.SuppressFinalize(this);
+        }
+
+        ~ComGraspSubscriber() { Release(); }
+
+        void Release()
+        {
+            IntPtr h = handle;
+            handle = IntPtr.Zero;
+            if (h != IntPtr.Zero) ComGraspNative.cg_subscriber_close(h);
         }
     }
 }

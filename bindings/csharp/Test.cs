@@ -4,8 +4,9 @@
 //   LD_LIBRARY_PATH=target/debug mono target/tmp/comgrasp_cs_test.exe models/tiny [LAYOUT_FILE]
 //
 // LAYOUT_FILE is the output of tests/host_support/layout.c (the C compiler's sizes and
-// offsets of cg_frame and the config structs); without it the sizes are checked against
-// the values documented in comgrasp.h only. Prints "ok NAME" per check group and a closing
+// offsets of cg_frame, the config structs and the shared-memory records); without it the
+// sizes are checked against the values documented in comgrasp.h only. The shared-memory
+// groups publish under a name with this process's id, so parallel runs do not meet. Prints "ok NAME" per check group and a closing
 // "csharp: N passed, M failed" line; exit code 0 only when every group passed.
 using System;
 using System.Collections.Generic;
@@ -41,6 +42,8 @@ static unsafe class ComGraspTest
         Run("cancel", Cancel);
         Run("cancel_from_another_thread", CancelFromAnotherThread);
         Run("engine_dispose_cancels_streams", EngineDisposeCancelsStreams);
+        Run("shm_subscriber", ShmSubscriber);
+        Run("shm_errors", ShmErrors);
         Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
         return failed == 0 ? 0 : 1;
     }
@@ -108,8 +111,21 @@ static unsafe class ComGraspTest
         Eq(Marshal.SizeOf(typeof(CgFrame)), 1608, "Marshal.SizeOf(CgFrame)");
         Eq(ComGraspNative.cg_frame_size().ToUInt64(), (ulong)sizeof(CgFrame), "cg_frame_size()");
         Eq(ComGraspNative.FrameSize, sizeof(CgFrame), "ComGraspNative.FrameSize");
-        Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 32 : 28, "sizeof(CgEngineConfig)");
+        Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 40 : 32, "sizeof(CgEngineConfig)");
         Eq(sizeof(CgStreamConfig), 40, "sizeof(CgStreamConfig)");
+        Eq(sizeof(CgSubscriberConfig), 16, "sizeof(CgSubscriberConfig)");
+        Eq(sizeof(CgStreamEvent), 280, "sizeof(CgStreamEvent)");
+        Eq(sizeof(CgSubscriberStats), 48, "sizeof(CgSubscriberStats)");
+        Eq(sizeof(CgPublisherStats), 40, "sizeof(CgPublisherStats)");
+        Eq((int)Marshal.OffsetOf(typeof(CgEngineConfig), "PublishName"), IntPtr.Size == 8 ? 32 : 28, "offset of PublishName");
+        CgEngineConfig ec;
+        Eq(ComGraspNative.cg_engine_config_init_sized(&ec, (UIntPtr)sizeof(CgEngineConfig)), CgStatus.Ok, "cg_engine_config_init_sized");
+        Eq(ec.StructSize, (uint)sizeof(CgEngineConfig), "cg_engine_config_init's struct_size");
+        Eq(ec.PublishName, IntPtr.Zero, "default publish_name");
+        CgSubscriberConfig sc;
+        Eq(ComGraspNative.cg_subscriber_config_init(&sc), CgStatus.Ok, "cg_subscriber_config_init");
+        Eq(sc.StructSize, (uint)sizeof(CgSubscriberConfig), "cg_subscriber_config_init's struct_size");
+        Eq(sc.BufferFrames, ComGraspNative.MaxSubscriberBuffer, "default buffer_frames");
         Eq((int)Marshal.OffsetOf(typeof(CgFrame), "JointPositions"), 948, "offset of JointPositions");
         Eq((int)Marshal.OffsetOf(typeof(CgFrame), "Contact"), 940, "offset of Contact");
         if (layoutFile == null) return;
@@ -117,13 +133,18 @@ static unsafe class ComGraspTest
         var types = new Dictionary<string, Type>
         {
             { "cg_frame", typeof(CgFrame) }, { "cg_engine_config", typeof(CgEngineConfig) },
-            { "cg_stream_config", typeof(CgStreamConfig) },
+            { "cg_stream_config", typeof(CgStreamConfig) }, { "cg_subscriber_config", typeof(CgSubscriberConfig) },
+            { "cg_stream_event", typeof(CgStreamEvent) }, { "cg_subscriber_stats", typeof(CgSubscriberStats) },
+            { "cg_publisher_stats", typeof(CgPublisherStats) },
         };
         var sizes = new Dictionary<Type, int>
         {
             { typeof(CgFrame), sizeof(CgFrame) }, { typeof(CgEngineConfig), sizeof(CgEngineConfig) },
-            { typeof(CgStreamConfig), sizeof(CgStreamConfig) },
+            { typeof(CgStreamConfig), sizeof(CgStreamConfig) }, { typeof(CgSubscriberConfig), sizeof(CgSubscriberConfig) },
+            { typeof(CgStreamEvent), sizeof(CgStreamEvent) }, { typeof(CgSubscriberStats), sizeof(CgSubscriberStats) },
+            { typeof(CgPublisherStats), sizeof(CgPublisherStats) },
         };
+        var sized = new HashSet<Type>();
         int facts = 0;
         var seenFields = new Dictionary<Type, int>();
         foreach (string line in File.ReadAllLines(layoutFile))
@@ -134,6 +155,7 @@ static unsafe class ComGraspTest
                 Type t = types[w[1]];
                 Eq(sizes[t], int.Parse(w[2]), "sizeof " + t.Name + " (C: " + w[1] + ")");
                 Eq(Marshal.SizeOf(t), int.Parse(w[2]), "Marshal.SizeOf " + t.Name);
+                sized.Add(t);
                 facts++;
             }
             else if (w.Length == 4 && w[0] == "offset")
@@ -149,7 +171,13 @@ static unsafe class ComGraspTest
         foreach (var kv in seenFields)
             Eq(kv.Key.GetFields(System.Reflection.BindingFlags.Instance | System.Reflection.BindingFlags.Public).Length,
                kv.Value, "number of fields of " + kv.Key.Name);
-        Check(facts >= 30, "layout file has " + facts + " facts");
+        // Every struct this file declares was in the layout file, with its fields.
+        foreach (Type t in sizes.Keys)
+        {
+            Check(sized.Contains(t), "layout file has the size of " + t.Name);
+            Check(seenFields.ContainsKey(t), "layout file has the offsets of " + t.Name);
+        }
+        Check(facts >= 60, "layout file has " + facts + " facts");
     }
 
     static void VersionInfo()
@@ -419,5 +447,168 @@ static unsafe class ComGraspTest
         }
         catch (ObjectDisposedException) { }
         s.Dispose();
+    }
+
+    /// <summary>A publish name no other process (test run) uses: the pid and a counter.</summary>
+    static int shmNames;
+    static string UniqueName(string tag)
+    {
+        return "cs-" + System.Diagnostics.Process.GetCurrentProcess().Id + "-" + tag + "-" + (++shmNames);
+    }
+
+    // An engine publishing over shared memory and a subscriber in the same process: the
+    // subscriber, opened before the stream starts, receives exactly the polled frames (same
+    // ids, indices and bytes), a STARTED and an ENDED event, drops nothing, and receiving
+    // allocates no managed memory.
+    static void ShmSubscriber()
+    {
+        const string prompt = "A woman drinks from the mug";
+        string name = UniqueName("sub");
+        using (var engine = new ComGraspEngine(new ComGraspEngineOptions { BundlePath = bundle, PublishName = name }))
+        using (var sub = ComGraspSubscriber.Open(name, ComGraspNative.MaxSubscriberBuffer))
+        {
+            Eq(engine.PublisherStats.Subscribers, 1UL, "publisher sees the subscriber");
+            Eq(sub.Stats.Publishers, 1UL, "subscriber sees the publisher");
+            // Preallocated storage, and one call of each function before measuring (the
+            // first P/Invoke call of a method may allocate its marshalling stub).
+            const int cap = 18 * 16 + 16; // the tiny bundle's l_max tokens of 16 frames, and room
+            var polled = new CgFrame[cap];
+            var received = new CgFrame[cap + 1];
+            var events = new CgStreamEvent[8];
+            Eq(sub.TryReceive(ref received[0]), false, "nothing before the stream starts");
+            Eq(sub.TryReceiveEvent(ref events[0]), false, "no event before the stream starts");
+            var deadline = System.Diagnostics.Stopwatch.StartNew();
+            int np = 0, nr = 0, ne = 0;
+            using (var stream = engine.Start(prompt, new ComGraspStreamOptions { Seed = 5 }))
+            {
+                CgStatus st = stream.Wait(ref polled[np], 30000);
+                if (st == CgStatus.Ok) np++;
+                long before = GC.GetAllocatedBytesForCurrentThread();
+                while (st != CgStatus.End)
+                {
+                    if (np == cap || nr == cap || ne == events.Length || deadline.ElapsedMilliseconds > 120000) break;
+                    st = stream.Wait(ref polled[np], 5);
+                    if (st == CgStatus.Ok) np++;
+                    while (nr < cap && sub.TryReceive(ref received[nr])) nr++;
+                    while (ne < events.Length && sub.TryReceiveEvent(ref events[ne])) ne++;
+                }
+                // Every frame and the ENDED event were published before the stream reported
+                // End; they are in this subscriber's queues now (a short grace anyway).
+                while ((nr < np || ne < 2) && nr < cap && deadline.ElapsedMilliseconds < 125000)
+                {
+                    bool any = false;
+                    if (sub.TryReceive(ref received[nr])) { nr++; any = true; }
+                    if (ne < events.Length && sub.TryReceiveEvent(ref events[ne])) { ne++; any = true; }
+                    if (!any) Thread.Yield();
+                }
+                long allocated = GC.GetAllocatedBytesForCurrentThread() - before;
+                Eq(st, CgStatus.End, "stream drained to End (" + np + " frames polled, " + nr + " received)");
+                Eq(allocated, 0L, "bytes allocated while polling " + np + " and receiving " + nr + " frames");
+                Check(np > 0 && np % 16 == 0, "polled frames: " + np);
+                Eq(nr, np, "frames received == frames polled");
+                Eq(sub.TryReceive(ref received[nr]), false, "nothing more to receive");
+                for (int i = 0; i < np; i++)
+                {
+                    CgFrame a = polled[i], b = received[i];
+                    Eq(b.StreamId, stream.Id, "received stream_id " + i);
+                    Eq(b.FrameIndex, (ulong)i, "received frame_index " + i);
+                    Eq(b.StreamId, a.StreamId, "stream_id " + i);
+                    Eq(b.FrameIndex, a.FrameIndex, "frame_index " + i);
+                    Eq(b.TimeS, a.TimeS, "time_s " + i);
+                    Eq(b.IsLast, a.IsLast, "is_last " + i);
+                    Eq(b.GetRootTranslation().ToString(), a.GetRootTranslation().ToString(), "root translation " + i);
+                    Eq(b.GetContactProbability(1), a.GetContactProbability(1), "contact probability " + i);
+                    // And the whole struct, byte for byte.
+                    byte* pa = (byte*)&a, pb = (byte*)&b;
+                    for (int k = 0; k < sizeof(CgFrame); k++)
+                        if (pa[k] != pb[k]) throw new Exception("received frame " + i + " differs at byte " + k);
+                }
+                Eq(received[np - 1].IsLastFrame, true, "the last received frame has is_last");
+
+                Eq(ne, 2, "events received");
+                Eq(events[0].Kind, CgStreamEventKind.Started, "first event");
+                Eq(events[0].StreamId, stream.Id, "STARTED stream_id");
+                Eq(events[0].FrameCount, 0UL, "STARTED frame_count");
+                Eq(events[0].Fps, 30f, "STARTED fps");
+                Eq(events[0].GetText(), prompt, "STARTED text");
+                Eq(ComGraspSubscriber.EventText(ref events[0]), prompt, "EventText");
+                Eq(events[1].Kind, CgStreamEventKind.Ended, "second event");
+                Eq(events[1].StreamId, stream.Id, "ENDED stream_id");
+                Eq(events[1].FrameCount, (ulong)np, "ENDED frame_count");
+
+                CgSubscriberStats ss = sub.Stats;
+                Eq(ss.FramesReceived, (ulong)np, "stats frames_received");
+                Eq(ss.FramesDropped, 0UL, "stats frames_dropped");
+                Eq(ss.EventsReceived, 2UL, "stats events_received");
+                Eq(ss.EventsDropped, 0UL, "stats events_dropped");
+                Eq(ss.PublisherChanges, 0UL, "stats publisher_changes");
+                Eq(ss.Publishers, 1UL, "stats publishers");
+                CgPublisherStats ps = engine.PublisherStats;
+                Eq(ps.FramesPublished, (ulong)np, "publisher frames_published");
+                Eq(ps.FramesSkipped, 0UL, "publisher frames_skipped");
+                Eq(ps.EventsPublished, 2UL, "publisher events_published");
+                Eq(ps.EventsSkipped, 0UL, "publisher events_skipped");
+                Eq(ps.Subscribers, 1UL, "publisher subscribers");
+                Console.WriteLine("  {0} frames polled and received, events STARTED/ENDED, 0 dropped", np);
+            }
+
+            // Dispose closes; the handle is then stale and the wrapper refuses to use it.
+            IntPtr h = sub.Handle;
+            sub.Dispose();
+            sub.Dispose(); // twice is fine
+            Eq(ComGraspNative.cg_subscriber_close(h), CgStatus.ErrInvalidHandle, "double close");
+            var f = new CgFrame();
+            Eq(ComGraspNative.cg_subscriber_receive(h, &f), CgStatus.ErrInvalidHandle, "receive after close");
+            try
+            {
+                sub.TryReceive(ref f);
+                throw new Exception("TryReceive on a disposed subscriber did not throw");
+            }
+            catch (ObjectDisposedException) { }
+            Eq(engine.PublisherStats.Subscribers, 0UL, "publisher sees the subscriber gone");
+        }
+    }
+
+    static void ShmErrors()
+    {
+        // No publish name: no publisher counters.
+        using (var engine = NewEngine())
+        {
+            var e = Throws("publisher stats without a name", () => { var unused = engine.PublisherStats; });
+            Eq(e.Status, CgStatus.ErrWrongState, "publisher stats without a publish name");
+        }
+        foreach (string bad in new[] { "", "a/b", "with space", "..", "\u00e9", new string('n', ComGraspNative.MaxPublishNameBytes + 1) })
+        {
+            var e = Throws("publish name " + bad, () => new ComGraspEngine(new ComGraspEngineOptions { BundlePath = bundle, PublishName = bad }));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "engine with publish name '" + bad + "'");
+            e = Throws("subscriber name " + bad, () => ComGraspSubscriber.Open(bad));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "subscriber name '" + bad + "'");
+        }
+        var ne = Throws("null name", () => ComGraspSubscriber.Open(null));
+        Eq(ne.Status, CgStatus.ErrNullPointer, "subscriber with a null name");
+        string name = UniqueName("err");
+        foreach (uint frames in new uint[] { 0, ComGraspNative.MaxSubscriberBuffer + 1 })
+        {
+            var e = Throws("buffer " + frames, () => ComGraspSubscriber.Open(name, frames));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "buffer_frames " + frames);
+            Check(e.NativeMessage.Contains("buffer_frames"), "buffer message: " + e.NativeMessage);
+        }
+        // Longest name, smallest buffer: fine, and nothing is pending without a publisher.
+        string longest = (name + new string('x', ComGraspNative.MaxPublishNameBytes)).Substring(0, ComGraspNative.MaxPublishNameBytes);
+        using (var sub = ComGraspSubscriber.Open(longest, 1))
+        {
+            var f = new CgFrame();
+            var ev = new CgStreamEvent();
+            Eq(sub.TryReceive(ref f), false, "no frame without a publisher");
+            Eq(sub.TryReceiveEvent(ref ev), false, "no event without a publisher");
+            Eq(sub.Stats.Publishers, 0UL, "no publisher yet");
+            Eq(ComGraspNative.cg_subscriber_receive(sub.Handle, null), CgStatus.ErrNullPointer, "receive into NULL");
+            Eq(ComGraspNative.cg_subscriber_receive_event(sub.Handle, null), CgStatus.ErrNullPointer, "event into NULL");
+            Eq(ComGraspNative.cg_subscriber_get_stats(sub.Handle, null), CgStatus.ErrNullPointer, "stats into NULL");
+        }
+        Eq(ComGraspNative.cg_subscriber_close(IntPtr.Zero), CgStatus.Ok, "closing NULL is a no-op");
+        var g = new CgFrame();
+        using (var engine = NewEngine())
+            Eq(ComGraspNative.cg_subscriber_receive(engine.Handle, &g), CgStatus.ErrInvalidHandle, "an engine is not a subscriber");
     }
 }

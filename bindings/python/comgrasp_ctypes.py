@@ -14,10 +14,21 @@ The library is found, in order: ``$COMGRASP_LIB`` (the path of the shared librar
 ``target/release`` and ``target/debug`` of the source tree this file sits in
 (``bindings/python/../../target``). ``load(path)`` loads a given file instead.
 
+Shared memory (iceoryx2): ``Engine(..., publish_name="game")`` also publishes every frame
+and stream event; a :class:`Subscriber` in any process reads them without running a model:
+
+    with Subscriber("game") as sub:
+        f = CgFrame()
+        while sub.receive_into(f):                   # never blocks; reuses f
+            print(f.stream_id, f.frame_index)
+        for ev in iter(sub.receive_event, None):     # CgStreamEvent records
+            print(ev.kind, ev.frame_count, ev.text_str)
+
 Errors are raised as :class:`ComgraspError` with ``.status`` (a :class:`Status`) and
 ``.message`` (the library's thread-local message, read right after the failing call).
 Thread rules are the C ABI's: an engine may be used from any thread; a stream from one
-thread at a time, except :meth:`Stream.cancel`, which any thread may call at any time
+thread at a time (a subscriber too), except :meth:`Stream.cancel`, which any thread may
+call at any time
 (ctypes releases the GIL during the calls, so a blocking :meth:`Stream.wait` in one thread
 does not stop others).
 """
@@ -33,8 +44,10 @@ from typing import Iterator, List, Optional, Union
 
 __all__ = [
     "ABI_VERSION", "FRAME_SIZE", "MAX_TEXT_BYTES", "BODY_JOINTS", "HAND_JOINTS", "NUM_JOINTS",
-    "Status", "Coords", "CgFrame", "CgEngineConfig", "CgStreamConfig", "ComgraspError",
-    "Engine", "Stream", "load", "find_library", "version",
+    "MAX_PUBLISH_NAME_BYTES", "MAX_SUBSCRIBER_BUFFER", "EVENT_TEXT_BYTES", "EventKind",
+    "Status", "Coords", "CgFrame", "CgEngineConfig", "CgStreamConfig", "CgSubscriberConfig",
+    "CgStreamEvent", "CgSubscriberStats", "CgPublisherStats", "ComgraspError",
+    "Engine", "Stream", "Subscriber", "load", "find_library", "version",
 ]
 
 #: CG_ABI_VERSION of the header this module mirrors.
@@ -46,6 +59,12 @@ MAX_TEXT_BYTES = 4096
 BODY_JOINTS = 21
 HAND_JOINTS = 15
 NUM_JOINTS = 55
+#: CG_MAX_PUBLISH_NAME_BYTES: longest accepted publish name.
+MAX_PUBLISH_NAME_BYTES = 64
+#: CG_MAX_SUBSCRIBER_BUFFER: largest (and default) subscriber buffer, in frames.
+MAX_SUBSCRIBER_BUFFER = 256
+#: CG_EVENT_TEXT_BYTES: bytes of cg_stream_event.text, the terminating NUL included.
+EVENT_TEXT_BYTES = 256
 
 USE_DEFAULT_SEED = 1 << 0
 USE_DEFAULT_TEMPERATURE = 1 << 1
@@ -72,6 +91,16 @@ class Status(enum.IntEnum):
     ERR_IO = -8
     ERR_LIMIT = -9
     ERR_PANIC = -10
+    ERR_SHM = -11
+
+
+class EventKind(enum.IntEnum):
+    """cg_stream_event.kind (CG_STREAM_EVENT_*)."""
+
+    STARTED = 1
+    ENDED = 2
+    CANCELLED = 3
+    FAILED = 4
 
 
 class Coords(enum.IntEnum):
@@ -136,6 +165,7 @@ class CgEngineConfig(ctypes.Structure):
         ("ring_capacity", ctypes.c_uint32),
         ("max_streams", ctypes.c_uint32),
         ("reserved", ctypes.c_uint32),
+        ("publish_name", ctypes.c_char_p),  # library 0.2 (an older one's init sets struct_size 32)
     ]
 
 
@@ -153,6 +183,65 @@ class CgStreamConfig(ctypes.Structure):
         ("max_len", ctypes.c_uint32),
         ("reserved", ctypes.c_uint32),
     ]
+
+
+class CgSubscriberConfig(ctypes.Structure):
+    """struct cg_subscriber_config (fill with cg_subscriber_config_init first)."""
+
+    _fields_ = [
+        ("struct_size", ctypes.c_uint32),
+        ("buffer_frames", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint64),
+    ]
+
+
+class CgStreamEvent(ctypes.Structure):
+    """struct cg_stream_event: a stream's lifecycle record (``kind`` is an :class:`EventKind`
+    value; ``text_str`` is the prompt)."""
+
+    _fields_ = [
+        ("stream_id", ctypes.c_uint64),
+        ("frame_count", ctypes.c_uint64),
+        ("kind", ctypes.c_uint32),
+        ("fps", ctypes.c_float),
+        ("text", ctypes.c_uint8 * EVENT_TEXT_BYTES),
+    ]
+
+    @property
+    def text_str(self) -> str:
+        """The prompt (the bytes up to the first NUL, as UTF-8)."""
+        raw = bytes(self.text)
+        return raw.split(b"\0", 1)[0].decode("utf-8", "replace")
+
+    def __repr__(self) -> str:
+        try:
+            kind = EventKind(self.kind).name
+        except ValueError:
+            kind = str(self.kind)
+        return (f"CgStreamEvent(stream_id={self.stream_id}, kind={kind}, frame_count={self.frame_count}, "
+                f"fps={self.fps:g}, text={self.text_str!r})")
+
+
+class _Counters(ctypes.Structure):
+    def to_dict(self) -> dict:
+        return {name: getattr(self, name) for name, _ in self._fields_}
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(f'{k}={v}' for k, v in self.to_dict().items())})"
+
+
+class CgSubscriberStats(_Counters):
+    """struct cg_subscriber_stats: a subscriber's counters since it was opened."""
+
+    _fields_ = [(n, ctypes.c_uint64) for n in ("frames_received", "frames_dropped", "events_received",
+                                                "events_dropped", "publisher_changes", "publishers")]
+
+
+class CgPublisherStats(_Counters):
+    """struct cg_publisher_stats: an engine's shared-memory publisher counters."""
+
+    _fields_ = [(n, ctypes.c_uint64) for n in ("frames_published", "frames_skipped", "events_published",
+                                                "events_skipped", "subscribers")]
 
 
 if ctypes.sizeof(CgFrame) != FRAME_SIZE:  # pragma: no cover - a broken copy of this file
@@ -217,7 +306,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_last_error": (ctypes.c_char_p, []),
         "cg_last_error_message": (sz, [ctypes.c_char_p, sz]),
         "cg_last_error_status": (st, []),
-        "cg_engine_config_init": (st, [P(CgEngineConfig)]),
+        "cg_engine_config_init_sized": (st, [P(CgEngineConfig), ctypes.c_size_t]),
         "cg_stream_config_init": (st, [P(CgStreamConfig)]),
         "cg_engine_create": (st, [P(CgEngineConfig), P(vp)]),
         "cg_engine_destroy": (st, [vp]),
@@ -230,7 +319,17 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_stream_destroy": (st, [vp]),
         "cg_stream_id": (st, [vp, P(u64)]),
     }
-    for name, (res, args) in sigs.items():
+    # Shared memory (library 0.2); an older library simply lacks them (Subscriber then fails).
+    shm = {
+        "cg_subscriber_config_init": (st, [P(CgSubscriberConfig)]),
+        "cg_subscriber_open": (st, [ctypes.c_char_p, P(CgSubscriberConfig), P(vp)]),
+        "cg_subscriber_receive": (st, [vp, P(CgFrame)]),
+        "cg_subscriber_receive_event": (st, [vp, P(CgStreamEvent)]),
+        "cg_subscriber_get_stats": (st, [vp, P(CgSubscriberStats)]),
+        "cg_subscriber_close": (st, [vp]),
+        "cg_engine_publisher_stats": (st, [vp, P(CgPublisherStats)]),
+    }
+    for name, (res, args) in list(sigs.items()) + [kv for kv in shm.items() if hasattr(lib, kv[0])]:
         fn = getattr(lib, name)
         fn.restype = res
         fn.argtypes = args
@@ -261,6 +360,15 @@ def _check(lib: ctypes.CDLL, call: str, status: int) -> Status:
     if status < 0:
         raise ComgraspError(call, status, lib.cg_last_error().decode("utf-8", "replace"))
     return Status(status)
+
+
+def _name_bytes(call: str, name: Union[str, bytes, None]) -> Optional[bytes]:
+    """A publish name as the bytes of a C string (None stays None: NULL). An embedded NUL
+    would silently cut the name short in C, so it is refused here."""
+    data = name.encode("utf-8", "surrogatepass") if isinstance(name, str) else name
+    if data is not None and b"\0" in data:
+        raise ComgraspError(call, Status.ERR_INVALID_ARGUMENT, f"the publish name {name!r} contains a NUL byte")
+    return data
 
 
 class _Owned:
@@ -367,17 +475,20 @@ class Stream(_Owned):
 
 class Engine(_Owned):
     """A loaded model bundle (cg_engine). ``bundle_path=None`` uses ``$COMGRASP_BUNDLE``, else
-    the bundle embedded in the library. Closing it cancels the streams still running (their
+    the bundle embedded in the library. ``publish_name`` (1..64 ASCII letters, digits, '_',
+    '-', '.') also publishes every frame and stream event over shared memory for
+    :class:`Subscriber` s in any process. Closing it cancels the streams still running (their
     Stream objects stay usable and report CANCELLED)."""
 
     _kind, _destroy = "engine", "cg_engine_destroy"
 
     def __init__(self, bundle_path: Union[str, os.PathLike, None] = None, *, coords: Coords = Coords.NATIVE,
                  enable_fk: bool = False, ring_capacity: Optional[int] = None,
-                 max_streams: Optional[int] = None, lib: Optional[ctypes.CDLL] = None):
+                 max_streams: Optional[int] = None, publish_name: Union[str, bytes, None] = None,
+                 lib: Optional[ctypes.CDLL] = None):
         self._lib = lib or load()
         cfg = CgEngineConfig()
-        self._lib.cg_engine_config_init(ctypes.byref(cfg))
+        self._lib.cg_engine_config_init_sized(ctypes.byref(cfg), ctypes.sizeof(cfg))
         cfg.coordinate_system = int(coords)
         cfg.enable_fk = 1 if enable_fk else 0
         if ring_capacity is not None:
@@ -386,6 +497,12 @@ class Engine(_Owned):
             cfg.max_streams = max_streams
         if bundle_path is not None:
             cfg.bundle_path = os.fsencode(bundle_path)
+        if publish_name is not None:
+            if cfg.struct_size < ctypes.sizeof(CgEngineConfig):
+                raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
+                                    "this library predates cg_engine_config.publish_name (library 0.2)")
+            # Kept referenced by cfg until cg_engine_create returns (the library copies it).
+            cfg.publish_name = _name_bytes("cg_engine_create", publish_name)
         h = ctypes.c_void_p()
         _check(self._lib, "cg_engine_create", self._lib.cg_engine_create(ctypes.byref(cfg), ctypes.byref(h)))
         self._h: Optional[ctypes.c_void_p] = h
@@ -415,4 +532,63 @@ class Engine(_Owned):
         n = ctypes.c_uint32()
         _check(self._lib, "cg_engine_stream_count", self._lib.cg_engine_stream_count(self.handle, ctypes.byref(n)))
         return n.value
+
+    def publisher_stats(self) -> CgPublisherStats:
+        """Counters of the shared-memory publisher (cg_engine_publisher_stats); ERR_WRONG_STATE
+        when the engine was created without ``publish_name``."""
+        s = CgPublisherStats()
+        _check(self._lib, "cg_engine_publisher_stats", self._lib.cg_engine_publisher_stats(self.handle, ctypes.byref(s)))
+        return s
+
+
+class Subscriber(_Owned):
+    """A shared-memory subscriber (cg_subscriber) on the frames and stream events an engine
+    publishes under ``name`` (its ``publish_name``), in this or another process. Works before
+    the publisher exists and across its restarts; frames arrive from opening on (no history).
+    ``buffer_frames`` (1..256) unread frames are kept; beyond that the oldest are overwritten
+    and counted in ``stats().frames_dropped``. Receiving never blocks. One thread at a time;
+    ``close()`` (or leaving the ``with`` block) frees it."""
+
+    _kind, _destroy = "subscriber", "cg_subscriber_close"
+
+    def __init__(self, name: Union[str, bytes, None], buffer_frames: int = MAX_SUBSCRIBER_BUFFER, *,
+                 lib: Optional[ctypes.CDLL] = None):
+        self._lib = lib or load()
+        self._h = None
+        cfg = CgSubscriberConfig()
+        _check(self._lib, "cg_subscriber_config_init", self._lib.cg_subscriber_config_init(ctypes.byref(cfg)))
+        cfg.buffer_frames = max(0, min(int(buffer_frames), 0xFFFFFFFF))
+        data = _name_bytes("cg_subscriber_open", name)
+        h = ctypes.c_void_p()
+        _check(self._lib, "cg_subscriber_open", self._lib.cg_subscriber_open(data, ctypes.byref(cfg), ctypes.byref(h)))
+        self._h = h
+
+    def receive_into(self, frame: CgFrame) -> bool:
+        """Copies the oldest unread frame into ``frame`` and returns True, or returns False when
+        there is none (``frame`` untouched). Frames of all the publisher's streams arrive
+        interleaved: tell them apart by ``stream_id``."""
+        st = self._lib.cg_subscriber_receive(self.handle, ctypes.byref(frame))
+        return _check(self._lib, "cg_subscriber_receive", st) == Status.OK
+
+    def receive(self) -> Optional[CgFrame]:
+        """The oldest unread frame (a new CgFrame), or None."""
+        f = CgFrame()
+        return f if self.receive_into(f) else None
+
+    def receive_event_into(self, event: CgStreamEvent) -> bool:
+        """Like receive_into, for the stream events (a separate queue: a stream's ENDED event
+        may arrive before its last frames)."""
+        st = self._lib.cg_subscriber_receive_event(self.handle, ctypes.byref(event))
+        return _check(self._lib, "cg_subscriber_receive_event", st) == Status.OK
+
+    def receive_event(self) -> Optional[CgStreamEvent]:
+        """The oldest unread stream event (a new CgStreamEvent), or None."""
+        e = CgStreamEvent()
+        return e if self.receive_event_into(e) else None
+
+    def stats(self) -> CgSubscriberStats:
+        """Counters since opening (cg_subscriber_get_stats)."""
+        s = CgSubscriberStats()
+        _check(self._lib, "cg_subscriber_get_stats", self._lib.cg_subscriber_get_stats(self.handle, ctypes.byref(s)))
+        return s
 

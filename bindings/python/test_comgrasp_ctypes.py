@@ -7,7 +7,7 @@ Environment: COMGRASP_LIB (the library; default: comgrasp_ctypes.find_library())
 COMGRASP_TEST_BUNDLE (default: models/tiny of this source tree), COMGRASP_C_LAYOUT (the
 output of tests/host_support/layout.c: the C compiler's struct layout; without it the
 layout is checked against the sizes documented in comgrasp.h). tests/python_binding.rs sets
-all three.
+all three. The shared-memory tests publish under names with this process's id.
 """
 
 import ctypes
@@ -21,7 +21,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import comgrasp_ctypes as cg  # noqa: E402
-from comgrasp_ctypes import CgFrame, Coords, ComgraspError, Engine, Status  # noqa: E402
+from comgrasp_ctypes import CgFrame, CgStreamEvent, Coords, ComgraspError, Engine, EventKind, Status, Subscriber  # noqa: E402
 
 BUNDLE = os.environ.get("COMGRASP_TEST_BUNDLE", str(HERE.parent.parent / "models" / "tiny"))
 PROMPT = "A woman drinks from the mug"
@@ -44,23 +44,37 @@ def test_layout_matches_c():
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
     assert ctypes.sizeof(cg.CgStreamConfig) == 40
-    assert ctypes.sizeof(cg.CgEngineConfig) == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
+    assert ctypes.sizeof(cg.CgEngineConfig) == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
+    assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
+    assert ctypes.sizeof(cg.CgSubscriberConfig) == 16 and ctypes.sizeof(CgStreamEvent) == 280
+    assert ctypes.sizeof(cg.CgSubscriberStats) == 48 and ctypes.sizeof(cg.CgPublisherStats) == 40
     assert CgFrame.contact.offset == 940 and CgFrame.joint_positions.offset == 948
+    ec = cg.CgEngineConfig()
+    assert lib.cg_engine_config_init_sized(ctypes.byref(ec), ctypes.sizeof(ec)) == Status.OK
+    assert ec.struct_size == ctypes.sizeof(ec) and ec.publish_name is None
+    sc = cg.CgSubscriberConfig()
+    assert lib.cg_subscriber_config_init(ctypes.byref(sc)) == Status.OK
+    assert sc.struct_size == ctypes.sizeof(sc) and sc.buffer_frames == cg.MAX_SUBSCRIBER_BUFFER
     path = os.environ.get("COMGRASP_C_LAYOUT")
     if not path:
         return
-    types = {"cg_frame": CgFrame, "cg_engine_config": cg.CgEngineConfig, "cg_stream_config": cg.CgStreamConfig}
+    types = {"cg_frame": CgFrame, "cg_engine_config": cg.CgEngineConfig, "cg_stream_config": cg.CgStreamConfig,
+             "cg_subscriber_config": cg.CgSubscriberConfig, "cg_stream_event": CgStreamEvent,
+             "cg_subscriber_stats": cg.CgSubscriberStats, "cg_publisher_stats": cg.CgPublisherStats}
     seen = {t: 0 for t in types.values()}
+    sized = set()
     for line in Path(path).read_text().splitlines():
         w = line.split()
         if w[0] == "size":
             assert ctypes.sizeof(types[w[1]]) == int(w[2]), line
+            sized.add(types[w[1]])
         elif w[0] == "offset":
             t = types[w[1]]
             assert getattr(t, w[2]).offset == int(w[3]), f"{line}: ctypes has {getattr(t, w[2]).offset}"
             seen[t] += 1
     for t, n in seen.items():
         assert n == len(t._fields_), f"{t.__name__}: C has {n} fields, ctypes {len(t._fields_)}"
+    assert sized == set(types.values()), f"sizes missing from the layout file: {set(types.values()) - sized}"
 
 
 def test_version():
@@ -218,6 +232,103 @@ def test_engine_close_cancels_streams():
     except ValueError:
         pass
     s.close()
+
+
+_names = iter(range(1, 1 << 30))
+
+
+def unique_name(tag: str) -> str:
+    """A publish name no other process (test run) uses."""
+    return f"py-{os.getpid()}-{tag}-{next(_names)}"
+
+
+def test_shm_subscriber_receives_the_polled_frames():
+    name = unique_name("sub")
+    with engine(publish_name=name) as e, Subscriber(name, 256) as sub:
+        assert e.publisher_stats().subscribers == 1 and sub.stats().publishers == 1
+        assert sub.receive() is None and sub.receive_event() is None  # nothing before the stream
+        polled, received, events = [], [], []
+        f, r = CgFrame(), CgFrame()
+        with e.start(PROMPT, seed=5) as s:
+            deadline = time.monotonic() + 120
+            while True:
+                assert time.monotonic() < deadline
+                st = s.wait_into(f, 5)
+                if st == Status.OK:
+                    polled.append(CgFrame.from_buffer_copy(f))
+                while sub.receive_into(r):  # the same frame object, reused
+                    received.append(CgFrame.from_buffer_copy(r))
+                events.extend(iter(sub.receive_event, None))
+                if st == Status.END:
+                    break
+            # Every frame and the ENDED event were published before the stream reported END.
+            deadline = time.monotonic() + 5
+            while (len(received) < len(polled) or len(events) < 2) and time.monotonic() < deadline:
+                got = sub.receive()
+                if got is not None:
+                    received.append(got)
+                events.extend(iter(sub.receive_event, None))
+                if got is None:
+                    time.sleep(0.001)
+            n = len(polled)
+            assert n > 0 and n % 16 == 0, n
+            assert len(received) == n, f"received {len(received)} of {n} frames"
+            assert sub.receive() is None
+            for i, (a, b) in enumerate(zip(polled, received)):
+                assert (b.stream_id, b.frame_index) == (s.id, i), (i, b)
+                assert (b.stream_id, b.frame_index, b.time_s, b.is_last) == (a.stream_id, a.frame_index, a.time_s, a.is_last)
+                assert bytes(b.root_translation) == bytes(a.root_translation)
+                assert bytes(b.body_rotations) == bytes(a.body_rotations)
+                assert bytes(b) == bytes(a), f"frame {i} differs"
+            assert received[-1].is_last == 1
+
+            assert [ev.kind for ev in events] == [EventKind.STARTED, EventKind.ENDED], events
+            assert all(ev.stream_id == s.id and ev.fps == 30.0 and ev.text_str == PROMPT for ev in events), events
+            assert (events[0].frame_count, events[1].frame_count) == (0, n)
+
+            st = sub.stats()
+            assert (st.frames_received, st.frames_dropped, st.events_received, st.events_dropped) == (n, 0, 2, 0), st
+            assert (st.publisher_changes, st.publishers) == (0, 1), st
+            p = e.publisher_stats()
+            assert (p.frames_published, p.frames_skipped, p.events_published, p.events_skipped) == (n, 0, 2, 0), p
+            assert p.subscribers == 1 and p.to_dict()["frames_published"] == n
+        h = sub.handle
+        sub.close()
+        sub.close()  # idempotent
+        lib = cg.load()
+        assert lib.cg_subscriber_close(h) == Status.ERR_INVALID_HANDLE  # double close
+        assert lib.cg_subscriber_receive(h, ctypes.byref(f)) == Status.ERR_INVALID_HANDLE
+        try:
+            sub.receive()
+            raise AssertionError("receive on a closed subscriber")
+        except ValueError:
+            pass
+        assert e.publisher_stats().subscribers == 0
+
+
+def test_shm_errors():
+    with engine() as e:
+        assert raises(e.publisher_stats).status == Status.ERR_WRONG_STATE
+    for bad in ["", "a/b", "with space", "..", "\u00e9", "n" * (cg.MAX_PUBLISH_NAME_BYTES + 1)]:
+        assert raises(engine, publish_name=bad).status == Status.ERR_INVALID_ARGUMENT, bad
+        assert raises(Subscriber, bad).status == Status.ERR_INVALID_ARGUMENT, bad
+    assert raises(Subscriber, "ok\0hidden").status == Status.ERR_INVALID_ARGUMENT
+    assert raises(engine, publish_name="ok\0hidden").status == Status.ERR_INVALID_ARGUMENT
+    assert raises(Subscriber, None).status == Status.ERR_NULL_POINTER
+    name = unique_name("err")
+    for frames in (0, cg.MAX_SUBSCRIBER_BUFFER + 1):
+        err = raises(Subscriber, name, frames)
+        assert err.status == Status.ERR_INVALID_ARGUMENT and "buffer_frames" in err.message, err
+    longest = (name + "x" * cg.MAX_PUBLISH_NAME_BYTES)[: cg.MAX_PUBLISH_NAME_BYTES]
+    lib = cg.load()
+    with Subscriber(longest.encode(), 1) as sub:
+        assert sub.receive() is None and sub.receive_event() is None and sub.stats().publishers == 0
+        assert lib.cg_subscriber_receive(sub.handle, None) == Status.ERR_NULL_POINTER
+        assert lib.cg_subscriber_receive_event(sub.handle, None) == Status.ERR_NULL_POINTER
+        assert lib.cg_subscriber_get_stats(sub.handle, None) == Status.ERR_NULL_POINTER
+    assert lib.cg_subscriber_close(None) == Status.OK
+    with engine() as e:
+        assert lib.cg_subscriber_receive(e.handle, ctypes.byref(CgFrame())) == Status.ERR_INVALID_HANDLE
 
 
 def main() -> int:

@@ -13,7 +13,8 @@ use super::status::cg_status;
 use crate::engine::{EngineConfig, StreamConfig};
 use crate::frame::{cg_coordinate_system, CoordinateSystem};
 
-/// Settings of a new engine. Initialize with `cg_engine_config_init`, then change fields.
+/// Settings of a new engine. Initialize with `cg_engine_config_init(&cfg)` (a macro that
+/// passes `sizeof cfg` to `cg_engine_config_init_sized`), then change fields.
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
 pub struct cg_engine_config {
@@ -96,7 +97,7 @@ pub struct cg_stream_config {
 /// Size of the first published version of each struct: the smallest `struct_size`
 /// accepted. Frozen: fields appended later take their defaults when a host's struct is
 /// shorter (`cg_engine_config` v1 ended at `reserved`, before `publish_name`).
-const ENGINE_CONFIG_V1_SIZE: usize = 32;
+const ENGINE_CONFIG_V1_SIZE: usize = std::mem::offset_of!(cg_engine_config, publish_name);
 const STREAM_CONFIG_V1_SIZE: usize = size_of::<cg_stream_config>();
 
 impl Default for cg_engine_config {
@@ -246,18 +247,42 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
     })
 }
 
-/// Fills `*cfg` with the defaults and the right `struct_size`. Call it before changing
-/// fields, so fields added in later versions get their defaults. Returns
-/// `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
+/// Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
+/// `size` (capped at this library's `sizeof(cg_engine_config)`). `size` is the HOST's
+/// `sizeof(cg_engine_config)`: the header's `cg_engine_config_init(cfg)` macro passes it, so
+/// a library never writes past a host's struct, whichever of the two is newer. Call it
+/// before changing fields, so fields added in later versions get their defaults. Errors:
+/// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_ARGUMENT` (`size` below the first version's 32
+/// bytes). Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_config_init_sized(cfg: *mut cg_engine_config, size: usize) -> cg_status {
+    boundary("cg_engine_config_init_sized", || unsafe { engine_config_init(cfg, size) })
+}
+
+/// The first version's entry point, for binaries built against the first header (whose
+/// struct ends before `publish_name`): fills the first version's 32 bytes. Code compiled
+/// with the current header reaches `cg_engine_config_init_sized` through the
+/// `cg_engine_config_init(cfg)` macro instead. Errors: `CG_ERR_NULL_POINTER`. Any thread.
 #[no_mangle]
 pub unsafe extern "C" fn cg_engine_config_init(cfg: *mut cg_engine_config) -> cg_status {
-    boundary("cg_engine_config_init", || {
-        if cfg.is_null() {
-            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_engine_config_init: cfg is NULL"));
-        }
-        unsafe { cfg.write_unaligned(cg_engine_config::default()) };
-        Ok(cg_status::CG_OK)
-    })
+    boundary("cg_engine_config_init", || unsafe { engine_config_init(cfg, ENGINE_CONFIG_V1_SIZE) })
+}
+
+/// SAFETY: `cfg` is NULL or valid for `size` writable bytes.
+unsafe fn engine_config_init(cfg: *mut cg_engine_config, size: usize) -> Result<cg_status, Failure> {
+    if cfg.is_null() {
+        return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_engine_config_init: cfg is NULL"));
+    }
+    if size < ENGINE_CONFIG_V1_SIZE {
+        return Err(Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("cg_engine_config_init: size {size} is below the first version's {ENGINE_CONFIG_V1_SIZE} bytes"),
+        ));
+    }
+    let n = size.min(size_of::<cg_engine_config>());
+    let defaults = cg_engine_config { struct_size: n as u32, ..cg_engine_config::default() };
+    unsafe { std::ptr::copy_nonoverlapping(&defaults as *const cg_engine_config as *const u8, cfg as *mut u8, n) };
+    Ok(cg_status::CG_OK)
 }
 
 /// Fills `*cfg` with the defaults (`use_defaults = CG_USE_DEFAULT_ALL`) and the right
@@ -316,6 +341,15 @@ mod tests {
         let mut named = cg_engine_config::default();
         named.publish_name = c"game".as_ptr();
         assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap().publish_name.as_deref(), Some("game"));
+        // Init never writes past the host's struct: a v1-sized host keeps its next bytes.
+        let mut host = V1 { struct_size: 0, coordinate_system: 9, rest: [7; 3], trailing_garbage: 0x1234 };
+        let p = &mut host as *mut V1 as *mut cg_engine_config;
+        assert_eq!(unsafe { cg_engine_config_init(p) }, cg_status::CG_OK);
+        assert_eq!((host.struct_size, host.coordinate_system, host.trailing_garbage), (32, 0, 0x1234));
+        assert_eq!(unsafe { cg_engine_config_init_sized(p, 31) }, cg_status::CG_ERR_INVALID_ARGUMENT);
+        let mut full = cg_engine_config { max_streams: 0, ..Default::default() };
+        assert_eq!(unsafe { cg_engine_config_init_sized(&mut full, 4096) }, cg_status::CG_OK, "bigger host: capped");
+        assert_eq!((full.struct_size as usize, full.max_streams), (size_of::<cg_engine_config>(), 16));
         named.publish_name = c"".as_ptr();
         assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
     }

@@ -97,7 +97,7 @@ pub unsafe extern "C" fn cg_engine_stream_count(engine: *mut cg_engine, out: *mu
 /// the first `limit + 1` bytes (so an over-long or unterminated text is never scanned far).
 ///
 /// SAFETY: `p` points to a NUL-terminated string or at least `limit + 1` readable bytes.
-unsafe fn bounded_strlen(p: *const c_char, limit: usize) -> Option<usize> {
+pub(crate) unsafe fn bounded_strlen(p: *const c_char, limit: usize) -> Option<usize> {
     (0..=limit).find(|&i| unsafe { *p.add(i) } == 0)
 }
 

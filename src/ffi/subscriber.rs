@@ -1,7 +1,7 @@
 //! Shared-memory subscriber functions, so C, C++ and C# processes read an engine's frames
 //! without Rust: open by publish name, receive frames and stream events (never blocking),
 //! read counters, close. Also the publishing engine's counters.
-use std::ffi::{c_char, CStr};
+use std::ffi::c_char;
 use std::mem::size_of;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -9,7 +9,7 @@ use std::sync::Arc;
 use parking_lot::Mutex;
 
 use super::config::read_versioned;
-use super::engine::lookup_engine;
+use super::engine::{bounded_strlen, lookup_engine};
 use super::handle::{cg_subscriber, SubscriberEntry, SUBSCRIBERS};
 use super::panic::{boundary, Failure, PoisonOnUnwind};
 use super::status::cg_status;
@@ -149,9 +149,15 @@ pub unsafe extern "C" fn cg_subscriber_open(
         if config.reserved != 0 {
             return Err(Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, "cg_subscriber_config.reserved must be 0"));
         }
-        // Bounded read: a valid name is at most CG_MAX_PUBLISH_NAME_BYTES.
-        let bytes = unsafe { CStr::from_ptr(name) }.to_bytes();
-        let name = std::str::from_utf8(&bytes[..bytes.len().min(CG_MAX_PUBLISH_NAME_BYTES + 1)])
+        // Never scan further than one byte past the longest valid name.
+        let len = unsafe { bounded_strlen(name, CG_MAX_PUBLISH_NAME_BYTES) }.ok_or_else(|| {
+            Failure::new(
+                cg_status::CG_ERR_INVALID_ARGUMENT,
+                format_args!("name is longer than {CG_MAX_PUBLISH_NAME_BYTES} bytes"),
+            )
+        })?;
+        let bytes = unsafe { std::slice::from_raw_parts(name.cast::<u8>(), len) };
+        let name = std::str::from_utf8(bytes)
             .map_err(|_| Failure::new(cg_status::CG_ERR_INVALID_UTF8, "name is not valid UTF-8"))?;
         let subscriber = FrameSubscriber::open(name, config.buffer_frames as usize)?;
         let entry = Arc::new(SubscriberEntry { subscriber: Mutex::new(subscriber), poisoned: AtomicBool::new(false) });

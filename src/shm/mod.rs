@@ -27,6 +27,7 @@ mod node;
 pub mod publisher;
 pub mod subscriber;
 
+pub use node::reclaim_dead_nodes;
 pub use publisher::{FramePublisher, PublisherStats};
 pub use records::*;
 pub use subscriber::{FrameSubscriber, SubscriberStats};

@@ -35,6 +35,16 @@ pub(crate) fn create_node() -> Result<Node<Ipc>> {
     Ok(node)
 }
 
+/// What processes that died without cleaning up (killed publishers or subscribers) left in
+/// shared memory, reclaimed now: `(nodes cleaned, nodes that could not be)`. Publishers and
+/// subscribers do this by themselves when they are created and when a stream starts; this
+/// is for tools (`comgrasp shm-clean`) and tests.
+pub fn reclaim_dead_nodes() -> Result<(u64, u64)> {
+    let node = create_node()?;
+    let state = node.try_cleanup_dead_nodes();
+    Ok((state.cleanups, state.failed_cleanups))
+}
+
 fn service_name(name: &str) -> Result<ServiceName> {
     name.try_into().map_err(|e| shm_error(&format!("service name {name:?}"), e))
 }

@@ -1,4 +1,5 @@
-/* Prints the C compiler's layout of the ABI structs of include/comgrasp.h, one fact per line:
+/* Prints the C compiler's layout of the ABI structs of include/comgrasp.h (cg_frame, the
+ * config structs, and the shared-memory records and counters), one fact per line:
  *   size STRUCT BYTES
  *   offset STRUCT FIELD BYTES
  * The C# and Python binding tests compare their struct declarations with it (field names
@@ -41,6 +42,7 @@ int main(void) {
     OFF(cg_engine_config, ring_capacity);
     OFF(cg_engine_config, max_streams);
     OFF(cg_engine_config, reserved);
+    OFF(cg_engine_config, publish_name);
 
     SIZE(cg_stream_config);
     OFF(cg_stream_config, struct_size);
@@ -51,5 +53,32 @@ int main(void) {
     OFF(cg_stream_config, min_len);
     OFF(cg_stream_config, max_len);
     OFF(cg_stream_config, reserved);
+
+    SIZE(cg_subscriber_config);
+    OFF(cg_subscriber_config, struct_size);
+    OFF(cg_subscriber_config, buffer_frames);
+    OFF(cg_subscriber_config, reserved);
+
+    SIZE(cg_stream_event);
+    OFF(cg_stream_event, stream_id);
+    OFF(cg_stream_event, frame_count);
+    OFF(cg_stream_event, kind);
+    OFF(cg_stream_event, fps);
+    OFF(cg_stream_event, text);
+
+    SIZE(cg_subscriber_stats);
+    OFF(cg_subscriber_stats, frames_received);
+    OFF(cg_subscriber_stats, frames_dropped);
+    OFF(cg_subscriber_stats, events_received);
+    OFF(cg_subscriber_stats, events_dropped);
+    OFF(cg_subscriber_stats, publisher_changes);
+    OFF(cg_subscriber_stats, publishers);
+
+    SIZE(cg_publisher_stats);
+    OFF(cg_publisher_stats, frames_published);
+    OFF(cg_publisher_stats, frames_skipped);
+    OFF(cg_publisher_stats, events_published);
+    OFF(cg_publisher_stats, events_skipped);
+    OFF(cg_publisher_stats, subscribers);
     return 0;
 }

@@ -29,6 +29,7 @@ usage:
   comgrasp publish --name NAME --text PROMPT [options]   (iceoryx2 shared memory)
   comgrasp subscribe --name NAME [options]
   comgrasp shm-bench [options]
+  comgrasp shm-clean   reclaim shared memory that killed processes left behind
   comgrasp --help | --version
 
 Run `comgrasp generate --help` for the generate options.";
@@ -65,6 +66,7 @@ fn main() -> ExitCode {
         Some("publish") => shm::publish(&args[1..]),
         Some("subscribe") => shm::subscribe(&args[1..]),
         Some("shm-bench") => shm::bench(&args[1..]),
+        Some("shm-clean") => shm::clean(),
         Some(other) => Err(Failure::Usage(format!("unknown command {other:?}\n\n{USAGE}"))),
     };
     match result {

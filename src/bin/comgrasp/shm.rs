@@ -53,6 +53,16 @@ of subscriber processes in LIST (default 1,4): frames/s, received, dropped, late
 (2) the engine's generation time per frame with and without publishing (R interleaved
 runs each, default 5, one subscriber attached), and their ratio.";
 
+/// `comgrasp shm-clean`: reclaims what killed processes left in shared memory.
+pub fn clean() -> Result<(), Failure> {
+    let (cleaned, failed) = comgrasp::shm::reclaim_dead_nodes().map_err(run_err)?;
+    println!("dead iceoryx2 nodes cleaned: {cleaned}, could not be cleaned: {failed}");
+    if failed > 0 {
+        return Err(run_err("some dead nodes could not be cleaned (permissions? run as their user)"));
+    }
+    Ok(())
+}
+
 fn usage(e: String) -> Failure {
     Failure::Usage(e)
 }
