@@ -8,7 +8,7 @@
 //!
 //! [`Bundle::load_source`] does everything that can fail up front: schema, consistency,
 //! files and SHA-256 digests ([`verify`]), the graphs loaded into tract and checked against
-//! the manifest's declared inputs/outputs, the tokenizer's padding. After it returns, a
+//! the manifest's declared inputs/outputs, the tokenizer's padding and kind. After it returns, a
 //! stream can only fail on its own inputs.
 //!
 //! Cost: every listed file is hashed (streamed, ~0.3-1 GB/s; for the embedded bundle once
@@ -60,6 +60,7 @@ impl Bundle {
             verify::check_files(&source, &manifest)?;
         }
         let text = TextEncoder::load(&source, &manifest)?;
+        verify::check_tokenizer(&source, &manifest)?;
         let step = StepModel::load(&source, &manifest)?;
         let decoder = DecoderModel::load(&source, &manifest)?;
         verify::check_parity_index(&source, &manifest)?;

@@ -165,7 +165,9 @@ pub fn read(path: &Path) -> Result<Npy> {
 /// Parses a whole `.npy` file held in memory.
 pub fn parse(path: &Path, mut bytes: Vec<u8>) -> Result<Npy> {
     let h = parse_header(path, &bytes)?;
-    let need = h.len().checked_mul(h.dtype.size()).ok_or_else(|| err(path, "absurd .npy shape"))?;
+    // Checked: the shape comes from the file (a product that overflows is no real array).
+    let need = h.shape.iter().try_fold(h.dtype.size(), |acc, &d| acc.checked_mul(d))
+        .ok_or_else(|| err(path, "absurd .npy shape"))?;
     let have = bytes.len() - h.data_offset;
     if have != need {
         return Err(err(path, format!("{:?} {:?} needs {need} data bytes, file has {have}", h.dtype, h.shape)));

@@ -103,22 +103,51 @@ impl BundleSource {
         }
     }
 
-    /// Directory bundles: the directory exists. In-memory bundles always pass.
+    /// Directory bundles: the directory exists (the OS error is kept in the message, e.g.
+    /// a symlink loop's "Too many levels of symbolic links"). In-memory bundles always pass.
     pub(crate) fn check_root(&self) -> Result<()> {
         match &self.kind {
-            Kind::Dir(d) if !d.is_dir() => Err(Error::bundle(d, "not a directory")),
-            _ => Ok(()),
+            Kind::Dir(d) => match fs::metadata(d) {
+                Ok(meta) if meta.is_dir() => Ok(()),
+                Ok(_) => Err(Error::bundle(d, "not a directory")),
+                Err(e) if e.kind() == io::ErrorKind::NotFound => Err(Error::bundle(d, "not a directory (it does not exist)")),
+                Err(e) => Err(Error::bundle(d, format!("not a directory that can be opened: {e}"))),
+            },
+            Kind::Memory { .. } => Ok(()),
         }
     }
 
     /// The bytes of `rel`; borrowed (no copy) for an in-memory bundle. A name that is not
-    /// there is `io::ErrorKind::NotFound`, for either kind.
+    /// there is `io::ErrorKind::NotFound`, for either kind. On disk only a regular file is
+    /// read (see [`open_regular`]: a FIFO or device never blocks the loader).
     pub(crate) fn read(&self, rel: &str) -> io::Result<Cow<'static, [u8]>> {
+        self.read_at_most(rel, u64::MAX)
+    }
+
+    /// [`read`](Self::read), refusing a file longer than `limit` bytes
+    /// (`io::ErrorKind::InvalidData`) without reading more than `limit + 1` bytes of it.
+    pub(crate) fn read_at_most(&self, rel: &str, limit: u64) -> io::Result<Cow<'static, [u8]>> {
+        let too_long = |len: u64| {
+            io::Error::new(io::ErrorKind::InvalidData, format!("the file is {len} bytes, more than the {limit}-byte limit"))
+        };
         match &self.kind {
-            Kind::Dir(d) => fs::read(d.join(rel)).map(Cow::Owned),
-            Kind::Memory { files, embedded } => find(files, rel).map(Cow::Borrowed).ok_or_else(|| {
-                io::Error::new(io::ErrorKind::NotFound, format!("not among the {} files", label(*embedded)))
-            }),
+            Kind::Dir(d) => {
+                let (file, len) = open_regular(&d.join(rel))?;
+                if len > limit {
+                    return Err(too_long(len));
+                }
+                let mut buf = Vec::with_capacity(len as usize);
+                io::Read::read_to_end(&mut io::Read::take(file, limit.saturating_add(1)), &mut buf)?;
+                if buf.len() as u64 > limit {
+                    return Err(too_long(buf.len() as u64)); // grew while we read it
+                }
+                Ok(Cow::Owned(buf))
+            }
+            Kind::Memory { files, embedded } => match find(files, rel) {
+                Some(b) if b.len() as u64 > limit => Err(too_long(b.len() as u64)),
+                Some(b) => Ok(Cow::Borrowed(b)),
+                None => Err(io::Error::new(io::ErrorKind::NotFound, format!("not among the {} files", label(*embedded)))),
+            },
         }
     }
 
@@ -197,6 +226,29 @@ impl fmt::Debug for BundleSource {
 
 fn label(embedded: bool) -> &'static str {
     if embedded { EMBEDDED_LABEL } else { MEMORY_LABEL }
+}
+
+/// Opens `path` for reading only if it is a regular file (symlinks to one are followed),
+/// and returns it with its length. The open itself never blocks: it uses `O_NONBLOCK`, so a
+/// FIFO without a writer (which a plain `open` would wait on forever) or a device is opened,
+/// seen by `fstat` to be no regular file and refused (`io::ErrorKind::InvalidInput`). The
+/// check is on the opened descriptor, so the file cannot be swapped between check and read.
+/// `O_NONBLOCK` has no effect on reads of a regular file.
+pub(crate) fn open_regular(path: &Path) -> io::Result<(fs::File, u64)> {
+    let mut opts = fs::OpenOptions::new();
+    opts.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        opts.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = opts.open(path)?;
+    let meta = file.metadata()?;
+    if !meta.is_file() {
+        let what = if meta.is_dir() { "a directory" } else { "not a regular file (a FIFO, socket or device)" };
+        return Err(io::Error::new(io::ErrorKind::InvalidInput, format!("it is {what}")));
+    }
+    Ok((file, meta.len()))
 }
 
 fn find(files: StaticFiles, rel: &str) -> Option<&'static [u8]> {

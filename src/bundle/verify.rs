@@ -20,7 +20,6 @@
 //!   `parity/` directory is absent, the manifest's `parity/...` entries are not required;
 //!   when it is present, every listed parity file must be there and verify.
 use std::collections::BTreeSet;
-use std::fs;
 use std::io::Read;
 use std::path::{Component as PathComponent, Path, PathBuf};
 
@@ -38,32 +37,47 @@ fn ensure(cond: bool, path: &Path, msg: impl FnOnce() -> String) -> Result<()> {
     if cond { Ok(()) } else { Err(Error::bundle(path, msg())) }
 }
 
+/// Largest `manifest.json` accepted, in bytes. The shipped manifests are 36-60 KB (the
+/// provenance section included); a file far larger is not a manifest, and refusing it
+/// before reading bounds the loader's memory and time on a hostile bundle.
+pub const MANIFEST_MAX_BYTES: u64 = 16 << 20;
+
 /// Reads and parses `manifest.json`: format and version first, then the schema.
 pub fn read_manifest(src: &BundleSource) -> Result<Manifest> {
     src.check_root()?;
     let path = src.path_of(MANIFEST_FILE);
-    let text = match src.read(MANIFEST_FILE) {
-        Ok(b) => String::from_utf8(b.into_owned()).map_err(|_| Error::bundle(&path, "not UTF-8 text"))?,
+    let bytes = match src.read_at_most(MANIFEST_FILE, MANIFEST_MAX_BYTES) {
+        Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let what = if src.directory().is_some() { "the directory" } else { "the file set" };
             return Err(Error::bundle(&path, format!("missing: {what} is not a model bundle")))
         }
         Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
     };
+    parse_manifest(&path, &bytes)
+}
+
+/// Parses the bytes of a `manifest.json` (`path` only names it in errors): UTF-8, JSON,
+/// format and version first (so a newer bundle reports its version rather than an unknown
+/// field), then the version 1 schema. No consistency checks ([`check_manifest`] does them).
+/// Public for the fuzz target `manifest` (fuzz/).
+#[doc(hidden)]
+pub fn parse_manifest(path: &Path, bytes: &[u8]) -> Result<Manifest> {
+    let text = std::str::from_utf8(bytes).map_err(|_| Error::bundle(path, "not UTF-8 text"))?;
     let value: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
+        serde_json::from_str(text).map_err(|e| Error::bundle(path, format!("not valid JSON ({e})")))?;
     let format = value.get("format").and_then(|v| v.as_str());
-    ensure(format == Some(FORMAT), &path, || {
+    ensure(format == Some(FORMAT), path, || {
         format!("format is {}, expected {FORMAT:?}", value.get("format").map_or("missing".into(), |v| v.to_string()))
     })?;
     let version = value.get("version").and_then(|v| v.as_u64());
-    ensure(version == Some(VERSION), &path, || {
+    ensure(version == Some(VERSION), path, || {
         format!("unsupported bundle version {} (this engine reads version {VERSION})",
                 value.get("version").map_or("missing".into(), |v| v.to_string()))
     })?;
     // Parse again from the text, so schema errors carry a line and column.
-    serde_json::from_str::<Manifest>(&text)
-        .map_err(|e| Error::bundle(&path, format!("does not match the version {VERSION} schema: {e}")))
+    serde_json::from_str::<Manifest>(text)
+        .map_err(|e| Error::bundle(path, format!("does not match the version {VERSION} schema: {e}")))
 }
 
 /// Internal consistency of the manifest (no file is read).
@@ -124,12 +138,13 @@ fn check_layout(p: &Path, m: &Manifest) -> Result<()> {
             format!("component {}: slice {:?} disagrees with its layout fields {fields:?}", c.name, c.slice)
         })?;
         let j = c.codebook_size;
+        // Token ids travel as i64 (and as u32-friendly indices); keep them far from overflow
+        // (checked first, so j + 2 below cannot overflow).
+        ensure(j < (1 << 31), p, || format!("component {}: codebook_size {j} is absurd", c.name))?;
         ensure(j >= 1 && (c.end_id, c.pad_id, c.vocab_size) == (j, j + 1, j + 2), p, || {
             format!("component {}: codebook_size {j} needs end_id {j}, pad_id {}, vocab_size {}; got {}, {}, {}",
                     c.name, j + 1, j + 2, c.end_id, c.pad_id, c.vocab_size)
         })?;
-        // Token ids travel as i64 (and as u32-friendly indices); keep them far from overflow.
-        ensure(j < (1 << 31), p, || format!("component {}: codebook_size {j} is absurd", c.name))?;
         pos = b;
     }
     ensure(pos == FRAME_DIM, p, || format!("component slices end at {pos}, not {FRAME_DIM}"))
@@ -208,8 +223,11 @@ fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
     let (l, h, s) = (tr.n_layers, tr.n_heads, tr.cache_slots);
     ensure(tr.batch == 1, p, || format!("transformer batch {} != 1", tr.batch))?;
     ensure(l >= 1 && h >= 1, p, || "transformer n_layers and n_heads must be >= 1".into())?;
-    ensure(s == tr.block_size && s == m.l_max + 2, p, || {
-        format!("transformer cache_slots {s} / block_size {} must equal l_max + 2 = {}", tr.block_size, m.l_max + 2)
+    // Checked arithmetic throughout: the values come from a file (a hostile l_max of
+    // usize::MAX must be an error, not an overflow panic).
+    ensure(s == tr.block_size && Some(s) == m.l_max.checked_add(2), p, || {
+        format!("transformer cache_slots {s} / block_size {} must equal l_max + 2 = {}",
+                tr.block_size, m.l_max.saturating_add(2))
     })?;
     ensure(tr.d_text == m.text_encoder.dim, p, || {
         format!("transformer d_text {} != text_encoder dim {}", tr.d_text, m.text_encoder.dim)
@@ -223,7 +241,7 @@ fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
     let mut rows = Vec::new();
     for (i, c) in m.components.iter().enumerate() {
         let (w, d) = (tr.widths[i], tr.head_dims[i]);
-        ensure(d >= 1 && w == h * d, p, || {
+        ensure(d >= 1 && h.checked_mul(d) == Some(w), p, || {
             format!("transformer stream {}: width {w} != n_heads {h} x head_dim {d}", c.name)
         })?;
         for kv in ["k", "v"] {
@@ -240,7 +258,7 @@ fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
 fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
     let d = &m.decoder;
     ensure(d.batch == 1, p, || format!("decoder batch {} != 1", d.batch))?;
-    ensure(d.context_tokens >= 1 && d.state_tokens + 1 == d.context_tokens, p, || {
+    ensure(d.context_tokens >= 1 && d.state_tokens.checked_add(1) == Some(d.context_tokens), p, || {
         format!("decoder state_tokens {} != context_tokens {} - 1", d.state_tokens, d.context_tokens)
     })?;
     ensure(d.frames_per_token == m.frames_per_token, p, || {
@@ -255,8 +273,12 @@ fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
     ensure(d.state_pad_ids == books, p, || {
         format!("decoder state_pad_ids {:?} != codebook sizes {books:?}", d.state_pad_ids)
     })?;
-    let expect: Vec<Vec<Vec<i64>>> = vec![books.iter().map(|&j| vec![j; k1]).collect()];
-    ensure(d.initial_state == expect, p, || {
+    // Compared in place: building the expected array would allocate whatever state_tokens
+    // a hostile manifest declares.
+    let state_ok = d.initial_state.len() == 1
+        && d.initial_state[0].len() == books.len()
+        && d.initial_state[0].iter().zip(&books).all(|(row, &j)| row.len() == k1 && row.iter().all(|&v| v == j));
+    ensure(state_ok, p, || {
         "decoder initial_state is not the state_pad_ids repeated state_tokens times".into()
     })?;
     ensure(d.contact_channels == CONTACT_CHANNELS, p, || {
@@ -308,7 +330,7 @@ fn safe_rel(rel: &str) -> bool {
 
 /// Lower-case hex SHA-256 of a file, streamed.
 pub fn sha256_file(path: &Path) -> Result<String> {
-    let mut f = fs::File::open(path).map_err(|e| Error::bundle(path, format!("cannot open: {e}")))?;
+    let (mut f, _) = super::source::open_regular(path).map_err(|e| Error::bundle(path, format!("cannot open: {e}")))?;
     let mut h = Sha256::new();
     let mut buf = vec![0u8; 1 << 16];
     loop {
@@ -366,6 +388,67 @@ pub fn check_files(src: &BundleSource, m: &Manifest) -> Result<()> {
         let shown: Vec<&String> = extra.iter().take(8).collect();
         format!("{} file(s) not listed in the manifest: {shown:?}{}", extra.len(), if extra.len() > 8 { " ..." } else { "" })
     })
+}
+
+/// The tokenizer model type each text encoder kind is exported with.
+fn tokenizer_type_for(kind: &str) -> Option<&'static str> {
+    match kind {
+        "minilm" => Some("WordPiece"),
+        "clip" => Some("BPE"),
+        _ => None,
+    }
+}
+
+/// The id `tokenizer.json` gives `token`: an added (special) token first, else the model's
+/// vocabulary (a `{token: id}` map, or Unigram's `[[token, score], ...]` list).
+fn token_id(tok: &serde_json::Value, token: &str) -> Option<u64> {
+    let added = tok.get("added_tokens").and_then(|v| v.as_array()).and_then(|a| {
+        a.iter().find(|e| e.get("content").and_then(|c| c.as_str()) == Some(token)).and_then(|e| e.get("id")?.as_u64())
+    });
+    added.or_else(|| match tok.get("model")?.get("vocab")? {
+        serde_json::Value::Object(map) => map.get(token)?.as_u64(),
+        serde_json::Value::Array(list) => {
+            list.iter().position(|e| e.get(0).and_then(|t| t.as_str()) == Some(token)).map(|i| i as u64)
+        }
+        _ => None,
+    })
+}
+
+/// `tokenizer.json` belongs to this text encoder, not merely to some tokenizer: its model
+/// type is the one the encoder kind is exported with (MiniLM: WordPiece, CLIP: BPE), its
+/// padding id is the manifest's `text_encoder.pad_id`, and every special token the manifest
+/// records (`text_encoder.tokenizer.special_tokens`) has the recorded id. A tokenizer of
+/// another kind or another model would otherwise load and silently feed the graph wrong ids.
+/// Run after `TextEncoder::load`, which already rejected a file that is no tokenizer at all.
+pub fn check_tokenizer(src: &BundleSource, m: &Manifest) -> Result<()> {
+    let t = &m.text_encoder;
+    let rel = &t.files.tokenizer;
+    let path = src.path_of(rel);
+    let tok: serde_json::Value = serde_json::from_slice(&src.read_file(rel)?)
+        .map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
+    let model_type = tok.get("model").and_then(|v| v.get("type")).and_then(|v| v.as_str()).unwrap_or("(none)");
+    if let Some(want) = tokenizer_type_for(&t.kind) {
+        ensure(model_type == want, &path, || {
+            format!("tokenizer model type is {model_type}, a {} text encoder needs {want} (a tokenizer of another kind)", t.kind)
+        })?;
+    }
+    let pad = tok.get("padding").and_then(|p| p.get("pad_id")).and_then(|v| v.as_i64());
+    ensure(pad == Some(t.pad_id), &path, || {
+        format!("padding pad_id is {pad:?}, the manifest's text_encoder.pad_id is {}", t.pad_id)
+    })?;
+    if let Some(special) = t.tokenizer.get("special_tokens").and_then(|v| v.as_object()) {
+        for (role, spec) in special {
+            let (Some(token), Some(id)) = (spec.get("token").and_then(|v| v.as_str()), spec.get("id").and_then(|v| v.as_u64())) else {
+                continue;
+            };
+            let got = token_id(&tok, token);
+            ensure(got == Some(id), &path, || {
+                format!("special token {token:?} ({role}) has id {got:?} in the tokenizer, the manifest says {id} \
+                         (the tokenizer of another model?)")
+            })?;
+        }
+    }
+    Ok(())
 }
 
 /// parity/index.json agrees with the manifest and with the `.npy` headers (when parity/
