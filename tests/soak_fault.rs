@@ -29,6 +29,9 @@ const WARMUP: usize = if cfg!(miri) { 4 } else { 500 };
 
 /// A field of /proc/self/status in bytes (`VmRSS`, `VmHWM`) or as a count (`Threads`).
 fn proc_status(key: &str) -> Option<u64> {
+    if cfg!(miri) {
+        return None; // no file system under Miri's isolation
+    }
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with(key) && l[key.len()..].starts_with(':'))?;
     let mut parts = line[key.len() + 1..].split_whitespace();
@@ -47,6 +50,9 @@ fn mib(b: u64) -> f64 {
 /// CPU time (user + system, in clock ticks) of every thread named `comgrasp-stream*`.
 fn worker_cpu_ticks() -> Vec<u64> {
     let mut out = Vec::new();
+    if cfg!(miri) {
+        return out;
+    }
     let Ok(rd) = std::fs::read_dir("/proc/self/task") else { return out };
     for t in rd.flatten() {
         let comm = std::fs::read_to_string(t.path().join("comm")).unwrap_or_default();
@@ -193,14 +199,15 @@ fn stalled_consumer_with_scripted_streams() {
     let produced = e.counters.chunks_produced.load(Ordering::SeqCst);
     let rss_stalled = rss();
     let cpu_before = worker_cpu_ticks();
-    std::thread::sleep(Duration::from_millis(if cfg!(miri) { 50 } else { 700 }));
+    let watch = Duration::from_millis(if cfg!(miri) { 50 } else { 700 });
+    std::thread::sleep(watch);
     let produced_later = e.counters.chunks_produced.load(Ordering::SeqCst);
     let cpu_after = worker_cpu_ticks();
     let rss_later = rss();
     // 10 taken + RING buffered + one chunk in hand: at most ceil(42 / 16) + 1 chunks.
     let bound = (10 + RING).div_ceil(16) + 1;
     eprintln!(
-        "stalled consumer (scripted, ring {RING}): {produced} chunks produced then {produced_later} after 700 ms \
+        "stalled consumer (scripted, ring {RING}): {produced} chunks produced then {produced_later} after {watch:?} \
          (bound {bound}); worker CPU ticks {cpu_before:?} -> {cpu_after:?}; VmRSS {:.1} -> {:.1} MiB",
         mib(rss_stalled), mib(rss_later)
     );
@@ -230,7 +237,8 @@ fn cancel_from_another_thread_promptly(s: *mut cg_stream) {
     let (st, took) = canceller.join().unwrap();
     assert!(started.load(Ordering::SeqCst));
     assert_eq!(st, cg_status::CG_OK);
-    assert!(took < Duration::from_millis(50), "cg_cancel took {took:?}");
+    // (Miri's clock is virtual, so only the real run checks durations.)
+    assert!(cfg!(miri) || took < Duration::from_millis(50), "cg_cancel took {took:?}");
     let mut f = Frame::default();
     assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_CANCELLED);
     assert_eq!(unsafe { cg_stream_wait(s, 1000, &mut f) }, cg_status::CG_CANCELLED, "wait must not block after a cancel");
@@ -238,7 +246,7 @@ fn cancel_from_another_thread_promptly(s: *mut cg_stream) {
     assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
     let joined = t0.elapsed();
     eprintln!("cg_cancel from another thread took {took:?}; cg_stream_destroy joined the worker in {joined:?}");
-    assert!(joined < Duration::from_secs(2), "destroy took {joined:?}");
+    assert!(cfg!(miri) || joined < Duration::from_secs(2), "destroy took {joined:?}");
 }
 
 fn stalled_consumer_with_the_tiny_bundle() {

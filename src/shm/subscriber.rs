@@ -46,13 +46,14 @@ impl SequenceTracker {
         if h.publisher_id == self.publisher {
             // Older than expected cannot happen with one publisher (its sequence only
             // grows); ignore rather than count a negative gap.
-            self.dropped += h.sequence.saturating_sub(self.expected);
+            self.dropped = self.dropped.saturating_add(h.sequence.saturating_sub(self.expected));
         } else if self.publisher != 0 {
             // A new publisher: what it sent before we saw it is not ours to count.
             self.publisher_changes += 1;
         }
         self.publisher = h.publisher_id;
-        self.expected = h.sequence + 1;
+        // Wrapping: a header is written by another process and may hold any value.
+        self.expected = h.sequence.wrapping_add(1);
     }
 }
 
@@ -166,5 +167,10 @@ mod tests {
         t.see(&h(9, 0)); // publisher restarted
         t.see(&h(9, 1));
         assert_eq!((t.received, t.dropped, t.publisher_changes), (5, 3, 1));
+        // Hostile headers (any process of the user can write one) never overflow.
+        t.see(&h(9, u64::MAX));
+        t.see(&h(9, u64::MAX));
+        t.see(&h(9, 0));
+        assert_eq!(t.dropped, u64::MAX);
     }
 }
