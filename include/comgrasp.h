@@ -290,31 +290,33 @@ typedef struct cg_stream_event {
 typedef struct cg_subscriber_stats {
   // Frames received.
   uint64_t frames_received;
-  // Frames lost: overwritten because this subscriber read too slowly, or skipped by the
-  // publisher (counted from gaps in the publisher's sequence numbers, from the first
-  // frame this subscriber received from that publisher on).
+  // Frames lost: overwritten in this subscriber's full buffer (it read too slowly) or
+  // skipped by the publisher. Counted from gaps in each publisher's sequence numbers,
+  // so from the first frame received from that publisher on: a loss before it cannot be
+  // told from frames sent before the subscriber joined.
   uint64_t frames_dropped;
   // Stream events received.
   uint64_t events_received;
-  // Stream events lost.
+  // Stream events lost (as `frames_dropped`).
   uint64_t events_dropped;
-  // Times the frames started coming from another publisher (a publisher restarted, or
-  // several engines publish under the name).
+  // Times the frames came from a different publisher than the one before (a publisher
+  // restarted, or several engines publish under one name).
   uint64_t publisher_changes;
-  // Frame publishers connected right now.
+  // Frame publishers connected to the service right now.
   uint64_t publishers;
 } cg_subscriber_stats;
 
-// Counters of an engine's shared-memory publisher (`cg_engine_publisher_stats`). Fixed
-// layout.
+// Counters of an engine's shared-memory publisher since the engine was created
+// (`cg_engine_publisher_stats`). Fixed layout.
 typedef struct cg_publisher_stats {
   // Frames published (each reaches every subscriber connected at that moment).
   uint64_t frames_published;
-  // Frames skipped because no shared-memory sample was free (never waited for).
+  // Frames skipped because no shared-memory sample was free (never waited for;
+  // subscribers see the gap in the sequence and count it as dropped).
   uint64_t frames_skipped;
   // Stream events published.
   uint64_t events_published;
-  // Stream events skipped.
+  // Stream events skipped (as `frames_skipped`).
   uint64_t events_skipped;
   // Frame subscribers connected right now, in all processes.
   uint64_t subscribers;

@@ -8,24 +8,10 @@ use std::path::Path;
 
 use bundle_support::*;
 use comgrasp::bundle::Bundle;
-use comgrasp::Error;
 
-/// Loads `dir`, expecting an `Error::Bundle` whose path ends with `file` and whose message
-/// contains every string of `needles`. Returns the message for further checks.
+/// Loads `dir`, expecting an `Error::Bundle` about `file` (see [`assert_bundle_error`]).
 fn expect_bundle_error(dir: &Path, file: &str, needles: &[&str]) -> String {
-    match Bundle::load(dir) {
-        Ok(_) => panic!("loading {} succeeded, expected an error about {file}", dir.display()),
-        Err(Error::Bundle { path, msg }) => {
-            let full = format!("{}: {msg}", path.display());
-            assert!(path.ends_with(file), "error path {} does not name {file}: {full}", path.display());
-            for n in needles {
-                assert!(full.contains(n), "error {full:?} does not mention {n:?}");
-            }
-            println!("{full}");
-            full
-        }
-        Err(e) => panic!("expected Error::Bundle about {file}, got {e:?}"),
-    }
+    assert_bundle_error(Bundle::load(dir).map(drop), dir, file, needles)
 }
 
 #[test]

@@ -43,22 +43,11 @@ fn load_within(dir: &Path, limit: Duration) -> Result<comgrasp::Result<()>, Stri
     }
 }
 
-/// Expects an `Error::Bundle` whose path ends with `file` and whose text contains every
-/// needle; returns the whole message.
+/// Expects an `Error::Bundle` about `file` (see [`assert_bundle_error`]) from a load that
+/// must finish within [`LIMIT`].
 fn expect_bundle_error(dir: &Path, file: &str, needles: &[&str]) -> String {
-    match load_within(dir, LIMIT).unwrap_or_else(|e| panic!("{}: {e}", dir.display())) {
-        Ok(()) => panic!("loading {} succeeded, expected an error about {file}", dir.display()),
-        Err(Error::Bundle { path, msg }) => {
-            let full = format!("{}: {msg}", path.display());
-            assert!(path.ends_with(file), "error path {} does not name {file}: {full}", path.display());
-            for n in needles {
-                assert!(full.contains(n), "error {full:?} does not mention {n:?}");
-            }
-            println!("{full}");
-            full
-        }
-        Err(e) => panic!("expected Error::Bundle about {file}, got {e:?}"),
-    }
+    let loaded = load_within(dir, LIMIT).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
+    assert_bundle_error(loaded, dir, file, needles)
 }
 
 /// Writes `bytes` as `rel` and records its new size and SHA-256 in the manifest (also in

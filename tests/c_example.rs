@@ -2,12 +2,8 @@
 //! `bindings/cpp/example.cpp` with the system compilers against `include/comgrasp.h` and the
 //! freshly built shared library, runs them on the tiny bundle, and runs the C example under
 //! valgrind (no invalid accesses, no definite or indirect leaks).
-//!
-//! Finding the library: rustc writes every crate type of the lib (`cdylib` included) into
-//! the `deps` folder whenever it compiles the lib, and `cargo test` compiles it before this
-//! test, so `<this test binary's folder>/libcomgrasp.so` is always the current build. (The
-//! copy one level up only exists after `cargo build`, and may be stale, so it is only a
-//! fallback.) Programs link it by absolute path with an rpath, so no `LD_LIBRARY_PATH`.
+//! Programs are built by `host_support::compile` (the current library, linked by absolute
+//! path with an rpath).
 #![cfg(unix)]
 
 use std::path::{Path, PathBuf};
@@ -16,49 +12,12 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 mod host_support;
-use host_support::{field, run as run_cmd};
+use host_support::{compile, field, run as run_cmd};
 
 const PROMPT: &str = "A woman drinks from the mug.";
 
-fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
 fn tiny() -> String {
-    root().join("models/tiny").to_string_lossy().into_owned()
-}
-
-/// The folder holding the freshest `libcomgrasp` shared library.
-fn lib_dir() -> PathBuf {
-    let name = if cfg!(target_os = "macos") { "libcomgrasp.dylib" } else { "libcomgrasp.so" };
-    let exe = std::env::current_exe().expect("test binary path");
-    let deps = exe.parent().expect("deps folder").to_path_buf();
-    let candidates = [deps.clone(), deps.parent().expect("profile folder").to_path_buf()];
-    candidates
-        .iter()
-        .find(|d| d.join(name).is_file())
-        .cloned()
-        .unwrap_or_else(|| panic!("{name} not found in {candidates:?}; is crate-type \"cdylib\" still in Cargo.toml?"))
-}
-
-/// Compiles `sources` with `compiler` (or `$env_var`) into target/tmp/`out`, once per run.
-fn compile(env_var: &str, compiler: &str, std: &str, sources: &[&str], out: &str, extra: &[&str]) -> PathBuf {
-    let cc = std::env::var(env_var).unwrap_or_else(|_| compiler.into());
-    let dir = lib_dir();
-    let exe = Path::new(env!("CARGO_TARGET_TMPDIR")).join(out);
-    let mut cmd = Command::new(&cc);
-    cmd.current_dir(root())
-        .args([std, "-g", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-Iinclude", "-Ibindings/cpp"])
-        .args(sources)
-        .arg("-o")
-        .arg(&exe)
-        .arg(format!("-L{}", dir.display()))
-        .arg("-lcomgrasp")
-        .arg(format!("-Wl,-rpath,{}", dir.display()))
-        .args(extra);
-    let o = cmd.output().unwrap_or_else(|e| panic!("cannot run the compiler {cc:?} ({e}); set ${env_var}"));
-    assert!(o.status.success(), "{cmd:?} failed:\n{}", String::from_utf8_lossy(&o.stderr));
-    exe
+    host_support::tiny().to_string_lossy().into_owned()
 }
 
 fn c_example() -> &'static Path {

@@ -23,23 +23,7 @@ const PACED: &[&str] = &["--wait-subscribers", "1", "--poll-interval-ms", "5", "
 
 fn c_subscriber() -> &'static Path {
     static EXE: OnceLock<PathBuf> = OnceLock::new();
-    EXE.get_or_init(|| {
-        let cc = std::env::var("CC").unwrap_or_else(|_| "cc".into());
-        require_tool(&cc, "--version");
-        let dir = lib_dir();
-        let exe = scratch("shm_ipc").join("subscribe");
-        run_ok(
-            Command::new(&cc)
-                .current_dir(root())
-                .args(["-std=c11", "-g", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-Iinclude", "examples_c/subscribe.c", "-o"])
-                .arg(&exe)
-                .arg(format!("-L{}", dir.display()))
-                .arg("-lcomgrasp")
-                .arg(format!("-Wl,-rpath,{}", dir.display())),
-            Duration::from_secs(120),
-        );
-        exe
-    })
+    EXE.get_or_init(|| compile("CC", "cc", "-std=c11", &["examples_c/subscribe.c"], "shm_ipc_subscribe", &[]))
 }
 
 /// A child process whose stdout lines arrive on a channel.

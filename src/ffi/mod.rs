@@ -36,5 +36,6 @@ pub use last_error::*;
 pub use status::*;
 pub use stream::*;
 pub use subscriber::*;
+pub use crate::shm::{cg_publisher_stats, cg_subscriber_stats};
 pub use crate::shm::records::{cg_stream_event, CG_EVENT_TEXT_BYTES, CG_MAX_PUBLISH_NAME_BYTES, CG_MAX_SUBSCRIBER_BUFFER, CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED, CG_STREAM_EVENT_STARTED};
 pub use version::*;

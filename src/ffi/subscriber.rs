@@ -14,7 +14,10 @@ use super::handle::{cg_subscriber, SubscriberEntry, SUBSCRIBERS};
 use super::panic::{boundary, Failure, PoisonOnUnwind};
 use super::status::cg_status;
 use crate::frame::cg_frame;
-use crate::shm::{cg_stream_event, FrameSubscriber, CG_MAX_PUBLISH_NAME_BYTES, CG_MAX_SUBSCRIBER_BUFFER};
+use crate::shm::{
+    cg_publisher_stats, cg_stream_event, cg_subscriber_stats, FrameSubscriber, CG_MAX_PUBLISH_NAME_BYTES,
+    CG_MAX_SUBSCRIBER_BUFFER,
+};
 
 /// Settings of a subscriber. Initialize with `cg_subscriber_config_init`, then change fields.
 #[repr(C)]
@@ -38,44 +41,6 @@ impl Default for cg_subscriber_config {
             reserved: 0,
         }
     }
-}
-
-/// Counters of a subscriber since it was opened (`cg_subscriber_get_stats`). Fixed layout.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default)]
-pub struct cg_subscriber_stats {
-    /// Frames received.
-    pub frames_received: u64,
-    /// Frames lost: overwritten because this subscriber read too slowly, or skipped by the
-    /// publisher (counted from gaps in the publisher's sequence numbers, from the first
-    /// frame this subscriber received from that publisher on).
-    pub frames_dropped: u64,
-    /// Stream events received.
-    pub events_received: u64,
-    /// Stream events lost.
-    pub events_dropped: u64,
-    /// Times the frames started coming from another publisher (a publisher restarted, or
-    /// several engines publish under the name).
-    pub publisher_changes: u64,
-    /// Frame publishers connected right now.
-    pub publishers: u64,
-}
-
-/// Counters of an engine's shared-memory publisher (`cg_engine_publisher_stats`). Fixed
-/// layout.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default)]
-pub struct cg_publisher_stats {
-    /// Frames published (each reaches every subscriber connected at that moment).
-    pub frames_published: u64,
-    /// Frames skipped because no shared-memory sample was free (never waited for).
-    pub frames_skipped: u64,
-    /// Stream events published.
-    pub events_published: u64,
-    /// Stream events skipped.
-    pub events_skipped: u64,
-    /// Frame subscribers connected right now, in all processes.
-    pub subscribers: u64,
 }
 
 fn lookup(sub: *mut cg_subscriber) -> Result<Arc<SubscriberEntry>, Failure> {
@@ -177,16 +142,7 @@ pub unsafe extern "C" fn cg_subscriber_open(
 /// One thread at a time per subscriber.
 #[no_mangle]
 pub unsafe extern "C" fn cg_subscriber_receive(sub: *mut cg_subscriber, out: *mut cg_frame) -> cg_status {
-    boundary("cg_subscriber_receive", || {
-        if out.is_null() {
-            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));
-        }
-        with_subscriber(sub, |s| {
-            // SAFETY: the caller passes a valid, writable, aligned cg_frame.
-            let got = s.receive(unsafe { &mut *out })?;
-            Ok(if got { cg_status::CG_OK } else { cg_status::CG_PENDING })
-        })
-    })
+    boundary("cg_subscriber_receive", || unsafe { receive_with(sub, out, FrameSubscriber::receive) })
 }
 
 /// Like `cg_subscriber_receive`, for the stream events (`CG_STREAM_EVENT_*`: started,
@@ -194,15 +150,24 @@ pub unsafe extern "C" fn cg_subscriber_receive(sub: *mut cg_subscriber, out: *mu
 /// may be read before its last frames.
 #[no_mangle]
 pub unsafe extern "C" fn cg_subscriber_receive_event(sub: *mut cg_subscriber, out: *mut cg_stream_event) -> cg_status {
-    boundary("cg_subscriber_receive_event", || {
-        if out.is_null() {
-            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));
-        }
-        with_subscriber(sub, |s| {
-            // SAFETY: the caller passes a valid, writable, aligned cg_stream_event.
-            let got = s.receive_event(unsafe { &mut *out })?;
-            Ok(if got { cg_status::CG_OK } else { cg_status::CG_PENDING })
-        })
+    boundary("cg_subscriber_receive_event", || unsafe { receive_with(sub, out, FrameSubscriber::receive_event) })
+}
+
+/// Shared body of the two receive functions: `CG_OK` when `receive` copied a sample into
+/// `*out`, `CG_PENDING` when there was none.
+///
+/// SAFETY: `out` is NULL or a valid, writable, aligned `T`.
+unsafe fn receive_with<T>(
+    sub: *mut cg_subscriber,
+    out: *mut T,
+    receive: fn(&mut FrameSubscriber, &mut T) -> crate::Result<bool>,
+) -> Result<cg_status, Failure> {
+    if out.is_null() {
+        return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));
+    }
+    with_subscriber(sub, |s| {
+        let got = receive(s, unsafe { &mut *out })?;
+        Ok(if got { cg_status::CG_OK } else { cg_status::CG_PENDING })
     })
 }
 
@@ -213,16 +178,8 @@ pub unsafe extern "C" fn cg_subscriber_get_stats(sub: *mut cg_subscriber, out: *
         if out.is_null() {
             return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));
         }
-        let s = with_subscriber(sub, |s| Ok(s.stats()))?;
-        let c = cg_subscriber_stats {
-            frames_received: s.frames_received,
-            frames_dropped: s.frames_dropped,
-            events_received: s.events_received,
-            events_dropped: s.events_dropped,
-            publisher_changes: s.publisher_changes,
-            publishers: s.publishers,
-        };
-        unsafe { out.write(c) };
+        let stats = with_subscriber(sub, |s| Ok(s.stats()))?;
+        unsafe { out.write(stats) };
         Ok(cg_status::CG_OK)
     })
 }
@@ -254,17 +211,10 @@ pub unsafe extern "C" fn cg_engine_publisher_stats(engine: *mut super::cg_engine
         }
         let entry = lookup_engine(engine)?;
         let _poison = PoisonOnUnwind(&entry.poisoned);
-        let s = entry.engine.publisher_stats().ok_or_else(|| {
+        let stats = entry.engine.publisher_stats().ok_or_else(|| {
             Failure::new(cg_status::CG_ERR_WRONG_STATE, "the engine was created without cg_engine_config.publish_name")
         })?;
-        let c = cg_publisher_stats {
-            frames_published: s.frames_published,
-            frames_skipped: s.frames_skipped,
-            events_published: s.events_published,
-            events_skipped: s.events_skipped,
-            subscribers: s.subscribers,
-        };
-        unsafe { out.write(c) };
+        unsafe { out.write(stats) };
         Ok(cg_status::CG_OK)
     })
 }

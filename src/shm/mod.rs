@@ -28,6 +28,6 @@ pub mod publisher;
 pub mod subscriber;
 
 pub use node::reclaim_dead_nodes;
-pub use publisher::{FramePublisher, PublisherStats};
+pub use publisher::{cg_publisher_stats, FramePublisher, PublisherStats};
 pub use records::*;
-pub use subscriber::{FrameSubscriber, SubscriberStats};
+pub use subscriber::{cg_subscriber_stats, FrameSubscriber, SubscriberStats};

@@ -13,21 +13,25 @@ use super::records::*;
 use crate::error::Result;
 use crate::frame::cg_frame;
 
-/// Counters of a publisher since its engine was created.
+/// Counters of an engine's shared-memory publisher since the engine was created
+/// (`cg_engine_publisher_stats`). Fixed layout.
+#[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct PublisherStats {
-    /// Frames handed to iceoryx2 (each reaches every subscriber connected at that moment).
+pub struct cg_publisher_stats {
+    /// Frames published (each reaches every subscriber connected at that moment).
     pub frames_published: u64,
-    /// Frames skipped because no shared-memory sample could be loaned (never waited for;
+    /// Frames skipped because no shared-memory sample was free (never waited for;
     /// subscribers see the gap in the sequence and count it as dropped).
     pub frames_skipped: u64,
     /// Stream events published.
     pub events_published: u64,
     /// Stream events skipped (as `frames_skipped`).
     pub events_skipped: u64,
-    /// Frame subscribers connected to the service right now (all processes).
+    /// Frame subscribers connected right now, in all processes.
     pub subscribers: u64,
 }
+
+pub type PublisherStats = cg_publisher_stats;
 
 struct Port<T: Debug + ZeroCopySend + 'static> {
     publisher: Publisher<Ipc, T, cg_sample_header>,

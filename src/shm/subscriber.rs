@@ -9,9 +9,10 @@ use super::records::*;
 use crate::error::{Error, Result};
 use crate::frame::cg_frame;
 
-/// Counters of one subscriber since it was opened.
+/// Counters of a subscriber since it was opened (`cg_subscriber_get_stats`). Fixed layout.
+#[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SubscriberStats {
+pub struct cg_subscriber_stats {
     /// Frames received.
     pub frames_received: u64,
     /// Frames lost: overwritten in this subscriber's full buffer (it read too slowly) or
@@ -29,6 +30,8 @@ pub struct SubscriberStats {
     /// Frame publishers connected to the service right now.
     pub publishers: u64,
 }
+
+pub type SubscriberStats = cg_subscriber_stats;
 
 /// Counts lost samples from the (publisher, sequence) header of each received one.
 #[derive(Default)]

@@ -113,3 +113,22 @@ fn copy_dir(src: &Path, dst: &Path) {
         }
     }
 }
+
+/// Checks that a load of `dir` failed with an `Error::Bundle` whose path ends with `file`
+/// and whose message contains every string of `needles`. Returns the message for further
+/// checks.
+pub fn assert_bundle_error(loaded: comgrasp::Result<()>, dir: &Path, file: &str, needles: &[&str]) -> String {
+    match loaded {
+        Ok(()) => panic!("loading {} succeeded, expected an error about {file}", dir.display()),
+        Err(comgrasp::Error::Bundle { path, msg }) => {
+            let full = format!("{}: {msg}", path.display());
+            assert!(path.ends_with(file), "error path {} does not name {file}: {full}", path.display());
+            for n in needles {
+                assert!(full.contains(n), "error {full:?} does not mention {n:?}");
+            }
+            println!("{full}");
+            full
+        }
+        Err(e) => panic!("expected Error::Bundle about {file}, got {e:?}"),
+    }
+}

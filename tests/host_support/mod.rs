@@ -49,6 +49,30 @@ pub fn lib_dir() -> PathBuf {
         .unwrap_or_else(|| panic!("{name} + libcomgrasp.a not found in {candidates:?}; are crate-types cdylib and staticlib still in Cargo.toml?"))
 }
 
+/// Compiles `sources` with `$env_var` (else `compiler`) against `include/comgrasp.h` and the
+/// freshly built shared library (linked by absolute path with an rpath, so no
+/// `LD_LIBRARY_PATH`), warnings as errors, into `target/tmp/<out>`; returns the program.
+pub fn compile(env_var: &str, compiler: &str, std: &str, sources: &[&str], out: &str, extra: &[&str]) -> PathBuf {
+    let cc = std::env::var(env_var).unwrap_or_else(|_| compiler.into());
+    require_tool(&cc, "--version");
+    let dir = lib_dir();
+    let exe = Path::new(env!("CARGO_TARGET_TMPDIR")).join(out);
+    run_ok(
+        Command::new(&cc)
+            .current_dir(root())
+            .args([std, "-g", "-Wall", "-Wextra", "-Wpedantic", "-Werror", "-Iinclude", "-Ibindings/cpp"])
+            .args(sources)
+            .arg("-o")
+            .arg(&exe)
+            .arg(format!("-L{}", dir.display()))
+            .arg("-lcomgrasp")
+            .arg(format!("-Wl,-rpath,{}", dir.display()))
+            .args(extra),
+        Duration::from_secs(300),
+    );
+    exe
+}
+
 /// `target/<profile>`, where build.rs (build/packaging.rs) writes comgrasp.pc and the CMake package.
 pub fn profile_dir() -> PathBuf {
     let exe = std::env::current_exe().expect("test binary path");
