@@ -2,6 +2,8 @@
 # Create .venv (once) and install the training package with its test dependencies.
 # torch from PyPI is the CUDA build (~5 GB); it runs on the CPU when no GPU is present.
 set -euo pipefail
+# No wheel cache: torch and its CUDA wheels would otherwise take ~3 GB twice on the disk.
+export PIP_NO_CACHE_DIR=1
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
