@@ -81,6 +81,8 @@ fn c_example_is_clean_under_valgrind() {
     let o = run_cmd(
         Command::new("valgrind")
             .args(["--leak-check=full", "--errors-for-leak-kinds=definite,indirect", "--error-exitcode=99"])
+            // The same reviewed suppressions as scripts/sanitize.sh (each says why it exists).
+            .arg(format!("--suppressions={}/scripts/valgrind.supp", env!("CARGO_MANIFEST_DIR")))
             .arg(c_example())
             .args([tiny().as_str(), PROMPT]),
         Duration::from_secs(600),

@@ -222,6 +222,35 @@ pub struct TransformerSpec {
     pub cache_init: String,
     pub cache_update: String,
     pub steps: String,
+    /// Weights for the native step (src/model/native), when the exporter wrote them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub native: Option<NativeSpec>,
+}
+
+/// dtype of a native-path tensor file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NativeDtype {
+    Float32,
+    /// int8 per row, with `<name>.scale.npy` (float32, one per row).
+    Int8,
+}
+
+/// One tensor of a native section.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NativeTensor {
+    pub dtype: NativeDtype,
+    pub shape: Vec<usize>,
+}
+
+/// A `native` section: the PyTorch tensors of a graph, one `.npy` each under `dir`
+/// (export/native_weights.py), keyed by `state_dict` name.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NativeSpec {
+    pub dir: String,
+    pub tensors: BTreeMap<String, NativeTensor>,
 }
 
 /// The streaming decoder step graph (export/decoder_graph.py).
@@ -246,6 +275,9 @@ pub struct DecoderSpec {
     pub contact_channels: Vec<usize>,
     pub contact_is_probability: bool,
     pub contact_threshold: f64,
+    /// Weights for the native decoder (src/model/native), when the exporter wrote them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub native: Option<NativeSpec>,
 }
 
 /// The body skeleton used for forward kinematics.

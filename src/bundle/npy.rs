@@ -228,6 +228,14 @@ impl Npy {
         }
     }
 
+    /// The values as i8 (int8 arrays only).
+    pub fn to_i8(&self, path: &Path) -> Result<Vec<i8>> {
+        match self.dtype {
+            NpyDtype::I8 => Ok(self.data.iter().map(|&v| v as i8).collect()),
+            d => Err(err(path, format!("expected an int8 array, got {}", d.numpy_name()))),
+        }
+    }
+
     /// The values as u64 (uint64 arrays only).
     pub fn to_u64(&self, path: &Path) -> Result<Vec<u64>> {
         match self.dtype {

@@ -1,24 +1,80 @@
-//! The four streaming VQ decoders as one graph (`decoder.onnx`, export/decoder_graph.py):
-//! `state (1,4,K-1)` + `tokens (1,4)` -> `frames (1,F,335)` normalized features (contact
-//! channels already probabilities) + `next_state`. Decoding chunk by chunk equals decoding
-//! the whole sequence (DESIGN §3 deviation 1), so the engine emits F frames per token as
-//! soon as the token is sampled.
+//! The four streaming VQ decoders: `state (1,4,K-1)` + `tokens (1,4)` -> `frames (1,F,335)`
+//! normalized features (contact channels already probabilities). Decoding chunk by chunk
+//! equals decoding the whole sequence (DESIGN §3 deviation 1), so the engine emits F frames
+//! per token as soon as the token is sampled.
+//!
+//! Two implementations of the same function:
+//! * **native** (`native::decoder`, when the bundle has `decoder.native` weights): an
+//!   incremental decoder that keeps every layer's history and computes only the new
+//!   positions, allocation-free;
+//! * **tract** on `decoder.onnx` (export/decoder_graph.py), which recomputes the K-token
+//!   window per chunk; the reference the parity tests compare with.
+//!
+//! The native path is used when available; the environment variable `COMGRASP_DECODER`
+//! (`tract` or `native`, read at load) forces one, and [`DecoderModel::load_backend`]
+//! chooses explicitly.
 use std::sync::Arc;
 
 use parking_lot::Mutex;
 use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
-use crate::bundle::manifest::{Manifest, FRAME_DIM, N_STREAMS};
+use super::native::decoder::{NativeDecoder, NativeState};
+use crate::bundle::manifest::{Manifest, FRAME_DIM, MANIFEST_FILE, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
 
-/// The loaded decoder graph; shared by all streams of an engine.
+/// Environment variable that forces the decoder implementation: `tract` or `native`
+/// (unset or empty: native when the bundle has native weights, else tract).
+pub const DECODER_ENV: &str = "COMGRASP_DECODER";
+
+/// Which implementation runs a [`DecoderModel`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DecoderBackend {
+    /// `decoder.onnx` in tract.
+    Tract,
+    /// The incremental Rust decoder on the `decoder.native` weights.
+    Native,
+}
+
+impl DecoderBackend {
+    /// `"tract"` or `"native"` (the values `COMGRASP_DECODER` takes).
+    pub fn name(self) -> &'static str {
+        match self {
+            DecoderBackend::Tract => "tract",
+            DecoderBackend::Native => "native",
+        }
+    }
+
+    /// The backend `COMGRASP_DECODER` asks for (`None`: unset or empty, i.e. automatic).
+    pub fn from_env() -> Result<Option<DecoderBackend>> {
+        match std::env::var(DECODER_ENV) {
+            Err(std::env::VarError::NotPresent) => Ok(None),
+            Ok(v) if v.is_empty() => Ok(None),
+            Ok(v) if v.eq_ignore_ascii_case("tract") => Ok(Some(DecoderBackend::Tract)),
+            Ok(v) if v.eq_ignore_ascii_case("native") => Ok(Some(DecoderBackend::Native)),
+            Ok(v) => Err(Error::InvalidArgument(format!("{DECODER_ENV}={v:?}: expected \"tract\" or \"native\""))),
+            Err(e) => Err(Error::InvalidArgument(format!("{DECODER_ENV}: {e}"))),
+        }
+    }
+}
+
+/// The loaded decoder; shared by all streams of an engine.
 pub struct DecoderModel {
-    plan: Plan,
     frames_per_token: usize,
     state_tokens: usize,
     codebook: [usize; N_STREAMS],
+    imp: Imp,
+}
+
+#[allow(clippy::large_enum_variant)] // one per loaded bundle
+enum Imp {
+    Tract(TractDecoder),
+    Native(Arc<NativeDecoder>),
+}
+
+struct TractDecoder {
+    plan: Plan,
     /// (1, 4, K-1) initial state from the manifest.
     initial: Arc<Tensor>,
     /// (1, 4) token buffer and a spawned run state, cloned by `new_state`.
@@ -26,21 +82,29 @@ pub struct DecoderModel {
     template_run: Mutex<PlanState>,
 }
 
-/// One generation's decoder context (the previous K-1 tokens of every component).
+/// One generation's decoder context (the previous K-1 tokens of every component, or the
+/// native decoder's layer histories).
 pub struct DecoderState {
-    plan: Plan,
-    run: PlanState,
-    /// [state, tokens], as the graph takes them.
-    inputs: [Arc<Tensor>; 2],
-    /// The model's initial state (shared, read-only), for `reset`.
-    initial: Arc<Tensor>,
+    imp: StateImp,
     /// Tokens decoded so far.
     decoded: usize,
 }
 
+enum StateImp {
+    Tract {
+        plan: Plan,
+        run: PlanState,
+        /// [state, tokens], as the graph takes them.
+        inputs: [Arc<Tensor>; 2],
+        /// The model's initial state (shared, read-only), for `reset`.
+        initial: Arc<Tensor>,
+    },
+    Native { model: Arc<NativeDecoder>, state: NativeState },
+}
+
 impl std::fmt::Debug for DecoderModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("DecoderModel").field("frames_per_token", &self.frames_per_token)
+        f.debug_struct("DecoderModel").field("backend", &self.backend()).field("frames_per_token", &self.frames_per_token)
             .field("state_tokens", &self.state_tokens).field("codebook", &self.codebook).finish_non_exhaustive()
     }
 }
@@ -52,27 +116,42 @@ impl std::fmt::Debug for DecoderState {
 }
 
 impl DecoderModel {
-    /// Loads `decoder.file`; the manifest was verified (shapes and initial state).
+    /// Loads the decoder: native when the bundle has `decoder.native` weights, else
+    /// `decoder.file` in tract, unless `COMGRASP_DECODER` says otherwise. The manifest was
+    /// verified (shapes and initial state).
     pub fn load(src: &BundleSource, m: &Manifest) -> Result<DecoderModel> {
+        DecoderModel::load_backend(src, m, DecoderBackend::from_env()?)
+    }
+
+    /// Loads the decoder with the given backend (`None`: native when available). Asking for
+    /// `Native` from a bundle without `decoder.native` is an `Error::Bundle`.
+    pub fn load_backend(src: &BundleSource, m: &Manifest, backend: Option<DecoderBackend>) -> Result<DecoderModel> {
         let d = &m.decoder;
-        let path = src.path_of(&d.file);
-        let plan = graph::load(src, &d.file, &d.inputs, &d.outputs)?;
-        let k1 = d.state_tokens;
-        let flat: Vec<i64> = d.initial_state.iter().flatten().flatten().copied().collect();
-        let initial = Tensor::from_shape::<i64>(&[1, N_STREAMS, k1], &flat)
-            .map_err(|e| Error::bundle(&path, format!("decoder initial_state: {e:#}")))?;
-        let template_tokens = Tensor::zero::<i64>(&[1, N_STREAMS])
-            .map_err(|e| Error::bundle(&path, format!("{e:#}")))?;
-        let template_run = Mutex::new(graph::spawn(&plan, "decoder.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
-        Ok(DecoderModel {
-            plan,
-            frames_per_token: d.frames_per_token,
-            state_tokens: k1,
-            codebook: m.codebook_sizes(),
-            initial: Arc::new(initial),
-            template_tokens: Arc::new(template_tokens),
-            template_run,
-        })
+        let native = match (backend, &d.native) {
+            (Some(DecoderBackend::Tract), _) | (None, None) => None,
+            (_, Some(spec)) => Some(spec),
+            (Some(DecoderBackend::Native), None) => {
+                return Err(Error::bundle(src.path_of(MANIFEST_FILE), format!(
+                    "{DECODER_ENV}=native, but the manifest has no decoder.native weights")));
+            }
+        };
+        let imp = match native {
+            Some(spec) => {
+                // decoder.onnx stays the bundle's reference graph: it must still match its manifest.
+                graph::check(src, &d.file, &d.inputs, &d.outputs)?;
+                Imp::Native(Arc::new(NativeDecoder::load(src, m, spec)?))
+            }
+            None => Imp::Tract(TractDecoder::load(src, m)?),
+        };
+        Ok(DecoderModel { frames_per_token: d.frames_per_token, state_tokens: d.state_tokens, codebook: m.codebook_sizes(), imp })
+    }
+
+    /// The implementation in use.
+    pub fn backend(&self) -> DecoderBackend {
+        match self.imp {
+            Imp::Tract(_) => DecoderBackend::Tract,
+            Imp::Native(_) => DecoderBackend::Native,
+        }
     }
 
     /// Frames one token decodes to (F).
@@ -87,20 +166,29 @@ impl DecoderModel {
 
     /// The state of a new sequence.
     pub fn new_state(&self) -> DecoderState {
-        DecoderState {
-            plan: Arc::clone(&self.plan),
-            run: self.template_run.lock().clone(),
-            inputs: [Arc::new(Tensor::clone(&self.initial)), Arc::new(Tensor::clone(&self.template_tokens))],
-            initial: Arc::clone(&self.initial),
-            decoded: 0,
-        }
+        let imp = match &self.imp {
+            Imp::Tract(t) => StateImp::Tract {
+                plan: Arc::clone(&t.plan),
+                run: t.template_run.lock().clone(),
+                inputs: [Arc::new(Tensor::clone(&t.initial)), Arc::new(Tensor::clone(&t.template_tokens))],
+                initial: Arc::clone(&t.initial),
+            },
+            Imp::Native(n) => StateImp::Native { model: Arc::clone(n), state: n.new_state() },
+        };
+        DecoderState { imp, decoded: 0 }
     }
 
     /// Decodes one token per component (codes, `0 <= tokens[i] < codebook_size[i]`; End
     /// and Pad are not codes) into `out`: F frames x 335 normalized features, row-major,
-    /// contact channels 240 and 334 as probabilities. Advances `state`.
+    /// contact channels 240 and 334 as probabilities. Advances `state`. The native path
+    /// allocates nothing.
     pub fn decode(&self, state: &mut DecoderState, tokens: [i64; N_STREAMS], out: &mut [f32]) -> Result<()> {
-        if !Arc::ptr_eq(&state.plan, &self.plan) {
+        let same = match (&self.imp, &state.imp) {
+            (Imp::Tract(t), StateImp::Tract { plan, .. }) => Arc::ptr_eq(plan, &t.plan),
+            (Imp::Native(n), StateImp::Native { model, .. }) => Arc::ptr_eq(model, n),
+            _ => false,
+        };
+        if !same {
             return Err(Error::WrongState("this DecoderState was created by another DecoderModel".into()));
         }
         if out.len() != self.chunk_len() {
@@ -113,16 +201,41 @@ impl DecoderModel {
                 return Err(Error::InvalidArgument(format!("code {t} of component {s} outside the codebook 0..{j}")));
             }
         }
-        graph::slice_mut::<i64>(&mut state.inputs[1], "decoder tokens")?.copy_from_slice(&tokens);
-        let res = graph::run(&mut state.run, &state.inputs, "decoder.onnx")?;
+        match &mut state.imp {
+            StateImp::Tract { run, inputs, .. } => self.decode_tract(run, inputs, tokens, out)?,
+            StateImp::Native { model, state } => model.decode(state, tokens.map(|t| t as usize), out)?,
+        }
+        state.decoded += 1;
+        Ok(())
+    }
+
+    fn decode_tract(&self, run: &mut PlanState, inputs: &mut [Arc<Tensor>; 2], tokens: [i64; N_STREAMS],
+                    out: &mut [f32]) -> Result<()> {
+        graph::slice_mut::<i64>(&mut inputs[1], "decoder tokens")?.copy_from_slice(&tokens);
+        let res = graph::run(run, inputs, "decoder.onnx")?;
         if res.len() != 2 {
             return Err(Error::Inference(format!("decoder.onnx returned {} outputs, expected 2", res.len())));
         }
         out.copy_from_slice(graph::slice::<f32>(&res[0], "decoder frames", self.chunk_len())?);
         let next = graph::slice::<i64>(&res[1], "decoder next_state", N_STREAMS * self.state_tokens)?;
-        graph::slice_mut::<i64>(&mut state.inputs[0], "decoder state")?.copy_from_slice(next);
-        state.decoded += 1;
+        graph::slice_mut::<i64>(&mut inputs[0], "decoder state")?.copy_from_slice(next);
         Ok(())
+    }
+}
+
+impl TractDecoder {
+    fn load(src: &BundleSource, m: &Manifest) -> Result<TractDecoder> {
+        let d = &m.decoder;
+        let path = src.path_of(&d.file);
+        let plan = graph::load(src, &d.file, &d.inputs, &d.outputs)?;
+        let k1 = d.state_tokens;
+        let flat: Vec<i64> = d.initial_state.iter().flatten().flatten().copied().collect();
+        let initial = Tensor::from_shape::<i64>(&[1, N_STREAMS, k1], &flat)
+            .map_err(|e| Error::bundle(&path, format!("decoder initial_state: {e:#}")))?;
+        let template_tokens = Tensor::zero::<i64>(&[1, N_STREAMS])
+            .map_err(|e| Error::bundle(&path, format!("{e:#}")))?;
+        let template_run = Mutex::new(graph::spawn(&plan, "decoder.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+        Ok(TractDecoder { plan, initial: Arc::new(initial), template_tokens: Arc::new(template_tokens), template_run })
     }
 }
 
@@ -134,8 +247,13 @@ impl DecoderState {
 
     /// Starts a new sequence (no allocation).
     pub fn reset(&mut self) -> Result<()> {
-        let init = graph::slice::<i64>(&self.initial, "decoder initial state", self.initial.len())?;
-        graph::slice_mut::<i64>(&mut self.inputs[0], "decoder state")?.copy_from_slice(init);
+        match &mut self.imp {
+            StateImp::Tract { inputs, initial, .. } => {
+                let init = graph::slice::<i64>(initial, "decoder initial state", initial.len())?;
+                graph::slice_mut::<i64>(&mut inputs[0], "decoder state")?.copy_from_slice(init);
+            }
+            StateImp::Native { model, state } => model.reset(state),
+        }
         self.decoded = 0;
         Ok(())
     }

@@ -56,7 +56,27 @@ pub(crate) fn load(src: &BundleSource, rel: &str, inputs: &[IoSpec], outputs: &[
     }
 }
 
+/// Reads the graph `rel` with tract and checks its inputs and outputs against the manifest,
+/// without optimizing it: for a graph the native path runs instead (the file stays the
+/// reference and must still match its manifest).
+pub(crate) fn check(src: &BundleSource, rel: &str, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<()> {
+    let path = src.path_of(rel);
+    match catch_unwind(AssertUnwindSafe(|| typed(src, rel, &path, inputs, outputs).map(drop))) {
+        Ok(r) => r,
+        Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref())))),
+    }
+}
+
 fn load_inner(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<Plan> {
+    let typed = typed(src, rel, path, inputs, outputs)?;
+    let plan = typed
+        .into_optimized()
+        .and_then(|m| m.into_runnable())
+        .map_err(|e| Error::bundle(path, format!("tract cannot optimize the graph: {e:#}")))?;
+    Ok(plan)
+}
+
+fn typed(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], outputs: &[IoSpec]) -> Result<TypedModel> {
     let bad = |msg: String| Error::bundle(path, msg);
     let model = match src.directory() {
         // From disk tract maps the file and resolves ONNX external data beside it.
@@ -91,11 +111,7 @@ fn load_inner(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], out
         let fact = typed.output_fact(i).map_err(|e| bad(format!("{e:#}")))?;
         check_fact(path, "output", spec, fact)?;
     }
-    let plan = typed
-        .into_optimized()
-        .and_then(|m| m.into_runnable())
-        .map_err(|e| bad(format!("tract cannot optimize the graph: {e:#}")))?;
-    Ok(plan)
+    Ok(typed)
 }
 
 fn check_fact(path: &Path, kind: &str, spec: &IoSpec, fact: &TypedFact) -> Result<()> {

@@ -4,7 +4,8 @@
 //! every stream; each stream owns its states.
 mod decoder;
 pub(crate) mod graph;
+pub(crate) mod native;
 mod step;
 
-pub use decoder::{DecoderModel, DecoderState};
-pub use step::{StepModel, StepState};
+pub use decoder::{DecoderBackend, DecoderModel, DecoderState, DECODER_ENV};
+pub use step::{StepBackend, StepModel, StepState, STEP_ENV};

@@ -7,10 +7,19 @@
 //! `(L, 1, H, 1, D_s)` for slot `pos`, which this runner writes into the cache. The graph
 //! never sees a growing tensor, so tract runs it with static shapes.
 //!
-//! Allocation: the cache tensors, the small input tensors and the logits vectors live in
-//! [`StepState`] and are reused every step; tract gets cheap `Arc` clones of them and
-//! drops its references when the run ends, so they are updated in place. tract still
-//! allocates its own intermediates (and the 12 output tensors) inside a run.
+//! Two implementations behind one API, chosen at load ([`StepBackend`]):
+//! * **native** (when the bundle has `transformer.native`): the Rust kernels of
+//!   `model::native::step` on the exporter's weight files (int8 where the graph stores
+//!   int8). `step.onnx` is still read and its inputs/outputs checked against the manifest
+//!   (it stays the reference), but it is not run. `step` allocates nothing.
+//! * **tract**: the graph itself. The cache tensors, the small input tensors and the logits
+//!   vectors live in [`StepState`] and are reused every step; tract gets cheap `Arc` clones
+//!   of them and drops its references when the run ends, so they are updated in place.
+//!   tract still allocates its own intermediates (and the 12 output tensors) inside a run.
+//!
+//! `COMGRASP_STEP=native|tract|auto` (read when a bundle is loaded; default `auto` = native
+//! when the bundle has native weights) forces one, e.g. to benchmark both;
+//! [`StepModel::load_with`] takes the choice as an argument.
 use std::sync::Arc;
 
 use parking_lot::Mutex;
@@ -18,40 +27,99 @@ use parking_lot::Mutex;
 use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
+use super::native::step::{NativeStep, NativeStepState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
+
+/// The environment variable that picks the step implementation at load.
+pub const STEP_ENV: &str = "COMGRASP_STEP";
+
+/// Which implementation runs the step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StepBackend {
+    /// Native when the bundle has `transformer.native`, tract otherwise.
+    Auto,
+    /// The Rust kernels (`model::native`); an error at load if the bundle has no native weights.
+    Native,
+    /// The ONNX graph in tract.
+    Tract,
+}
+
+impl StepBackend {
+    /// The choice of [`STEP_ENV`]: unset or empty is `Auto`; anything but
+    /// `auto`/`native`/`tract` is an `InvalidArgument`.
+    pub fn from_env() -> Result<StepBackend> {
+        match std::env::var(STEP_ENV) {
+            Err(std::env::VarError::NotPresent) => Ok(StepBackend::Auto),
+            Ok(v) => match v.trim() {
+                "" | "auto" => Ok(StepBackend::Auto),
+                "native" => Ok(StepBackend::Native),
+                "tract" => Ok(StepBackend::Tract),
+                other => Err(Error::InvalidArgument(format!("{STEP_ENV}={other:?}: expected native, tract or auto"))),
+            },
+            Err(e) => Err(Error::InvalidArgument(format!("{STEP_ENV}: {e}"))),
+        }
+    }
+
+    /// `"native"` / `"tract"` / `"auto"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            StepBackend::Auto => "auto",
+            StepBackend::Native => "native",
+            StepBackend::Tract => "tract",
+        }
+    }
+}
 
 const TOKENS: usize = 0;
 const POS: usize = 1;
 const TEXT: usize = 2;
 const FIRST_CACHE: usize = 3;
 
-/// The loaded step graph; shared by all streams of an engine.
+/// The loaded step; shared by all streams of an engine.
 pub struct StepModel {
-    plan: Plan,
+    imp: Imp,
+    /// Identity of this model: states remember it, so a state is only run by its model.
+    owner: Arc<()>,
     n_layers: usize,
     n_heads: usize,
     slots: usize,
     head_dims: [usize; N_STREAMS],
     vocab: [usize; N_STREAMS],
     d_text: usize,
+}
+
+enum Imp {
+    Tract(TractStep),
+    Native(Box<NativeStep>),
+}
+
+struct TractStep {
+    plan: Plan,
     /// Zeroed inputs and a spawned run state, cloned by `new_state` (made at load so that
     /// creating a stream cannot fail).
     template_inputs: Vec<Arc<Tensor>>,
     template_run: Mutex<PlanState>,
 }
 
-/// One generation's KV cache, logits and tract run state. Create with
-/// [`StepModel::new_state`]; reuse for a new generation with [`StepState::reset`].
+/// One generation's KV cache, logits and run state. Create with [`StepModel::new_state`];
+/// reuse for a new generation with [`StepState::reset`].
 pub struct StepState {
-    plan: Plan,
-    run: PlanState,
-    /// tokens, pos, text_emb, then cache_k/cache_v per stream, as the graph takes them.
-    inputs: Vec<Arc<Tensor>>,
+    owner: Arc<()>,
+    imp: StateImp,
     logits: [Vec<f32>; N_STREAMS],
     /// Slots 0..filled hold k/v rows.
     filled: usize,
+}
+
+enum StateImp {
+    Tract {
+        run: PlanState,
+        /// tokens, pos, text_emb, then cache_k/cache_v per stream, as the graph takes them.
+        inputs: Vec<Arc<Tensor>>,
+    },
+    Native(Box<NativeStepState>),
 }
 
 impl std::fmt::Debug for StepState {
@@ -62,32 +130,63 @@ impl std::fmt::Debug for StepState {
 
 impl std::fmt::Debug for StepModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("StepModel").field("n_layers", &self.n_layers).field("n_heads", &self.n_heads)
-            .field("slots", &self.slots).field("head_dims", &self.head_dims).field("vocab", &self.vocab)
-            .finish_non_exhaustive()
+        f.debug_struct("StepModel").field("backend", &self.backend()).field("n_layers", &self.n_layers)
+            .field("n_heads", &self.n_heads).field("slots", &self.slots).field("head_dims", &self.head_dims)
+            .field("vocab", &self.vocab).finish_non_exhaustive()
     }
 }
 
 impl StepModel {
-    /// Loads `transformer.file`; the manifest was verified (shapes follow from it).
+    /// Loads the step of a verified manifest with the implementation [`STEP_ENV`] picks
+    /// (native when the bundle has native weights, unless the variable says otherwise).
     pub fn load(src: &BundleSource, m: &Manifest) -> Result<StepModel> {
+        StepModel::load_with(src, m, StepBackend::from_env()?)
+    }
+
+    /// Loads the step with the given implementation (`Auto`: native when the bundle has
+    /// `transformer.native`). Either way `transformer.file` is checked against the manifest.
+    pub fn load_with(src: &BundleSource, m: &Manifest, backend: StepBackend) -> Result<StepModel> {
         let t = &m.transformer;
-        let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
-        let path = src.path_of(&t.file);
-        let template_inputs = t.inputs.iter().map(graph::zeros).collect::<Result<Vec<_>>>()
-            .map_err(|e| Error::bundle(&path, e.to_string()))?;
-        let template_run = Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+        let native = match (backend, &t.native) {
+            (StepBackend::Tract, _) | (StepBackend::Auto, None) => None,
+            (_, Some(spec)) => Some(spec),
+            (StepBackend::Native, None) => {
+                return Err(Error::bundle(src.path_of(crate::bundle::manifest::MANIFEST_FILE),
+                    format!("{STEP_ENV}=native, but the bundle has no transformer.native weights")));
+            }
+        };
+        let imp = match native {
+            Some(spec) => {
+                graph::check(src, &t.file, &t.inputs, &t.outputs)?;
+                Imp::Native(Box::new(NativeStep::load(src, m, spec)?))
+            }
+            None => {
+                let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
+                let path = src.path_of(&t.file);
+                let template_inputs = t.inputs.iter().map(graph::zeros).collect::<Result<Vec<_>>>()
+                    .map_err(|e| Error::bundle(&path, e.to_string()))?;
+                let template_run = Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+                Imp::Tract(TractStep { plan, template_inputs, template_run })
+            }
+        };
         Ok(StepModel {
-            plan,
+            imp,
+            owner: Arc::new(()),
             n_layers: t.n_layers,
             n_heads: t.n_heads,
             slots: t.cache_slots,
             head_dims: std::array::from_fn(|i| t.head_dims[i]),
             vocab: m.vocab_sizes(),
             d_text: t.d_text,
-            template_inputs,
-            template_run,
         })
+    }
+
+    /// The implementation that runs the step: `Native` or `Tract` (never `Auto`).
+    pub fn backend(&self) -> StepBackend {
+        match self.imp {
+            Imp::Tract(_) => StepBackend::Tract,
+            Imp::Native(_) => StepBackend::Native,
+        }
     }
 
     /// Number of cache slots S (= L_max + 2): positions 0..S.
@@ -105,12 +204,26 @@ impl StepModel {
         self.vocab
     }
 
+    /// Bytes of weights the native step reads per step (`None` on tract).
+    pub fn native_weight_bytes(&self) -> Option<usize> {
+        match &self.imp {
+            Imp::Native(n) => Some(n.weight_bytes()),
+            Imp::Tract(_) => None,
+        }
+    }
+
     /// A fresh state: zero cache, nothing filled.
     pub fn new_state(&self) -> StepState {
+        let imp = match &self.imp {
+            Imp::Tract(t) => StateImp::Tract {
+                run: t.template_run.lock().clone(),
+                inputs: t.template_inputs.iter().map(|t| Arc::new(Tensor::clone(t))).collect(),
+            },
+            Imp::Native(n) => StateImp::Native(Box::new(n.new_state())),
+        };
         StepState {
-            plan: Arc::clone(&self.plan),
-            run: self.template_run.lock().clone(),
-            inputs: self.template_inputs.iter().map(|t| Arc::new(Tensor::clone(t))).collect(),
+            owner: Arc::clone(&self.owner),
+            imp,
             logits: std::array::from_fn(|i| vec![0.0; self.vocab[i]]),
             filled: 0,
         }
@@ -125,7 +238,7 @@ impl StepModel {
     /// from there on are then recomputed) but never skip one: the cache must hold rows 0..pos.
     pub fn step<'s>(&self, state: &'s mut StepState, tokens: [i64; N_STREAMS], pos: usize,
                     text_emb: &[f32]) -> Result<[&'s [f32]; N_STREAMS]> {
-        if !Arc::ptr_eq(&state.plan, &self.plan) {
+        if !Arc::ptr_eq(&state.owner, &self.owner) {
             return Err(Error::WrongState("this StepState was created by another StepModel".into()));
         }
         if pos >= self.slots {
@@ -145,24 +258,40 @@ impl StepModel {
                 return Err(Error::InvalidArgument(format!("token {t} of stream {s} outside the vocabulary 0..{v}")));
             }
         }
-        graph::slice_mut::<i64>(&mut state.inputs[TOKENS], "tokens")?.copy_from_slice(&tokens);
-        graph::slice_mut::<i64>(&mut state.inputs[POS], "pos")?[0] = pos as i64;
-        graph::slice_mut::<f32>(&mut state.inputs[TEXT], "text_emb")?.copy_from_slice(text_emb);
+        match (&self.imp, &mut state.imp) {
+            (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, &mut state.logits),
+            (Imp::Tract(t), StateImp::Tract { run, inputs }) => {
+                self.tract_step(t, run, inputs, &mut state.logits, tokens, pos, text_emb)?
+            }
+            _ => return Err(Error::WrongState("this StepState belongs to another implementation".into())),
+        }
+        // Rows after `pos` (from an earlier, longer run) are stale now.
+        state.filled = pos + 1;
+        Ok(state.logits())
+    }
 
-        let out = graph::run(&mut state.run, &state.inputs, "step.onnx")?;
+    #[allow(clippy::too_many_arguments)]
+    fn tract_step(&self, t: &TractStep, run: &mut PlanState, inputs: &mut [Arc<Tensor>], logits: &mut [Vec<f32>; N_STREAMS],
+                  tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) -> Result<()> {
+        let _ = &t.plan;
+        graph::slice_mut::<i64>(&mut inputs[TOKENS], "tokens")?.copy_from_slice(&tokens);
+        graph::slice_mut::<i64>(&mut inputs[POS], "pos")?[0] = pos as i64;
+        graph::slice_mut::<f32>(&mut inputs[TEXT], "text_emb")?.copy_from_slice(text_emb);
+
+        let out = graph::run(run, inputs, "step.onnx")?;
         if out.len() != 3 * N_STREAMS {
             return Err(Error::Inference(format!("step.onnx returned {} outputs, expected {}", out.len(), 3 * N_STREAMS)));
         }
         for s in 0..N_STREAMS {
             let lg = graph::slice::<f32>(&out[s], "step.onnx logits", self.vocab[s])?;
-            state.logits[s].copy_from_slice(lg);
+            logits[s].copy_from_slice(lg);
         }
         let (l, h, slots) = (self.n_layers, self.n_heads, self.slots);
         for s in 0..N_STREAMS {
             let d = self.head_dims[s];
             for kv in 0..2 {
                 let row = graph::slice::<f32>(&out[N_STREAMS + 2 * s + kv], "step.onnx new k/v", l * h * d)?;
-                let cache = graph::slice_mut::<f32>(&mut state.inputs[FIRST_CACHE + 2 * s + kv], "kv cache")?;
+                let cache = graph::slice_mut::<f32>(&mut inputs[FIRST_CACHE + 2 * s + kv], "kv cache")?;
                 // cache (L, 1, H, S, D)[.., .., .., pos, ..] = row (L, 1, H, 1, D)[.., .., .., 0, ..]
                 for lh in 0..l * h {
                     let dst = (lh * slots + pos) * d;
@@ -171,17 +300,20 @@ impl StepModel {
             }
         }
         drop(out);
-        // Rows after `pos` (from an earlier, longer run) are stale now.
-        state.filled = pos + 1;
-        Ok(state.logits())
+        Ok(())
     }
 }
 
 impl StepState {
     /// Starts a new generation: zero cache, nothing filled (no allocation).
     pub fn reset(&mut self) -> Result<()> {
-        for t in self.inputs.iter_mut() {
-            graph::fill_zero(t)?;
+        match &mut self.imp {
+            StateImp::Tract { inputs, .. } => {
+                for t in inputs.iter_mut() {
+                    graph::fill_zero(t)?;
+                }
+            }
+            StateImp::Native(st) => st.reset(),
         }
         self.filled = 0;
         Ok(())

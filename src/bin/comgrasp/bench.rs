@@ -23,8 +23,24 @@
 //!    and on a ready frame (after the whole generation is buffered).
 //! 7. **memory**: peak RSS (`VmHWM`), before the bandwidth probe.
 //! 8. **bandwidth**: read bandwidth of a buffer much larger than the L3 (sum of u64, best
-//!    of 5), 1 and 2 threads, and the *bandwidth limit* of a step: the bytes one step must
-//!    read (the step graph's weights + the full KV cache) ÷ that bandwidth.
+//!    of 5), 1 and 2 threads (and `--threads` if more), and the *bandwidth limit* of a
+//!    step: the bytes one step must read ÷ that bandwidth. Two byte counts (see
+//!    [`StepWeights`]): **fp32** = 4 bytes per element of every step-graph weight, what the
+//!    tract (and onnxruntime) path holds and reads per step: int8-stored weights are
+//!    dequantized to fp32 at load, so a 10 MB int8 graph reads ~38 MB; **int8** = the
+//!    native path's bytes (int8 weights + their per-row scales + the fp32 tensors) when the
+//!    bundle has a `transformer.native` section: the whole section, and what the native
+//!    step reports it reads per step when it ran (`native_weight_bytes`, used for the
+//!    native path's limit). Both add the full fp32 KV cache.
+//!
+//! Derived, the formula `python -m comgrasp_train.bench` uses for onnxruntime so the two
+//! compare like with like: TTFF = text + the condition step (pos 0, whose logits sample the
+//! first codes) + the first chunk decode; RTF = frames per token ÷ (median step + median
+//! chunk) ÷ fps. The measured stream (5.) is the end-to-end truth; these are the ratios.
+//!
+//! Engine paths: the step and decoder graphs may each run on tract or on the native
+//! kernels (`COMGRASP_STEP` / `COMGRASP_DECODER` = `tract` | `native`); the report names
+//! the path the loaded models run ([`engine_paths`]) and fails when it is not the one asked for.
 //!
 //! Threads: tract runs single-threaded unless the crate is built with the
 //! `multithread-mm` feature (tract-linalg's rayon executor); then `--threads N` installs an
@@ -315,6 +331,76 @@ fn hash_tokens(tokens: &[[usize; N_STREAMS]]) -> String {
     h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// Bytes one token step reads in weights (module doc, 8.).
+struct StepWeights {
+    /// 4 bytes per element of every weight initializer of the step graph.
+    fp32: u64,
+    /// The native section's bytes (int8 + scales + fp32 tensors), if the bundle has one.
+    int8: Option<u64>,
+    /// 4 bytes per element of the native section's tensors (a cross-check of `fp32`).
+    native_fp32: Option<u64>,
+    /// Stored int8 elements in the step graph (0: an fp32 graph).
+    graph_int8_elems: u64,
+}
+
+/// ONNX data types of weights the runtimes hold as fp32 (FLOAT, UINT8, INT8, FLOAT16,
+/// DOUBLE, BFLOAT16); int64/int32 initializers are shapes and indices.
+const WEIGHT_DTYPES: [i32; 6] = [1, 2, 3, 10, 11, 16];
+
+fn step_weights(o: &Options, m: &comgrasp::bundle::manifest::Manifest) -> Result<StepWeights, String> {
+    use comgrasp::bundle::manifest::NativeDtype;
+    use tract_onnx::prelude::Framework;
+
+    // Decodes the .onnx protobuf only (external data is not read), after the bundle is dropped.
+    let path = o.bundle.join(&m.transformer.file);
+    let proto = tract_onnx::onnx().proto_model_for_path(&path)
+        .map_err(|e| format!("{}: {e:#}", path.display()))?;
+    let (mut fp32, mut int8_elems) = (0u64, 0u64);
+    for t in proto.graph.iter().flat_map(|g| &g.initializer) {
+        if WEIGHT_DTYPES.contains(&t.data_type) {
+            let n = t.dims.iter().map(|&d| d.max(0) as u64).product::<u64>();
+            fp32 += 4 * n;
+            if t.data_type == 3 || t.data_type == 2 {
+                int8_elems += n;
+            }
+        }
+    }
+    let (int8, native_fp32) = match &m.transformer.native {
+        Some(nat) => {
+            let (mut bytes, mut f) = (0u64, 0u64);
+            for t in nat.tensors.values() {
+                let n = t.shape.iter().map(|&d| d as u64).product::<u64>();
+                f += 4 * n;
+                bytes += match t.dtype {
+                    NativeDtype::Int8 => n + 4 * t.shape.first().copied().unwrap_or(1) as u64,
+                    NativeDtype::Float32 => 4 * n,
+                };
+            }
+            (Some(bytes), Some(f))
+        }
+        None => (None, None),
+    };
+    Ok(StepWeights { fp32, int8, native_fp32, graph_int8_elems: int8_elems })
+}
+
+/// The implementation that runs the step and the decoder graph, as the loaded models report
+/// it: ("tract" | "native", same). `COMGRASP_STEP` / `COMGRASP_DECODER` choose at load
+/// (unset: native when the bundle has native weights); a path that was asked for but did
+/// not run is an error, so no benchmark row is labelled with a path that did not run.
+fn engine_paths(bundle: &Bundle) -> Result<(String, String), String> {
+    let step = bundle.step.backend().name().to_string();
+    let decoder = format!("{:?}", bundle.decoder.backend()).to_lowercase();
+    for (var, ran) in [("COMGRASP_STEP", &step), ("COMGRASP_DECODER", &decoder)] {
+        if let Ok(v) = std::env::var(var) {
+            let v = v.trim().to_lowercase();
+            if !v.is_empty() && v != "auto" && v != *ran {
+                return Err(format!("{var}={v} was asked for but the {ran} path was loaded"));
+            }
+        }
+    }
+    Ok((step, decoder))
+}
+
 fn bench(o: &Options) -> Result<Value, String> {
     let err = |e: comgrasp::Error| e.to_string();
     let (tract_threads, thread_note) = set_tract_threads(o.threads);
@@ -324,6 +410,8 @@ fn bench(o: &Options) -> Result<Value, String> {
     let t = Instant::now();
     let bundle = Bundle::load(&o.bundle).map_err(err)?;
     let load_ms = ms(t.elapsed());
+    let (step_path, decoder_path) = engine_paths(&bundle)?;
+    let native_reported = bundle.step.native_weight_bytes().map(|b| b as u64);
     let rss_loaded = rss();
     let m = &bundle.manifest;
     let l_max = m.l_max;
@@ -340,6 +428,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     let pad_usize = pad_ids.map(|p| p as usize);
 
     // 2. text
+    let text_ids = bundle.text.tokenize(&o.prompt).map_err(err)?.input_ids;
     let emb = bundle.text.embed(&o.prompt).map_err(err)?; // warm-up
     let mut text_ms = Vec::with_capacity(o.text_runs);
     for _ in 0..o.text_runs {
@@ -545,34 +634,62 @@ fn bench(o: &Options) -> Result<Value, String> {
     let t = &m.transformer;
     let cache_bytes = (2 * t.n_layers * t.n_heads * t.cache_slots * t.head_dims.iter().sum::<usize>() * 4) as u64;
     let fps = m.fps;
+    let manifest = m.clone();
+    let files_bytes = m.files.values().map(|e| e.bytes).sum::<u64>();
+    drop(bundle);
+    let t = &manifest.transformer;
+    let w = step_weights(o, &manifest)?;
     let model = json!({
         "step_graph_bytes": step_bytes, "kv_cache_bytes": cache_bytes,
+        "weights": {
+            "fp32_bytes": w.fp32, "int8_bytes": w.int8, "native_fp32_bytes": w.native_fp32,
+            "native_step_reported_bytes": native_reported,
+            "graph_int8_elements": w.graph_int8_elems,
+            "note": "fp32 = 4 B per step-graph weight element (tract/ORT read, int8-stored weights dequantized at \
+                     load); int8 = transformer.native int8 weights + scales + fp32 tensors (the native path)",
+        },
         "n_layers": t.n_layers, "n_heads": t.n_heads, "widths": t.widths, "cache_slots": t.cache_slots,
-        "files_bytes": m.files.values().map(|e| e.bytes).sum::<u64>(),
+        "files_bytes": files_bytes,
     });
-    drop(bundle);
+    let step_med = stats(&step_ms)["median"].as_f64().unwrap_or(f64::NAN);
+    let step_basis = if step_path == "native" { native_reported.or(w.int8).unwrap_or(w.fp32) } else { w.fp32 };
     let bandwidth = if o.bandwidth_mib > 0 {
         let n = o.bandwidth_mib * (1 << 20) / 8;
         let buf: Vec<u64> = (0..n as u64).collect();
         let (b1, m1) = read_bandwidth(&buf, 1, 5);
         let (b2, m2) = read_bandwidth(&buf, 2, 5);
-        let limit = |bw: f64| (step_bytes + cache_bytes) as f64 / bw * 1e3;
-        let step_med = stats(&step_ms)["median"].as_f64().unwrap_or(f64::NAN);
+        let (br, _) = if o.threads > 2 { read_bandwidth(&buf, o.threads, 5) } else if o.threads == 2 { (b2, m2) }
+                      else { (b1, m1) };
+        let limit = |bytes: u64, bw: f64| (bytes + cache_bytes) as f64 / bw * 1e3;
+        let int8 = |bw: f64| w.int8.map(|b| limit(b, bw));
         json!({
             "buffer_mib": o.bandwidth_mib,
             "gb_per_s_1t": b1 / 1e9, "gb_per_s_1t_median": m1 / 1e9,
             "gb_per_s_2t": b2 / 1e9, "gb_per_s_2t_median": m2 / 1e9,
-            "step_limit_ms_1t": limit(b1), "step_limit_ms_2t": limit(b2),
-            "step_over_limit_1t": step_med / limit(b1), "step_over_limit_2t": step_med / limit(b2),
+            "gb_per_s_run": br / 1e9, "run_threads": o.threads,
+            "step_limit_ms_1t": limit(w.fp32, b1), "step_limit_ms_2t": limit(w.fp32, b2),
+            "step_limit_int8_ms_1t": int8(b1), "step_limit_int8_ms_2t": int8(b2),
+            "step_limit_ms_run": limit(w.fp32, br), "step_limit_int8_ms_run": int8(br),
+            "step_over_limit_run": step_med / limit(step_basis, br),
+            "step_over_limit_basis": if step_path == "native" && w.int8.is_some() { "int8" } else { "fp32" },
         })
     } else {
         Value::Null
     };
+    let text_med = stats(&text_ms)["median"].as_f64().unwrap_or(f64::NAN);
+    let decode_med = stats(&decode_ms)["median"].as_f64().unwrap_or(f64::NAN);
+    let per_token = step_med + decode_med;
+    let derived = json!({
+        "ttff_ms": text_med + step_ms[0] + decode_ms[0],
+        "ms_per_token": per_token,
+        "rtf": f as f64 * 1e3 / per_token / fps,
+    });
 
     let step_stats = stats(&step_ms);
     let tokens_json: Vec<Vec<usize>> = tokens.iter().map(|r| r.to_vec()).collect();
     Ok(json!({
-        "runtime": "comgrasp (tract-onnx 0.23)",
+        "runtime": format!("comgrasp (step: {step_path}, decoder: {decoder_path}; tract-onnx 0.23)"),
+        "engine_path": {"step": step_path, "decoder": decoder_path},
         "bundle": o.bundle.display().to_string(),
         "machine": {"cpu": cpu_model(), "logical_cpus": std::thread::available_parallelism().map(|n| n.get()).ok()},
         "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note},
@@ -584,9 +701,13 @@ fn bench(o: &Options) -> Result<Value, String> {
         "model": model,
         "load_ms": load_ms,
         "text_ms": stats(&text_ms),
+        "text_input_ids": text_ids,
         "step_ms": step_stats,
+        "first_step_ms": step_ms[0],
         "sample_us": stats(&sample_us),
         "decode_ms": stats(&decode_ms),
+        "first_decode_ms": decode_ms[0],
+        "derived": derived,
         "assemble_us_per_chunk": stats(&assemble_us),
         "stream": {
             "runs": o.stream_runs, "frames": n_frames,
@@ -629,8 +750,14 @@ fn print_report(r: &Value) {
     println!("  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, prompt {}",
              s(&["config", "steps"]), s(&["config", "frames_per_token"]), s(&["config", "seed"]),
              s(&["config", "temperature"]), s(&["config", "top_k"]), s(&["config", "prompt"]));
-    println!("  load      {:.1} ms (verify + 3 graphs); step graph {:.1} MB, KV cache {:.1} MB",
+    println!("  paths     step {}, decoder {}", r["engine_path"]["step"].as_str().unwrap_or("?"),
+             r["engine_path"]["decoder"].as_str().unwrap_or("?"));
+    println!("  load      {:.1} ms (verify + 3 graphs); step graph files {:.1} MB, KV cache {:.1} MB",
              g(&["load_ms"]), g(&["model", "step_graph_bytes"]) / 1e6, g(&["model", "kv_cache_bytes"]) / 1e6);
+    println!("  weights   read per step: {:.1} MB as fp32 (tract path){}",
+             g(&["model", "weights", "fp32_bytes"]) / 1e6,
+             r["model"]["weights"]["int8_bytes"].as_f64()
+                 .map_or(String::new(), |b| format!(", {:.1} MB int8 (native path)", b / 1e6)));
     let line = |label: &str, key: &str, unit: &str| {
         println!("  {label:<9} median {:.3} {unit}, p90 {:.3} {unit} (n = {})", g(&[key, "median"]), g(&[key, "p90"]),
                  s(&[key, "n"]));
@@ -640,6 +767,8 @@ fn print_report(r: &Value) {
     line("sample", "sample_us", "us");
     line("decode", "decode_ms", "ms");
     line("assemble", "assemble_us_per_chunk", "us");
+    println!("  derived   TTFF {:.2} ms (text + step 0 + chunk 0), RTF {:.1} (frames per token / (step + chunk))",
+             g(&["derived", "ttff_ms"]), g(&["derived", "rtf"]));
     println!("  stream    TTFF median {:.2} ms (p90 {:.2}), {:.0} frames/s, RTF {:.1}, {:.2} ms/token; \
               frames match the step loop: {}",
              g(&["stream", "ttff_ms", "median"]), g(&["stream", "ttff_ms", "p90"]),
@@ -650,11 +779,14 @@ fn print_report(r: &Value) {
     println!("  RSS       peak {:.1} MiB (before load {:.1}, after load {:.1})", g(&["rss_mib", "peak"]),
              g(&["rss_mib", "before_load"]), g(&["rss_mib", "after_load"]));
     if !r["bandwidth"].is_null() {
-        println!("  bandwidth {:.1} GB/s (1 thread), {:.1} GB/s (2 threads); step limit {:.2} ms (1 t) / {:.2} ms (2 t); \
-                  step / limit {:.2} / {:.2}",
-                 g(&["bandwidth", "gb_per_s_1t"]), g(&["bandwidth", "gb_per_s_2t"]),
-                 g(&["bandwidth", "step_limit_ms_1t"]), g(&["bandwidth", "step_limit_ms_2t"]),
-                 g(&["bandwidth", "step_over_limit_1t"]), g(&["bandwidth", "step_over_limit_2t"]));
+        println!("  bandwidth {:.1} GB/s (1 thread), {:.1} GB/s (2 threads), {:.1} GB/s at {} thread(s); step limit \
+                  {:.3} ms (fp32 weights + KV){}; step / limit {:.2} ({})",
+                 g(&["bandwidth", "gb_per_s_1t"]), g(&["bandwidth", "gb_per_s_2t"]), g(&["bandwidth", "gb_per_s_run"]),
+                 s(&["bandwidth", "run_threads"]), g(&["bandwidth", "step_limit_ms_run"]),
+                 r["bandwidth"]["step_limit_int8_ms_run"].as_f64()
+                     .map_or(String::new(), |v| format!(", {v:.3} ms (int8 weights + KV)")),
+                 g(&["bandwidth", "step_over_limit_run"]),
+                 r["bandwidth"]["step_over_limit_basis"].as_str().unwrap_or("?"));
     }
     let toks = r["tokens"].as_array().map_or(0, Vec::len);
     let head: Vec<String> = r["tokens"].as_array().into_iter().flatten().take(4).map(|t| t.to_string()).collect();

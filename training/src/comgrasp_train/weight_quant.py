@@ -6,8 +6,9 @@ Weights are quantized per row (a Linear's output channel, an Embedding's token),
 the parity vectors and the ONNX graph all compute the same function. In the ONNX file each
 such weight is stored as an int8 tensor plus a float32 scale column and rebuilt by
 ``Cast(int8 -> float) * scale`` (two plain ops every runtime has; tract folds them into a
-constant at load, so inference runs at fp32 speed from a file ~4x smaller). Arithmetic
-stays fp32: only the stored weights are rounded.
+constant at load, except a result above 4 MiB such as the word-embedding table, which the
+engine's text loader gathers before dequantizing). Arithmetic stays fp32: only the stored
+weights are rounded.
 """
 
 from __future__ import annotations

@@ -11,6 +11,9 @@ Files (paths relative to the bundle root, "/" separated)::
     decoder.onnx         one token step of the 4 streaming VQ decoders
     objects/<name>.obj   catalogue meshes, object frame, metres
     parity/...           PyTorch reference vectors + parity/index.json (export/parity.py)
+    native/step/...      the step's weights for the engine's native path, one .npy per
+                         state_dict tensor (export/native_weights.py); native/decoder/... the same
+                         for the decoders (each part's decoder.*, pad_embedding, quantizer.codebook)
 
 manifest.json (JSON; every list is a JSON array, every shape a list of ints, dtypes are
 "int64" | "float32"; stream/component order is always global, body, lhand, rhand)::
@@ -33,13 +36,16 @@ manifest.json (JSON; every list is a JSON array, every shape a list of ints, dty
     transformer       {file, opset, batch, n_layers, n_heads, widths[4], head_dims[4], d_text,
                         block_size, cache_slots (= block_size = l_max + 2), inputs, outputs
                         ([{name, dtype, shape}] in graph order, see export/step_graph.py),
-                        cache_init, cache_update, steps}
+                        cache_init, cache_update, steps, native {dir, tensors {state_dict name:
+                        {dtype "float32" | "int8", shape}}}: int8 tensors have <name>.scale.npy
+                        (float32 per row) and stand for q * scale, as in the graph}
     decoder           {file, opset, batch, frames_per_token, context_tokens K (tokens one chunk
                         depends on, the newest included), state_tokens (K - 1),
                         state_pad_ids[4] (= codebook sizes), initial_state (the (1, 4, K-1)
                         state of a new sequence, nested lists), inputs, outputs,
                         output_is_normalized: true, contact_channels [240, 334],
-                        contact_is_probability: true, contact_threshold 0.5}
+                        contact_is_probability: true, contact_threshold 0.5, native (as the
+                        transformer's, names of vq.state_dict())}
     skeleton          {joint_names[55], parents[55] (-1 = root), rest_joints [55][3], units, frame}
     objects           [{name, aliases[], mesh, centre[3] (bounding-box centre in the object
                         frame), half_extents[3]}]
@@ -71,6 +77,7 @@ from ..models.vqvae import ComponentVQ
 from ..objects.catalogue import CATALOGUE
 from ..skeleton import DEFAULT_REST_JOINTS, JOINT_NAMES, NUM_JOINTS, PARENTS
 from . import decoder_graph, step_graph
+from .native_weights import write_native_weights
 from .parity import DEFAULT_STEP_PROMPTS, sampling_dict, write_parity
 from .text_encoder_export import DEFAULT_PARITY_PROMPTS, export_text_encoder, sha256_file
 
@@ -80,6 +87,8 @@ MANIFEST = "manifest.json"
 STEP_FILE = "step.onnx"
 DECODER_FILE = "decoder.onnx"
 OBJECTS_DIR = "objects"
+NATIVE_STEP_DIR = "native/step"
+NATIVE_DECODER_DIR = "native/decoder"
 CONTACT_THRESHOLD = 0.5
 
 
@@ -139,6 +148,21 @@ def validate_inputs(*, vq, vq_config, gpt, gpt_config: TransformerConfig, text_e
 
 
 # ----------------------------------------------------------------------------- sections
+
+
+def decoder_state_dict(vq: ComponentVQ) -> dict[str, torch.Tensor]:
+    """The tensors decoder.onnx is built from, by ``vq.state_dict()`` name: per part its
+    ``decoder.*``, ``pad_embedding`` and ``quantizer.codebook`` (the encoders and the
+    codebook's EMA training statistics are not part of decoding)."""
+    keep = {}
+    for name, t in vq.state_dict().items():
+        parts = name.split(".")
+        if len(parts) < 3 or parts[0] != "parts":
+            continue
+        rest = ".".join(parts[2:])
+        if parts[2] == "decoder" or rest in ("pad_embedding", "quantizer.codebook"):
+            keep[name] = t
+    return keep
 
 
 def layout_section() -> list[dict]:
@@ -296,6 +320,12 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
 
             prov["graph_weights"] = {name: store_int8_initializers(tmp / name, ws, require_all=False)
                                      for name, ws in int8_weights.items()}
+        # The same weights for the engine's native path (src/model/native), int8 where the
+        # graphs store int8: written before the file table so they are hashed like the rest.
+        q = int8_weights or {}
+        native_step = write_native_weights(gpt.state_dict(), tmp, NATIVE_STEP_DIR, quantized=q.get(STEP_FILE, ()))
+        native_dec = write_native_weights(decoder_state_dict(vq), tmp, NATIVE_DECODER_DIR,
+                                          quantized=q.get(DECODER_FILE, ()))
         objs = write_objects(tmp, objects, object_max_edge)
         parity = write_parity(tmp, gpt=gpt, vq=vq, encoder=text_encoder, normalizer=normalizer,
                               step_path=tmp / STEP_FILE, decoder_path=tmp / DECODER_FILE,
@@ -310,8 +340,8 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
             "normalization": {"mean": [float(x) for x in np.asarray(normalizer.mean, np.float32)],
                               "std": [float(x) for x in np.asarray(normalizer.std, np.float32)],
                               "dtype": "float32", "rule": "features = normalized * std + mean"},
-            "text_encoder": text, "transformer": transformer_section(gpt_config, step_spec),
-            "decoder": decoder_section(vq, dec_spec), "skeleton": skeleton_section(rest_joints),
+            "text_encoder": text, "transformer": {**transformer_section(gpt_config, step_spec), "native": native_step},
+            "decoder": {**decoder_section(vq, dec_spec), "native": native_dec}, "skeleton": skeleton_section(rest_joints),
             "objects": objs, "sampling": sampling_section(sampling, seed, gpt_config.l_max),
             "parity": parity, "files": file_table(tmp), "provenance": prov,
         }

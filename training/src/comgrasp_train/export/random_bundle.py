@@ -132,6 +132,27 @@ def to_external_data(bundle_dir: str | Path, rel: str = STEP_FILE) -> int:
     return (root / (path.name + ".data")).stat().st_size
 
 
+def add_native_weights(bundle_dir: str | Path, torch_state: str | Path | None = None) -> dict:
+    """Write the native-path weights (``transformer.native``, ``decoder.native``) into an
+    existing random bundle exported before the exporter wrote them, from its PyTorch state
+    (``torch_state_path``), and rewrite the manifest's sections and file table. The graphs,
+    parity vectors and everything else stay as they are. Returns the new manifest."""
+    from .bundle import NATIVE_DECODER_DIR, NATIVE_STEP_DIR, decoder_state_dict
+    from .native_weights import write_native_weights
+
+    root = Path(bundle_dir)
+    gpt, vq, _ = load_torch_state(torch_state or torch_state_path(root))
+    mpath = root / MANIFEST
+    manifest = json.loads(mpath.read_text(encoding="utf-8"))
+    if manifest["provenance"].get("graph_weights"):
+        raise ValueError(f"{root}: int8 graphs need the int8 weights of their export; re-export the bundle")
+    manifest["transformer"]["native"] = write_native_weights(gpt.state_dict(), root, NATIVE_STEP_DIR)
+    manifest["decoder"]["native"] = write_native_weights(decoder_state_dict(vq), root, NATIVE_DECODER_DIR)
+    manifest["files"] = file_table(root)
+    mpath.write_text(json.dumps(manifest, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+    return manifest
+
+
 def make_random_bundle(out_dir: str | Path, name: str = "paper", *, seed: int = 0, parity_prompts: int = 2,
                        external_data: bool = False, save_torch: bool = True, threads: int | None = None) -> dict:
     """Export the random bundle of preset ``name`` to ``out_dir`` (replacing a bundle there),
@@ -185,8 +206,15 @@ def main(argv: list[str] | None = None) -> None:
                     help="store the step graph's weights in step.onnx.data (ONNX external data)")
     ap.add_argument("--no-torch-state", action="store_true", help="do not write <out>/../<name>_torch.pt")
     ap.add_argument("--threads", type=int, default=None, help="torch threads during export")
+    ap.add_argument("--add-native", action="store_true",
+                    help="only add the native-path weights to the existing bundle at --out (from its torch state)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
+    if a.add_native:
+        m = add_native_weights(a.out)
+        print(f"added native weights to {a.out}: {len(m['transformer']['native']['tensors'])} step and "
+              f"{len(m['decoder']['native']['tensors'])} decoder tensors, {time.perf_counter() - t0:.0f} s")
+        return
     m = make_random_bundle(a.out, a.preset, seed=a.seed, parity_prompts=a.parity_prompts,
                            external_data=a.external_data, save_torch=not a.no_torch_state, threads=a.threads)
     total = sum(f["bytes"] for f in m["files"].values())

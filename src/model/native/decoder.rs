@@ -1,0 +1,465 @@
+//! The native streaming VQ decoder: what `decoder.onnx` computes (the newest token's F
+//! frames given the previous K-1 tokens of every component, models/streaming.py
+//! `DecoderStep`), computed *incrementally*.
+//!
+//! The graph recomputes a window of K tokens per chunk (and its frame-rate stage on the
+//! last `crop_tokens`). The decoder is causal, so the same frames come from running the
+//! network once over the whole sequence, left-padded with K-1 pad embeddings, exactly as
+//! `ComponentVQVAE.decode_latent` does offline (DESIGN §3 deviation 1: the two agree to
+//! 1e-4). Run that way, a new token only adds new positions at each layer: 1 at the token
+//! rate, 2, 4, ..., F at the frame rates, and every layer needs just a short history of its
+//! input (k - 1 positions of a causal conv, the last `window` keys/values of the
+//! attention). That history is the stream's state; a new sequence starts from zero
+//! histories (`F.pad`'s zeros at the very start) and feeds the manifest's initial state
+//! (K-1 pad ids) first, which is done once at load and copied on `reset`.
+//!
+//! The architecture is read from the tensor names and shapes (`parts.<component>.decoder.
+//! layers.<i>.*`, the layer list of `models.vqvae.Decoder`: Conv, ReLU, [AttentionBlock],
+//! then per level `depth` ResBlocks, Upsample2, Conv, and a final Conv, ReLU, Conv) plus
+//! the manifest (frames per token = 2^levels, slices, codebook sizes, K): every tensor is
+//! checked, an unknown decoder tensor or a receptive field that differs from K is an
+//! `Error::Bundle` at load.
+use std::collections::BTreeSet;
+use std::path::Path;
+
+use super::decoder_attention::{AttnState, WindowAttention};
+use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
+use super::decoder_threads::{Helper, Job};
+use super::weights::{Matrix, Tensors};
+use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
+use crate::bundle::BundleSource;
+use crate::error::{Error, Result};
+
+/// Environment variable: threads one native decode uses, `1` or `2` (default: 2 when the
+/// machine has two or more cores and the model is big enough for the hand-over to pay).
+pub(crate) const THREADS_ENV: &str = "COMGRASP_DECODER_THREADS";
+/// Below this many weights (all components) one thread is faster than two (the hand-over
+/// costs tens of microseconds).
+const SPLIT_MIN_WEIGHTS: usize = 1 << 20;
+
+/// The loaded decoders of the four components (shared by every stream).
+#[derive(Debug)]
+pub(crate) struct NativeDecoder {
+    comps: Vec<Component>,
+    frames: usize,
+    /// The state after the manifest's initial (pad) tokens: what a new sequence starts from.
+    initial: NativeState,
+    /// The second thread, and which components it decodes.
+    helper: Option<Helper>,
+    helper_comps: [bool; N_STREAMS],
+}
+
+/// What the helper thread reads for one decode (lives on the caller's stack meanwhile).
+struct SplitArg {
+    dec: *const NativeDecoder,
+    states: *mut CompState,
+    ids: [usize; N_STREAMS],
+}
+
+/// # Safety
+/// `arg` is a live `SplitArg` whose `states` point at `N_STREAMS` states of which only the
+/// helper's components are touched here.
+unsafe fn run_helper_part(arg: *const ()) {
+    let a = &*(arg as *const SplitArg);
+    let dec = &*a.dec;
+    for (ci, c) in dec.comps.iter().enumerate() {
+        if dec.helper_comps[ci] {
+            c.run(&mut *a.states.add(ci), a.ids[ci]);
+        }
+    }
+}
+
+/// One stream's decoder context: every layer's history, plus scratch.
+#[derive(Clone, Debug)]
+pub(crate) struct NativeState {
+    comps: Vec<CompState>,
+}
+
+#[derive(Debug)]
+struct Component {
+    /// First channel of the component in the 335-D frame, and its width there.
+    offset: usize,
+    dim: usize,
+    /// Contact channels of this component (local indices): sigmoid on output.
+    contact: Vec<usize>,
+    code_dim: usize,
+    width: usize,
+    /// (codebook_size + 1) x code_dim: the codes, then the pad embedding (id = codebook_size).
+    table: Vec<f32>,
+    conv_in: CausalConv,
+    attn: Option<WindowAttention>,
+    depth: usize,
+    levels: Vec<Level>,
+    final_a: CausalConv,
+    final_b: CausalConv,
+}
+
+/// One upsampling level: `depth` ResBlocks at `2^l` positions, then Upsample2 + Conv.
+#[derive(Debug)]
+struct Level {
+    res: Vec<ResBlock>,
+    up: UpConv,
+}
+
+#[derive(Clone, Debug)]
+struct CompState {
+    emb: Vec<f32>,
+    attn: Option<AttnState>,
+    /// Input buffers of the ResBlock convs (level-major) and the Z buffers of the UpConvs.
+    res: Vec<Vec<f32>>,
+    z: Vec<Vec<f32>>,
+    fa: Vec<f32>,
+    fb: Vec<f32>,
+    // scratch, F x width (x, y, a, b) and F x dim (out)
+    x: Vec<f32>,
+    y: Vec<f32>,
+    a: Vec<f32>,
+    b: Vec<f32>,
+    out: Vec<f32>,
+}
+
+impl CompState {
+    /// Copies the context (not the scratch) of `o`, without allocating.
+    fn copy_from(&mut self, o: &CompState) {
+        self.emb.copy_from_slice(&o.emb);
+        if let (Some(a), Some(b)) = (self.attn.as_mut(), o.attn.as_ref()) {
+            a.copy_from(b);
+        }
+        for (a, b) in self.res.iter_mut().zip(&o.res) {
+            a.copy_from_slice(b);
+        }
+        for (a, b) in self.z.iter_mut().zip(&o.z) {
+            a.copy_from_slice(b);
+        }
+        self.fa.copy_from_slice(&o.fa);
+        self.fb.copy_from_slice(&o.fb);
+    }
+}
+
+/// Names `parts.<c>.decoder.layers.<i>` tensors are read under, collected while loading.
+struct Names<'a> {
+    known: BTreeSet<String>,
+    t: &'a Tensors<'a>,
+}
+
+impl Names<'_> {
+    fn has(&self, name: &str) -> bool {
+        self.t.shape(name).is_ok()
+    }
+    fn note(&mut self, prefix: &str, suffixes: &[&str]) {
+        for s in suffixes {
+            self.known.insert(format!("{prefix}.{s}"));
+        }
+    }
+}
+
+impl Component {
+    fn load(t: &Tensors, names: &mut Names, dir: &Path, m: &Manifest, ci: usize) -> Result<Component> {
+        let spec = &m.components[ci];
+        let bad = |msg: String| Error::bundle(dir, msg);
+        let part = format!("parts.{}", spec.name);
+        let layer = |i: usize| format!("{part}.decoder.layers.{i}");
+        let levels_n = m.decoder.frames_per_token.trailing_zeros() as usize;
+
+        let first = format!("{}.conv.weight", layer(0));
+        let (width, code_dim, k) = match t.shape(&first)? {
+            [w, d, k] if *w > 0 && *d > 0 && *k > 0 => (*w, *d, *k),
+            s => return Err(bad(format!("native decoder tensor {first} has shape {s:?}, expected (width, code_dim, kernel)"))),
+        };
+        let [start, stop] = spec.slice;
+        let dim = stop - start;
+
+        // Embedding table: the codebook, then the pad embedding.
+        let j = spec.codebook_size;
+        let book = t.matrix(&format!("{part}.quantizer.codebook"), j, code_dim)?;
+        let pad = t.vector(&format!("{part}.pad_embedding"), code_dim)?;
+        let mut table = vec![0.0; (j + 1) * code_dim];
+        for r in 0..j {
+            book.row_into(r, &mut table[r * code_dim..(r + 1) * code_dim]);
+        }
+        table[j * code_dim..].copy_from_slice(&pad);
+
+        let conv_in = CausalConv::load(t, &format!("{}.conv", layer(0)), code_dim, width, k)?;
+        names.note(&format!("{}.conv", layer(0)), &["weight", "bias"]);
+        // layer 1: ReLU
+        let mut i = 2;
+        let attn = if names.has(&format!("{}.qkv.weight", layer(2))) {
+            let a = WindowAttention::load(t, dir, &layer(2), width)?;
+            names.note(&layer(2), &WindowAttention::TENSORS);
+            i = 3;
+            Some(a)
+        } else {
+            None
+        };
+        let mut depth = 0;
+        while names.has(&format!("{}.conv.conv.weight", layer(i + depth))) {
+            depth += 1;
+        }
+        let mut levels = Vec::with_capacity(levels_n);
+        for _ in 0..levels_n {
+            let mut res = Vec::with_capacity(depth);
+            for _ in 0..depth {
+                res.push(ResBlock::load(t, &layer(i), width, k)?);
+                names.note(&layer(i), &["conv.conv.weight", "conv.conv.bias", "proj.weight", "proj.bias"]);
+                i += 1;
+            }
+            // layer i: Upsample2, then the Conv
+            let up = UpConv::load(t, &format!("{}.conv", layer(i + 1)), width, k)?;
+            names.note(&format!("{}.conv", layer(i + 1)), &["weight", "bias"]);
+            i += 2;
+            levels.push(Level { res, up });
+        }
+        let final_a = CausalConv::load(t, &format!("{}.conv", layer(i)), width, width, k)?;
+        names.note(&format!("{}.conv", layer(i)), &["weight", "bias"]);
+        // layer i + 1: ReLU
+        let final_b = CausalConv::load(t, &format!("{}.conv", layer(i + 2)), width, dim, k)?;
+        names.note(&format!("{}.conv", layer(i + 2)), &["weight", "bias"]);
+
+        let contact = CONTACT_CHANNELS.iter().filter(|&&c| (start..stop).contains(&c)).map(|&c| c - start).collect();
+        Ok(Component { offset: start, dim, contact, code_dim, width, table, conv_in, attn, depth, levels, final_a, final_b })
+    }
+
+    /// Tokens the newest token's frames depend on (models.vqvae.Decoder._receptive_field).
+    fn context_tokens(&self, frames: usize) -> usize {
+        // (lookback, upsample) of every layer, in order
+        let k1 = self.conv_in.k - 1;
+        let mut layers = vec![(k1, 1), (0, 1)];
+        if let Some(a) = &self.attn {
+            layers.push((a.window() - 1, 1));
+        }
+        for _ in &self.levels {
+            layers.extend(std::iter::repeat_n((k1, 1), self.depth));
+            layers.extend([(0, 2), (k1, 1)]);
+        }
+        layers.extend([(k1, 1), (0, 1), (k1, 1)]);
+        let n: i64 = 1 << 20;
+        let mut pos = n * frames as i64;
+        for &(look, up) in layers.iter().rev() {
+            pos = pos.div_euclid(up) - look as i64;
+        }
+        (n - pos + 1) as usize
+    }
+
+    fn new_state(&self, frames: usize) -> CompState {
+        let w = self.width;
+        let mut res = Vec::new();
+        let mut z = Vec::new();
+        for (l, lev) in self.levels.iter().enumerate() {
+            for r in &lev.res {
+                res.push(vec![0.0; r.conv.buf_len(1 << l)]);
+            }
+            z.push(vec![0.0; lev.up.z_len(1 << l)]);
+        }
+        CompState {
+            emb: vec![0.0; self.conv_in.buf_len(1)],
+            attn: self.attn.as_ref().map(WindowAttention::new_state),
+            res,
+            z,
+            fa: vec![0.0; self.final_a.buf_len(frames)],
+            fb: vec![0.0; self.final_b.buf_len(frames)],
+            x: vec![0.0; frames * w],
+            y: vec![0.0; frames * w],
+            a: vec![0.0; frames * w],
+            b: vec![0.0; frames * w],
+            out: vec![0.0; frames * self.dim],
+        }
+    }
+
+    /// Decodes `id` (a code, or the pad id = codebook size) into `s.out` (F x dim, raw).
+    fn run(&self, s: &mut CompState, id: usize) {
+        let (d, w) = (self.code_dim, self.width);
+        self.conv_in.input(&mut s.emb, 1).copy_from_slice(&self.table[id * d..(id + 1) * d]);
+        self.conv_in.run(&mut s.emb, 1, &mut s.x[..w]);
+        relu(&mut s.x[..w]);
+        if let (Some(a), Some(st)) = (&self.attn, s.attn.as_mut()) {
+            a.step(&mut s.x[..w], st);
+        }
+        let mut n = 1;
+        for (l, lev) in self.levels.iter().enumerate() {
+            for (r, buf) in lev.res.iter().zip(&mut s.res[l * self.depth..(l + 1) * self.depth]) {
+                r.run(&mut s.x, n, buf, &mut s.a, &mut s.b);
+            }
+            lev.up.run(&s.x[..n * w], n, &mut s.z[l], &mut s.y[..2 * n * w]);
+            std::mem::swap(&mut s.x, &mut s.y);
+            n *= 2;
+        }
+        self.final_a.input(&mut s.fa, n).copy_from_slice(&s.x[..n * w]);
+        self.final_a.run(&mut s.fa, n, &mut s.y[..n * w]);
+        for (d, v) in self.final_b.input(&mut s.fb, n).iter_mut().zip(&s.y[..n * w]) {
+            *d = v.max(0.0);
+        }
+        self.final_b.run(&mut s.fb, n, &mut s.out[..n * self.dim]);
+    }
+
+    /// Writes `s.out` into the component's channels of `out` (F x 335), contact as probability.
+    fn emit(&self, s: &CompState, frames: usize, out: &mut [f32]) {
+        for f in 0..frames {
+            let dst = &mut out[f * FRAME_DIM + self.offset..f * FRAME_DIM + self.offset + self.dim];
+            dst.copy_from_slice(&s.out[f * self.dim..(f + 1) * self.dim]);
+            for &c in &self.contact {
+                dst[c] = 1.0 / (1.0 + (-dst[c]).exp());
+            }
+        }
+    }
+
+    fn matrices(&self) -> Vec<&Matrix> {
+        let mut v: Vec<&Matrix> = self.conv_in.matrices().to_vec();
+        if let Some(a) = &self.attn {
+            v.extend(a.matrices());
+        }
+        for l in &self.levels {
+            for r in &l.res {
+                v.extend(r.matrices());
+            }
+            v.extend(l.up.matrices());
+        }
+        v.extend(self.final_a.matrices());
+        v.extend(self.final_b.matrices());
+        v
+    }
+}
+
+impl NativeDecoder {
+    /// Loads `decoder.native`; the manifest was verified (components, K, initial state).
+    pub(crate) fn load(src: &BundleSource, m: &Manifest, spec: &NativeSpec) -> Result<NativeDecoder> {
+        let dir = src.path_of(&spec.dir);
+        let d = &m.decoder;
+        let frames = d.frames_per_token;
+        if frames < 2 || !frames.is_power_of_two() {
+            return Err(Error::bundle(&dir, format!(
+                "the native decoder needs frames_per_token = 2^levels (levels >= 1), the manifest says {frames}")));
+        }
+        if m.components.len() != N_STREAMS {
+            return Err(Error::bundle(&dir, format!("{} components, expected {N_STREAMS}", m.components.len())));
+        }
+        let t = Tensors::new(src, spec);
+        let mut names = Names { known: BTreeSet::new(), t: &t };
+        let mut comps = Vec::with_capacity(N_STREAMS);
+        for ci in 0..N_STREAMS {
+            let c = Component::load(&t, &mut names, &dir, m, ci)?;
+            let k = c.context_tokens(frames);
+            if k != d.context_tokens {
+                return Err(Error::bundle(&dir, format!(
+                    "the native decoder of {} reads {k} tokens (from its layers), the manifest's context_tokens is {}",
+                    m.components[ci].name, d.context_tokens)));
+            }
+            comps.push(c);
+        }
+        // Every decoder tensor must be one the architecture reads (a layer we would ignore
+        // means a different network), and every tensor must belong to a known component.
+        for name in t.names() {
+            let comp_ok = m.components.iter().any(|c| name.starts_with(&format!("parts.{}.", c.name)));
+            if !comp_ok || (name.contains(".decoder.") && !names.known.contains(name)) {
+                return Err(Error::bundle(&dir, format!(
+                    "native decoder tensor {name} is not part of the decoder architecture the other tensors describe")));
+            }
+        }
+        let (helper, helper_comps) = start_helper(&comps)?;
+        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, helper_comps };
+        // The context of a new sequence: zero histories, then the initial state's tokens.
+        let mut st = NativeState { comps: dec.comps.iter().map(|c| c.new_state(frames)).collect() };
+        let init = d.initial_state.first().ok_or_else(|| Error::bundle(&dir, "decoder initial_state is empty"))?;
+        for (ci, c) in dec.comps.iter().enumerate() {
+            let ids = init.get(ci).ok_or_else(|| Error::bundle(&dir, "decoder initial_state lacks a component"))?;
+            for &id in ids {
+                let id = usize::try_from(id).ok().filter(|&i| i <= m.components[ci].codebook_size).ok_or_else(|| {
+                    Error::bundle(&dir, format!("decoder initial_state id {id} is neither a code nor the pad id"))
+                })?;
+                c.run(&mut st.comps[ci], id);
+            }
+        }
+        dec.initial = st;
+        Ok(dec)
+    }
+
+    /// A new sequence's state (allocates; `reset` does not).
+    pub(crate) fn new_state(&self) -> NativeState {
+        self.initial.clone()
+    }
+
+    /// Back to the start of a sequence, without allocating.
+    pub(crate) fn reset(&self, st: &mut NativeState) {
+        for (a, b) in st.comps.iter_mut().zip(&self.initial.comps) {
+            a.copy_from(b);
+        }
+    }
+
+    /// Decodes one code per component (checked by the caller: `0 <= id < codebook size`)
+    /// into `out` (F x 335 normalized features, contact as probability). Allocation-free.
+    /// Fails only if the helper thread panicked (`Error::Panic`; the state is then not
+    /// to be trusted).
+    pub(crate) fn decode(&self, st: &mut NativeState, ids: [usize; N_STREAMS], out: &mut [f32]) -> Result<()> {
+        assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
+        let mut split = false;
+        if let Some(h) = &self.helper {
+            let states = st.comps.as_mut_ptr();
+            let arg = SplitArg { dec: self, states, ids };
+            let job = Job { run: run_helper_part, arg: &arg as *const SplitArg as *const () };
+            let mine = || {
+                for (ci, c) in self.comps.iter().enumerate() {
+                    if !self.helper_comps[ci] {
+                        // SAFETY: `states` has one state per component; the helper touches
+                        // only its own components' states.
+                        c.run(unsafe { &mut *states.add(ci) }, ids[ci]);
+                    }
+                }
+            };
+            // SAFETY: `arg` and the states outlive the call (it waits for the helper), and
+            // the two sides decode disjoint components.
+            match unsafe { h.run_split(job, mine) } {
+                Some(false) => split = true,
+                Some(true) => return Err(Error::Panic("the native decoder's helper thread panicked".into())),
+                None => {}
+            }
+        }
+        if !split {
+            for ((c, s), &id) in self.comps.iter().zip(st.comps.iter_mut()).zip(&ids) {
+                c.run(s, id);
+            }
+        }
+        for (c, s) in self.comps.iter().zip(&st.comps) {
+            c.emit(s, self.frames, out);
+        }
+        Ok(())
+    }
+}
+
+/// The helper thread and its components, if one decode should use two threads
+/// (`COMGRASP_DECODER_THREADS`, else: two or more cores and a model big enough). The split
+/// balances the components' weight counts (all components have the same layer structure,
+/// so multiply-adds are proportional to weights).
+fn start_helper(comps: &[Component]) -> Result<(Option<Helper>, [bool; N_STREAMS])> {
+    let none = Ok((None, [false; N_STREAMS]));
+    let cost: Vec<usize> = comps.iter().map(|c| c.matrices().iter().map(|m| m.rows() * m.cols()).sum()).collect();
+    let total: usize = cost.iter().sum();
+    let two = match std::env::var(THREADS_ENV).as_deref() {
+        Ok("1") => false,
+        Ok("2") => true,
+        Ok("") | Err(std::env::VarError::NotPresent) => {
+            total >= SPLIT_MIN_WEIGHTS && std::thread::available_parallelism().map_or(1, |n| n.get()) >= 2
+        }
+        Ok(v) => return Err(Error::InvalidArgument(format!("{THREADS_ENV}={v:?}: expected 1 or 2"))),
+        Err(e) => return Err(Error::InvalidArgument(format!("{THREADS_ENV}: {e}"))),
+    };
+    if !two || comps.len() < 2 {
+        return none;
+    }
+    // the subset for the helper (component 0 stays with the caller) minimizing the larger side
+    let n = comps.len();
+    let mut best = (usize::MAX, 0u32);
+    for mask in 1u32..(1 << (n - 1)) {
+        let helper: usize = (0..n - 1).filter(|i| (mask >> i) & 1 == 1).map(|i| cost[i + 1]).sum();
+        let worst = helper.max(total - helper);
+        if worst < best.0 {
+            best = (worst, mask);
+        }
+    }
+    let mut which = [false; N_STREAMS];
+    for i in 0..n - 1 {
+        which[i + 1] = (best.1 >> i) & 1 == 1;
+    }
+    match Helper::start() {
+        Ok(helper) => Ok((Some(helper), which)),
+        Err(_) => none, // no thread to be had: decode on the caller's alone
+    }
+}

@@ -1,0 +1,144 @@
+//! Loading the native path's tensors: `<dir>/<name>.npy` per tensor, as listed in a
+//! manifest's `native` section (names are the PyTorch `state_dict` keys). A tensor stored as
+//! int8 has a float32 scale per row (first axis) in `<dir>/<name>.scale.npy`, and stands for
+//! `q * scale` exactly as the ONNX graph's `Cast * Mul` rebuilds it.
+//!
+//! Every file is checked against the manifest (dtype, shape) and for finite values, so a
+//! corrupt or mismatched file is a load-time `Error::Bundle`.
+use crate::bundle::manifest::{NativeDtype, NativeSpec};
+use crate::bundle::npy::{self, NpyDtype};
+use crate::bundle::BundleSource;
+use crate::error::{Error, Result};
+
+/// A weight matrix `rows x cols`, row-major (a Linear's `(out, in)`, a Conv1d's
+/// `(out, in * kernel)`): the layout a GEMV reads row by row.
+#[derive(Clone, Debug)]
+pub(crate) enum Matrix {
+    F32 { rows: usize, cols: usize, w: Vec<f32> },
+    /// `w[r][c] = q[r * cols + c] as f32 * scale[r]`.
+    I8 { rows: usize, cols: usize, q: Vec<i8>, scale: Vec<f32> },
+}
+
+impl Matrix {
+    pub(crate) fn rows(&self) -> usize {
+        match self {
+            Matrix::F32 { rows, .. } | Matrix::I8 { rows, .. } => *rows,
+        }
+    }
+
+    pub(crate) fn cols(&self) -> usize {
+        match self {
+            Matrix::F32 { cols, .. } | Matrix::I8 { cols, .. } => *cols,
+        }
+    }
+
+    /// Bytes the weights occupy (what one pass over the matrix reads).
+    pub(crate) fn bytes(&self) -> usize {
+        match self {
+            Matrix::F32 { w, .. } => 4 * w.len(),
+            Matrix::I8 { q, scale, .. } => q.len() + 4 * scale.len(),
+        }
+    }
+
+    /// Row `r` as f32 (for the rare gather of one row, e.g. an embedding lookup).
+    pub(crate) fn row_into(&self, r: usize, out: &mut [f32]) {
+        match self {
+            Matrix::F32 { cols, w, .. } => out.copy_from_slice(&w[r * cols..(r + 1) * cols]),
+            Matrix::I8 { cols, q, scale, .. } => {
+                for (o, &v) in out.iter_mut().zip(&q[r * cols..(r + 1) * cols]) {
+                    *o = f32::from(v) * scale[r];
+                }
+            }
+        }
+    }
+}
+
+/// The tensors of one `native` section, read on demand.
+pub(crate) struct Tensors<'a> {
+    src: &'a BundleSource,
+    spec: &'a NativeSpec,
+}
+
+impl<'a> Tensors<'a> {
+    pub(crate) fn new(src: &'a BundleSource, spec: &'a NativeSpec) -> Self {
+        Tensors { src, spec }
+    }
+
+    /// The declared shape of `name`, or a bundle error naming the missing tensor.
+    pub(crate) fn shape(&self, name: &str) -> Result<&'a [usize]> {
+        Ok(&self.entry(name)?.shape)
+    }
+
+    /// Every tensor name the section lists.
+    pub(crate) fn names(&self) -> impl Iterator<Item = &'a str> {
+        self.spec.tensors.keys().map(String::as_str)
+    }
+
+    fn entry(&self, name: &str) -> Result<&'a crate::bundle::manifest::NativeTensor> {
+        self.spec.tensors.get(name).ok_or_else(|| {
+            Error::bundle(self.src.path_of(&self.spec.dir), format!("native weights lack tensor {name}"))
+        })
+    }
+
+    fn file(&self, name: &str, suffix: &str) -> String {
+        format!("{}/{name}{suffix}.npy", self.spec.dir)
+    }
+
+    fn read(&self, rel: &str, dtype: NpyDtype, shape: &[usize]) -> Result<npy::Npy> {
+        let path = self.src.path_of(rel);
+        let a = npy::parse(&path, self.src.read_file(rel)?.into_owned())?;
+        if a.dtype != dtype || a.shape != shape {
+            return Err(Error::bundle(&path, format!(
+                "is {} {:?}, the manifest declares {} {:?}", a.dtype.numpy_name(), a.shape, dtype.numpy_name(), shape)));
+        }
+        Ok(a)
+    }
+
+    fn floats(&self, rel: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let path = self.src.path_of(rel);
+        let v = self.read(rel, NpyDtype::F32, shape)?.to_f32(&path)?;
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(Error::bundle(&path, format!("value {i} is not finite")));
+        }
+        Ok(v)
+    }
+
+    /// A float32 tensor of exactly `len` elements (any shape), e.g. a bias or a LayerNorm weight.
+    pub(crate) fn vector(&self, name: &str, len: usize) -> Result<Vec<f32>> {
+        let e = self.entry(name)?;
+        let n: usize = e.shape.iter().product();
+        if e.dtype != NativeDtype::Float32 || n != len {
+            return Err(Error::bundle(self.src.path_of(&self.file(name, "")), format!(
+                "native tensor {name} is {:?} {:?}, expected float32 with {len} values", e.dtype, e.shape)));
+        }
+        self.floats(&self.file(name, ""), &e.shape)
+    }
+
+    /// A tensor of shape `(rows, ...)` with `cols` = the product of the other axes, as a
+    /// [`Matrix`] (float32 or int8 + scale, whichever the bundle stores).
+    pub(crate) fn matrix(&self, name: &str, rows: usize, cols: usize) -> Result<Matrix> {
+        let e = self.entry(name)?;
+        let rel = self.file(name, "");
+        let path = self.src.path_of(&rel);
+        let (r, c) = match e.shape.split_first() {
+            Some((&r, rest)) => (r, rest.iter().product::<usize>()),
+            None => (0, 0),
+        };
+        if (r, c) != (rows, cols) {
+            return Err(Error::bundle(&path, format!(
+                "native tensor {name} has shape {:?}, expected {rows} rows of {cols}", e.shape)));
+        }
+        Ok(match e.dtype {
+            NativeDtype::Float32 => Matrix::F32 { rows, cols, w: self.floats(&rel, &e.shape)? },
+            NativeDtype::Int8 => {
+                let a = self.read(&rel, NpyDtype::I8, &e.shape)?;
+                let q = a.to_i8(&path)?;
+                let scale = self.floats(&self.file(name, ".scale"), &[rows])?;
+                if let Some(i) = scale.iter().position(|s| *s < 0.0) {
+                    return Err(Error::bundle(self.src.path_of(&self.file(name, ".scale")), format!("scale {i} is negative")));
+                }
+                Matrix::I8 { rows, cols, q, scale }
+            }
+        })
+    }
+}
