@@ -4,6 +4,8 @@
 #   mcs, mono             tests/csharp_binding.rs (bindings/csharp, the Unity binding)
 #   python3               tests/python_binding.rs (bindings/python, stdlib ctypes only)
 #   cc, c++, readelf      tests/c_example.rs, tests/cmake_package.rs
+#   valgrind              scripts/sanitize.sh (memcheck on the C example and C-ABI tests);
+#                         its ASan step uses gcc's libasan, which Debian's gcc depends on
 #   libclang              building the library at all: iceoryx2's platform layer runs
 #                         bindgen over the system headers (libclang-dev)
 # Idempotent: does nothing (and needs no network) when every tool is already there.
@@ -21,10 +23,11 @@ declare -A PKG=(
   [c++]=g++
   [make]=make
   [readelf]=binutils
+  [valgrind]=valgrind
 )
 missing=()
 # --build-only: just what building the library needs (README command 1).
-tools=(cmake pkg-config mcs mono python3 cc c++ make readelf)
+tools=(cmake pkg-config mcs mono python3 cc c++ make readelf valgrind)
 [ "${1:-}" = "--build-only" ] && tools=(cc)
 for tool in "${tools[@]}"; do
   command -v "$tool" >/dev/null 2>&1 || missing+=("${PKG[$tool]}")

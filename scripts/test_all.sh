@@ -3,8 +3,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # System tools (apt, only when missing): cmake, pkg-config, mono (mcs + runtime), python3,
-# cc/c++; the native-host tests (tests/cmake_package.rs, csharp_binding.rs,
-# python_binding.rs) fail without them.
+# cc/c++, valgrind; the native-host tests (tests/cmake_package.rs, csharp_binding.rs,
+# python_binding.rs) and scripts/sanitize.sh fail without them.
 bash scripts/setup_system.sh
 bash scripts/setup_python.sh
 bash scripts/setup_node.sh
@@ -15,6 +15,12 @@ trap 'rm -f "$log"' EXIT
 cargo test --locked --lib --bins --tests 2>&1 | tee -a "$log"
 # The shipped default's PyTorch parity vectors, replayed by the same tests as models/tiny's.
 COMGRASP_PARITY_BUNDLE=models/default cargo test --locked --test parity_tiny 2>&1 | tee -a "$log"
+# Issue 8's memory checks. Not tee'd into $log: their indented test summaries are re-runs
+# of tests counted above. Either failing exits non-zero here (set -e).
+# valgrind + ASan on the C example, valgrind on the C-ABI test binaries (built above).
+bash scripts/sanitize.sh
+# libFuzzer + ASan, every target from its seed corpus; its own build in fuzz/target.
+bash scripts/fuzz_smoke.sh 30
 # One closing line over both runners (pytest's "N passed" and cargo's "ok. N passed; M failed").
 # awk, not grep, so a count that is absent reads 0 instead of tripping `set -e` under pipefail.
 py_line=$(awk '/^[0-9]+ (passed|failed)/ {l=$0} END {print l}' "$log")
