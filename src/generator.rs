@@ -175,6 +175,11 @@ impl State {
 }
 
 impl ChunkSource for Generator {
+    /// A chunk plus the previous chunk's held frame (the forced last chunk emits both).
+    fn max_chunk_frames(&self) -> usize {
+        self.pipe.bundle.manifest.frames_per_token + 1
+    }
+
     fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool> {
         if self.done {
             return Ok(false);

@@ -48,6 +48,12 @@ pub trait ChunkSource: Send {
     /// this chunk (possibly empty) was the last one. Must return promptly (about one token
     /// step): cancellation is checked between calls.
     fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool>;
+
+    /// The most frames one `next_chunk` call appends: the worker reserves this much once, so
+    /// its loop never reallocates. A source may exceed it (the vector grows).
+    fn max_chunk_frames(&self) -> usize {
+        16
+    }
 }
 
 /// What [`Stream::poll`] found. Only `Frame` writes the output frame.
@@ -391,7 +397,7 @@ fn run(
     mut publication: Option<&mut StreamPublication>,
 ) -> Outcome {
     // Reused for every chunk: the steady state allocates nothing.
-    let mut chunk: Vec<Frame> = Vec::with_capacity(16);
+    let mut chunk: Vec<Frame> = Vec::with_capacity(source.max_chunk_frames());
     loop {
         if shared.is_cancelled() {
             return Outcome::Cancelled;

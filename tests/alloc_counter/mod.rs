@@ -1,9 +1,12 @@
 //! A counting global allocator for the tests that prove a hot path allocation-free.
-//! Counting is per thread and only while `count_allocs` runs, so parallel tests don't
-//! interfere. Include with `mod alloc_counter;` (it installs itself as the global allocator).
+//! `count_allocs` counts on the calling thread only, so parallel tests don't interfere;
+//! `count_allocs_all_threads` counts every thread of the process (for work that runs on a
+//! stream's worker), so a binary using it must not run other tests at the same time.
+//! Include with `mod alloc_counter;` (it installs itself as the global allocator).
 #![allow(dead_code)]
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 struct Counting;
 
@@ -11,7 +14,13 @@ thread_local! {
     static COUNT: Cell<Option<usize>> = const { Cell::new(None) };
 }
 
+static ALL_THREADS: AtomicBool = AtomicBool::new(false);
+static ALL_COUNT: AtomicUsize = AtomicUsize::new(0);
+
 fn note() {
+    if ALL_THREADS.load(Ordering::Relaxed) {
+        ALL_COUNT.fetch_add(1, Ordering::Relaxed);
+    }
     let _ = COUNT.try_with(|c| c.set(c.get().map(|n| n + 1)));
 }
 
@@ -47,4 +56,14 @@ pub fn count_allocs<R>(f: impl FnOnce() -> R) -> (R, usize) {
 /// Allocations made by `f` on this thread.
 pub fn allocations_in(f: impl FnOnce()) -> usize {
     count_allocs(f).1
+}
+
+/// Runs `f` and returns its result with the number of allocations every thread of the
+/// process made meanwhile.
+pub fn count_allocs_all_threads<R>(f: impl FnOnce() -> R) -> (R, usize) {
+    ALL_COUNT.store(0, Ordering::SeqCst);
+    ALL_THREADS.store(true, Ordering::SeqCst);
+    let r = f();
+    ALL_THREADS.store(false, Ordering::SeqCst);
+    (r, ALL_COUNT.load(Ordering::SeqCst))
 }
