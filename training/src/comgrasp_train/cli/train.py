@@ -3,7 +3,7 @@
     comgrasp-train train-vq  --data PREP --out RUN/vq  [--preset small] [--single] [--paper-decoder] [--iters N]
     comgrasp-train train-gpt --data PREP --vq RUN/vq --out RUN/gpt [--preset small] [--iters N]
     comgrasp-train generate  --vq RUN/vq --gpt RUN/gpt --text "A woman drinks from the mug" --out motion.npz
-    comgrasp-train evaluate  --data PREP --vq RUN/vq [--gpt RUN/gpt] --out RUN/eval/table.md
+    comgrasp-train evaluate  --data PREP --vq RUN/vq [--gpt RUN/gpt] --out RUN/eval/table.md [--int8-weights]
     comgrasp-train export    --vq RUN/vq --gpt RUN/gpt --out BUNDLE
 
 Every run directory holds ``ckpt.pt`` (resumable: rerun the same command to continue) and
@@ -91,15 +91,26 @@ def cmd_evaluate(args) -> int:
 
     fs, _ = load_prepared(Path(args.data), args.part)
     vq, _, _ = load_vq(Path(args.vq), args.device or "cpu")
+    if args.int8_weights:
+        from ..export.bundle import fake_quantize_bundle_int8
+
+        fake_quantize_bundle_int8(vq)
     norm = Normalizer.load(Path(args.vq) / "stats.npz")
-    results = {"VQ reconstruction": summarize(evaluate_reconstruction(vq, norm, fs, limit=args.limit))}
+    rows = {"VQ reconstruction": evaluate_reconstruction(vq, norm, fs, limit=args.limit)}
+    results = {"VQ reconstruction": summarize(rows["VQ reconstruction"])}
     if args.gpt:
         model = MotionModel.load(Path(args.vq), Path(args.gpt), args.device or "cpu")
+        if args.int8_weights:
+            fake_quantize_bundle_int8(model.vq, model.gpt)
         reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
                                    limit=args.limit)
+        rows["generation"] = reps
         results[f"generation ({args.repeats} repeats)"] = summarize_repeats(reps)
         results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs, args.limit))
     write_report(results, Path(args.out))
+    if args.rows:
+        # per test sequence (generation: per repeat, then per sequence), for paired comparisons
+        Path(args.out).with_suffix(".rows.json").write_text(json.dumps(rows))
     print(Path(args.out).read_text())
     return 0
 
@@ -183,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--part", default="test")
     s.add_argument("--repeats", type=int, default=3)
     s.add_argument("--limit", type=int, default=None)
+    s.add_argument("--int8-weights", action="store_true",
+                   help="round the Transformer's and decoders' weights to int8 per row first, exactly as "
+                        "`export --int8-weights` stores them (the model of the int8 bundle)")
+    s.add_argument("--rows", action="store_true",
+                   help="also write every sequence's metrics to OUT's stem + .rows.json (same order, same seeds)")
     s.add_argument("--out", required=True)
     sampling(s)
     common(s)

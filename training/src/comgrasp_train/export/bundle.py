@@ -373,6 +373,21 @@ def training_rest_skeleton(vq_dir: Path, data_dir: str | None) -> np.ndarray:
     return np.mean(np.stack(fs.rest_joints), axis=0).astype(np.float64)
 
 
+def fake_quantize_bundle_int8(vq: ComponentVQ, gpt=None) -> dict[str, list]:
+    """Round, in place, the weights ``export --int8-weights`` stores as int8 (per row,
+    ``weight_quant.fake_quantize_int8``): the Transformer's (step.onnx) and the VQ decoders'
+    (decoder.onnx; the encoders are not in the bundle and stay as trained). Returns
+    {graph file: quantized weights} for ``export_bundle``; ``evaluate --int8-weights`` calls it
+    too, so the metrics it reports are those of the int8 bundle's model. ``gpt=None``: the
+    decoders only."""
+    from ..weight_quant import fake_quantize_int8
+
+    out = {STEP_FILE: fake_quantize_int8(gpt)} if gpt is not None else {}
+    out[DECODER_FILE] = [w for name, part in vq.parts.items()
+                         for w in fake_quantize_int8(part.decoder, prefix=f"parts.{name}.decoder.")]
+    return out
+
+
 def _last_metrics(run_dir: Path) -> dict | None:
     log = run_dir / "log.jsonl"
     lines = log.read_text().splitlines() if log.is_file() else []
@@ -400,16 +415,9 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
     }
     rest = training_rest_skeleton(vq_dir, runs["vq"].get("data"))
-    int8_weights = None
-    if int8:
-        # Round the step and decoder weights to int8 per row in PyTorch too, so the parity
-        # vectors (and any evaluation of this model) describe exactly what the files hold.
-        from ..weight_quant import fake_quantize_int8
-
-        # Only the decoders are in decoder.onnx; the encoders stay as trained.
-        decoders = [w for name, part in model.vq.parts.items()
-                    for w in fake_quantize_int8(part.decoder, prefix=f"parts.{name}.decoder.")]
-        int8_weights = {STEP_FILE: fake_quantize_int8(model.gpt), DECODER_FILE: decoders}
+    # Round the step and decoder weights to int8 per row in PyTorch too, so the parity
+    # vectors (and any evaluation of this model) describe exactly what the files hold.
+    int8_weights = fake_quantize_bundle_int8(model.vq, model.gpt) if int8 else None
     provenance["skeleton"] = f"mean rest joints of the {runs['vq'].get('data')} training subjects"
     return export_bundle(out_dir, vq=model.vq, vq_config=VQConfig.from_dict(runs["vq"]["vq"]), gpt=model.gpt,
                          gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
