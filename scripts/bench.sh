@@ -30,9 +30,10 @@
 #                 bundle's native weights (transformer.native / decoder.native), and a
 #                 path that cannot run or that the loaded models do not confirm
 #                 (`engine_paths` in src/bin/comgrasp/bench.rs) is reported as not run.
-#   THREADS       thread counts (default 1): the engine's --threads (tract needs the
-#                 multithread-mm feature to use more than 1, see FEATURES), onnxruntime's
-#                 intra-op threads and torch.set_num_threads.
+#   THREADS       thread counts (default 1): the engine's --threads (the native step and
+#                 decoder use min(N, 2); tract needs the multithread-mm feature to use more
+#                 than 1, see FEATURES), onnxruntime's intra-op threads and
+#                 torch.set_num_threads.
 #   STEPS         token steps per sequence (default: each bundle's L_max); End is forbidden
 #                 before and forced after, so every runtime does the same steps.
 #   PROMPT, SEED  the prompt and the sampler seed (default "A woman drinks from the mug.", 7).

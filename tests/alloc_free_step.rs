@@ -1,19 +1,41 @@
 //! `StepModel::step` on the native path allocates nothing once its state exists: a counting
 //! global allocator watches whole generations (every cache slot, resets, going back to an
-//! earlier position) on models/tiny and models/default.
+//! earlier position) on models/tiny and models/default, on two threads
+//! (`COMGRASP_STEP_THREADS=2`: the caller and the model's helper thread; on Linux the test
+//! checks that the helper exists and ran) and on one.
 mod alloc_counter;
 mod bundle_support;
 
 use std::path::Path;
 
-use alloc_counter::allocations_in;
+use alloc_counter::{allocations_in, count_allocs_all_threads};
 use bundle_support::tiny_dir;
 use comgrasp::bundle::{Bundle, BundleSource};
 use comgrasp::model::{StepBackend, StepModel};
 
-fn check(dir: &Path) {
+/// Voluntary + involuntary context switches of this process's threads named `name`
+/// (`None` where /proc is missing or no thread has that name).
+fn switches_of(name: &str) -> Option<u64> {
+    let mut total = None;
+    for e in std::fs::read_dir("/proc/self/task").ok()?.flatten() {
+        if std::fs::read_to_string(e.path().join("comm")).ok()?.trim() != name {
+            continue;
+        }
+        let status = std::fs::read_to_string(e.path().join("status")).ok()?;
+        let n: u64 = status.lines().filter(|l| l.contains("ctxt_switches"))
+            .filter_map(|l| l.split_whitespace().last()?.parse::<u64>().ok()).sum();
+        total = Some(total.unwrap_or(0) + n);
+    }
+    total
+}
+
+fn check(dir: &Path, threads: &str) {
     let b = Bundle::load(dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
-    let step = StepModel::load_with(&BundleSource::dir(dir), &b.manifest, StepBackend::Native).unwrap();
+    // The only test in this binary: nothing else reads the variable meanwhile.
+    std::env::set_var("COMGRASP_STEP_THREADS", threads);
+    let step = StepModel::load_with(&BundleSource::dir(dir), &b.manifest, StepBackend::Native);
+    std::env::remove_var("COMGRASP_STEP_THREADS");
+    let step = step.unwrap();
     let emb = b.text.embed("pick up the mug").unwrap();
     let pad = b.manifest.pad_ids();
     let vocab = b.manifest.vocab_sizes();
@@ -22,8 +44,10 @@ fn check(dir: &Path) {
     // The first step, outside the count (nothing is lazily allocated, but the test only
     // promises "after the first").
     step.step(&mut st, pad, 0, &emb).unwrap();
+    let helper_before = switches_of("comgrasp-step");
     let mut checksum = 0f32;
-    let n = allocations_in(|| {
+    // Every thread's allocations (the helper's too): this is the binary's only test.
+    let ((), n) = count_allocs_all_threads(|| {
         for round in 0..3 {
             st.reset().unwrap();
             let mut tokens = pad;
@@ -39,13 +63,25 @@ fn check(dir: &Path) {
         }
     });
     assert!(checksum.is_finite());
-    assert_eq!(n, 0, "{}: native step allocated {n} times over {} steps", dir.display(), 3 * (slots + 7));
+    assert_eq!(n, 0, "{}, {threads} thread(s): native step allocated {n} times over {} steps", dir.display(),
+               3 * (slots + 7));
+    if threads == "2" && cfg!(target_os = "linux") {
+        // The helper thread exists and woke up for the steps (it sleeps between them).
+        let (before, after) = (helper_before.expect("no comgrasp-step thread"), switches_of("comgrasp-step").unwrap());
+        assert!(after > before, "{}: the step's helper thread did not run", dir.display());
+    }
 }
 
 #[test]
 fn native_step_does_not_allocate() {
-    // The counter works.
+    // The counters work, on this thread and on others.
     assert!(allocations_in(|| drop(std::hint::black_box(Vec::<u8>::with_capacity(10)))) >= 1);
-    check(&tiny_dir());
-    check(&Path::new(env!("CARGO_MANIFEST_DIR")).join("models").join("default"));
+    let ((), n) = count_allocs_all_threads(|| {
+        std::thread::scope(|s| s.spawn(|| drop(std::hint::black_box(Vec::<u8>::with_capacity(10)))).join().unwrap());
+    });
+    assert!(n >= 1);
+    for threads in ["2", "1"] {
+        check(&tiny_dir(), threads);
+        check(&Path::new(env!("CARGO_MANIFEST_DIR")).join("models").join("default"), threads);
+    }
 }

@@ -72,8 +72,9 @@ fn stream_allocates_nothing_after_the_first_token() {
             assert_eq!(allocs, 0, "{what}");
         } else {
             // iceoryx2 0.10's `loan_uninit` boxes a small shared state per sample (an Arc in
-            // SampleMutUninit::new): one allocation per published frame, nothing of ours.
-            assert!(allocs as u64 <= frames, "{what}");
+            // SampleMutUninit::new): one allocation per sample published in the window (at
+            // most the frames polled in it, plus the stream's ENDED event), nothing of ours.
+            assert!(allocs as u64 <= frames + 1, "{what}");
         }
     }
 }

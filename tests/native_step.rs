@@ -1,7 +1,8 @@
 //! The native step (src/model/native/step.rs) against the tract step graph on the same
 //! inputs: logits within 1e-4, identical greedy tokens, on models/tiny (or
-//! COMGRASP_PARITY_BUNDLE) and models/default; and corrupt or mismatched native weight
-//! files are clean load errors.
+//! COMGRASP_PARITY_BUNDLE) and models/default; one and two threads (COMGRASP_STEP_THREADS)
+//! give bit-identical logits; and corrupt or mismatched native weight files are clean load
+//! errors.
 mod bundle_support;
 
 use std::fs;
@@ -89,6 +90,46 @@ fn native_matches_tract_on_tiny() {
 #[test]
 fn native_matches_tract_on_default() {
     compare_paths(&default_dir(), usize::MAX);
+}
+
+/// Names of this process's threads (Linux; empty elsewhere).
+fn thread_names() -> Vec<String> {
+    let Ok(dir) = fs::read_dir("/proc/self/task") else { return Vec::new() };
+    dir.filter_map(|e| fs::read_to_string(e.ok()?.path().join("comm")).ok()).map(|s| s.trim().to_string()).collect()
+}
+
+/// The logits of every step of a generation (the parity case's text embedding, tokens
+/// derived from the step number) with `COMGRASP_STEP_THREADS=threads`, as bits.
+fn logits_bits(dir: &Path, threads: &str) -> Vec<u32> {
+    let b = Bundle::load(dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
+    // Only this test sets the variable; the other tests read it at load and work with either.
+    std::env::set_var("COMGRASP_STEP_THREADS", threads);
+    let step = StepModel::load_with(&BundleSource::dir(dir), &b.manifest, StepBackend::Native);
+    std::env::remove_var("COMGRASP_STEP_THREADS");
+    let step = step.unwrap();
+    if threads == "2" && cfg!(target_os = "linux") {
+        assert!(thread_names().iter().any(|n| n == "comgrasp-step"), "no step helper thread with 2 threads");
+    }
+    let emb = b.text.embed("pick up the mug").unwrap();
+    let vocab = b.manifest.vocab_sizes();
+    let mut st = step.new_state();
+    let mut tokens = b.manifest.pad_ids();
+    let mut out = Vec::new();
+    for k in 0..step.cache_slots() {
+        let logits = step.step(&mut st, tokens, k, &emb).unwrap();
+        out.extend(logits.iter().flat_map(|l| l.iter().map(|v| v.to_bits())));
+        tokens = std::array::from_fn(|s| ((k * 7 + s) % (vocab[s] - 2)) as i64);
+    }
+    out
+}
+
+#[test]
+fn one_and_two_threads_give_bit_identical_logits() {
+    for dir in [tiny_dir(), default_dir()] {
+        let one = logits_bits(&dir, "1");
+        assert!(one.iter().all(|&b| f32::from_bits(b).is_finite()));
+        assert!(one == logits_bits(&dir, "2"), "{}: 2 threads' logits differ from 1 thread's", dir.display());
+    }
 }
 
 #[test]

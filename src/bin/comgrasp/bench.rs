@@ -78,7 +78,10 @@ can be checked against them.
   --steps N             token steps per sequence, End forbidden before and forced after
                         (default: the bundle's L_max)
   --warmup N            untimed steps before the timed ones (default 3)
-  --threads N           tract matmul threads (needs the multithread-mm feature; default 1)
+  --threads N           tract matmul threads (needs the multithread-mm feature; default 1);
+                        also the native step's and decoder's threads (1 or 2) unless
+                        COMGRASP_STEP_THREADS / COMGRASP_DECODER_THREADS are set
+                        (without --threads: their defaults, 2 on 2+ cores for big models)
   --temperature T       sampling temperature (default: the bundle's)
   --top-k K             top-k (default: the bundle's)
   --stream-runs N       end-to-end streams to time (default 3)
@@ -99,6 +102,8 @@ struct Options {
     steps: Option<usize>,
     warmup: usize,
     threads: usize,
+    /// `--threads` was given: it then also sets the native kernels' threads.
+    threads_given: bool,
     temperature: Option<f64>,
     top_k: Option<u32>,
     stream_runs: usize,
@@ -130,6 +135,7 @@ fn parse(args: &[String]) -> Result<Options, String> {
         steps: None,
         warmup: 3,
         threads: 1,
+        threads_given: false,
         temperature: None,
         top_k: None,
         stream_runs: 3,
@@ -166,7 +172,10 @@ fn parse(args: &[String]) -> Result<Options, String> {
             "--seed" => o.seed = Some(number(name, &v)?),
             "--steps" => o.steps = Some(number(name, &v)?),
             "--warmup" => o.warmup = number(name, &v)?,
-            "--threads" => o.threads = number(name, &v)?,
+            "--threads" => {
+                o.threads = number(name, &v)?;
+                o.threads_given = true;
+            }
             "--temperature" => o.temperature = Some(number(name, &v)?),
             "--top-k" => o.top_k = Some(number(name, &v)?),
             "--stream-runs" => o.stream_runs = number(name, &v)?,
@@ -214,6 +223,18 @@ fn ms(d: Duration) -> f64 {
 }
 
 // ------------------------------------------------------------------------------ threads
+
+/// `--threads` also sets the native kernels' threads (they take 1 or 2), unless their
+/// variables are set; returns what each will use ("auto": its default). Called before any
+/// model loads (they read the variables at load).
+fn set_native_threads(o: &Options) -> [String; 2] {
+    ["COMGRASP_STEP_THREADS", "COMGRASP_DECODER_THREADS"].map(|var| {
+        if o.threads_given && std::env::var_os(var).is_none() {
+            std::env::set_var(var, o.threads.min(2).to_string());
+        }
+        std::env::var(var).unwrap_or_else(|_| "auto".into())
+    })
+}
 
 /// Installs tract's N-thread matmul executor; returns the thread count tract will use.
 #[cfg(feature = "multithread-mm")]
@@ -404,6 +425,7 @@ fn engine_paths(bundle: &Bundle) -> Result<(String, String), String> {
 fn bench(o: &Options) -> Result<Value, String> {
     let err = |e: comgrasp::Error| e.to_string();
     let (tract_threads, thread_note) = set_tract_threads(o.threads);
+    let native_threads = set_native_threads(o);
     let rss_before = rss();
 
     // 1. load
@@ -692,7 +714,8 @@ fn bench(o: &Options) -> Result<Value, String> {
         "engine_path": {"step": step_path, "decoder": decoder_path},
         "bundle": o.bundle.display().to_string(),
         "machine": {"cpu": cpu_model(), "logical_cpus": std::thread::available_parallelism().map(|n| n.get()).ok()},
-        "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note},
+        "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note,
+                    "native_step": native_threads[0], "native_decoder": native_threads[1]},
         "config": {
             "prompt": o.prompt, "seed": seed, "steps": steps, "warmup": o.warmup,
             "temperature": temperature, "top_k": top_k, "min_len": steps, "max_len": steps,

@@ -24,7 +24,7 @@ use std::path::Path;
 
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
-use super::decoder_threads::{Helper, Job};
+use super::helper_thread::{threads_from_env, Helper, Job};
 use super::weights::{Matrix, Tensors};
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -432,15 +432,7 @@ fn start_helper(comps: &[Component]) -> Result<(Option<Helper>, [bool; N_STREAMS
     let none = Ok((None, [false; N_STREAMS]));
     let cost: Vec<usize> = comps.iter().map(|c| c.matrices().iter().map(|m| m.rows() * m.cols()).sum()).collect();
     let total: usize = cost.iter().sum();
-    let two = match std::env::var(THREADS_ENV).as_deref() {
-        Ok("1") => false,
-        Ok("2") => true,
-        Ok("") | Err(std::env::VarError::NotPresent) => {
-            total >= SPLIT_MIN_WEIGHTS && std::thread::available_parallelism().map_or(1, |n| n.get()) >= 2
-        }
-        Ok(v) => return Err(Error::InvalidArgument(format!("{THREADS_ENV}={v:?}: expected 1 or 2"))),
-        Err(e) => return Err(Error::InvalidArgument(format!("{THREADS_ENV}: {e}"))),
-    };
+    let two = threads_from_env(THREADS_ENV, total >= SPLIT_MIN_WEIGHTS)? == 2;
     if !two || comps.len() < 2 {
         return none;
     }

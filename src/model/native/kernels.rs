@@ -9,6 +9,7 @@
 //! row), so arithmetic stays f32 as in the ONNX graphs while the weights cost a quarter of
 //! the memory traffic. The summation order is fixed per kernel and CPU feature set, never
 //! data-dependent, so a run is reproducible on one machine.
+use std::ops::Range;
 use std::sync::atomic::{AtomicU8, Ordering};
 
 use super::weights::Matrix;
@@ -272,9 +273,57 @@ mod avx2 {
         }};
     }
 
+    /// f32 rows one at a time, each summed exactly as `gemv_body` sums it (the rows of
+    /// whole blocks of 4 with two accumulators and `hsum4`'s order, the last `rows % 4` with
+    /// one): one sequential stream through the weights instead of four (see avx512's).
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn gemv_f32(w: &[f32], cols: usize, x: &[f32], y: &mut [f32]) {
+        let rows = y.len();
+        let blocked = rows / 4 * 4;
+        let px = x.as_ptr();
+        let head = super::HEAD;
+        for (r, out) in y[..blocked].iter_mut().enumerate() {
+            let p = w.as_ptr().add(r * cols);
+            let (mut a, mut b) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+            let mut h = 0.0f32;
+            for c in 0..head {
+                h += *p.add(c) * *px.add(c);
+            }
+            let mut c = head;
+            while c + 16 <= cols {
+                a = _mm256_fmadd_ps(_mm256_loadu_ps(p.add(c)), _mm256_loadu_ps(px.add(c)), a);
+                b = _mm256_fmadd_ps(_mm256_loadu_ps(p.add(c + 8)), _mm256_loadu_ps(px.add(c + 8)), b);
+                c += 16;
+            }
+            if c + 8 <= cols {
+                a = _mm256_fmadd_ps(_mm256_loadu_ps(p.add(c)), _mm256_loadu_ps(px.add(c)), a);
+                c += 8;
+            }
+            let mut s = hsum4_one(_mm256_add_ps(a, b)) + h;
+            while c < cols {
+                s += *p.add(c) * *px.add(c);
+                c += 1;
+            }
+            *out = s;
+        }
+        if blocked < rows {
+            gemv_body!(w.as_ptr().add(blocked * cols), cols, x, &mut y[blocked..], load_f32, |v: f32| v)
+        }
+    }
+
+    /// The four-rows-at-once body on f32 (what `gemv_f32` computed before; for tests).
+    #[cfg(test)]
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn gemv_f32_by_blocks(w: &[f32], cols: usize, x: &[f32], y: &mut [f32]) {
         gemv_body!(w.as_ptr(), cols, x, y, load_f32, |v: f32| v)
+    }
+
+    /// One row's sum in `hsum4`'s order.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn hsum4_one(a: __m256) -> f32 {
+        let t = _mm256_hadd_ps(_mm256_hadd_ps(a, a), _mm256_hadd_ps(a, a));
+        _mm_cvtss_f32(_mm_add_ps(_mm256_castps256_ps128(t), _mm256_extractf128_ps(t, 1)))
     }
 
     #[target_feature(enable = "avx2,fma")]
@@ -301,12 +350,6 @@ mod avx512 {
     #[target_feature(enable = "avx512f")]
     unsafe fn load_i8(p: *const i8) -> __m512 {
         _mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(_mm_loadu_si128(p as *const __m128i)))
-    }
-
-    #[inline]
-    #[target_feature(enable = "avx512f")]
-    unsafe fn load_f32(p: *const f32) -> __m512 {
-        _mm512_loadu_ps(p)
     }
 
     /// As avx2's `gemv_body` with 16 lanes: four rows share each load of `x`.
@@ -367,9 +410,39 @@ mod avx512 {
         }};
     }
 
+    /// f32 rows one at a time (a row's sums exactly as in `gemv_body`): one sequential
+    /// stream through the weights. Four rows at once are four streams 4 KiB or more apart,
+    /// which the prefetchers serve at ~15 GB/s on Zen 4 against ~24 GB/s for one stream
+    /// (measured on the 2-core machine, weights in 2 MiB pages).
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn gemv_f32(w: &[f32], cols: usize, x: &[f32], y: &mut [f32]) {
-        gemv_body!(w.as_ptr(), cols, x, y, load_f32, |v: f32| v, false)
+        let px = x.as_ptr();
+        let head = super::HEAD;
+        for (r, out) in y.iter_mut().enumerate() {
+            let p = w.as_ptr().add(r * cols);
+            let mut a = _mm512_setzero_ps();
+            let mut b = _mm512_setzero_ps();
+            let mut h = 0.0f32;
+            for c in 0..head {
+                h += *p.add(c) * *px.add(c);
+            }
+            let mut c = head;
+            while c + 32 <= cols {
+                a = _mm512_fmadd_ps(_mm512_loadu_ps(p.add(c)), _mm512_loadu_ps(px.add(c)), a);
+                b = _mm512_fmadd_ps(_mm512_loadu_ps(p.add(c + 16)), _mm512_loadu_ps(px.add(c + 16)), b);
+                c += 32;
+            }
+            if c + 16 <= cols {
+                a = _mm512_fmadd_ps(_mm512_loadu_ps(p.add(c)), _mm512_loadu_ps(px.add(c)), a);
+                c += 16;
+            }
+            let mut s = _mm512_reduce_add_ps(_mm512_add_ps(a, b)) + h;
+            while c < cols {
+                s += *p.add(c) * *px.add(c);
+                c += 1;
+            }
+            *out = s;
+        }
     }
 
     /// int8 rows are short streams (a 1024-wide row is 16 cache lines, too few for the
@@ -381,6 +454,38 @@ mod avx512 {
 }
 
 // ----------------------------------------------------------------------------- API
+
+/// A borrowed row-major weight matrix, what the GEMV kernels read: a [`Matrix`], or a
+/// matrix of the native step's weight arena (step.rs).
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum MatRef<'a> {
+    F32 { rows: usize, cols: usize, w: &'a [f32] },
+    /// int8 rows times one scale per row.
+    I8 { rows: usize, cols: usize, q: &'a [i8], scale: &'a [f32] },
+}
+
+impl MatRef<'_> {
+    pub(crate) fn rows(&self) -> usize {
+        match self {
+            MatRef::F32 { rows, .. } | MatRef::I8 { rows, .. } => *rows,
+        }
+    }
+
+    pub(crate) fn cols(&self) -> usize {
+        match self {
+            MatRef::F32 { cols, .. } | MatRef::I8 { cols, .. } => *cols,
+        }
+    }
+}
+
+impl<'a> From<&'a Matrix> for MatRef<'a> {
+    fn from(m: &'a Matrix) -> MatRef<'a> {
+        match m {
+            Matrix::F32 { rows, cols, w } => MatRef::F32 { rows: *rows, cols: *cols, w },
+            Matrix::I8 { rows, cols, q, scale } => MatRef::I8 { rows: *rows, cols: *cols, q, scale },
+        }
+    }
+}
 
 /// Dot product with a fixed summation order (independent partial sums, vectorized).
 pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
@@ -409,77 +514,94 @@ fn add_bias(y: &mut [f32], bias: Option<&[f32]>) {
 
 /// `y = M x (+ bias)`; `x.len() == M.cols()`, `y.len() == M.rows()`.
 pub(crate) fn gemv(m: &Matrix, x: &[f32], bias: Option<&[f32]>, y: &mut [f32]) {
-    gemv_with(isa(), m, x, bias, y)
+    gemv_rows(m.into(), x, bias, 0..m.rows(), y)
 }
 
-/// [`gemv`] with the given instruction set (which must be supported: `isa <= isa()`).
-fn gemv_with(isa: Isa, m: &Matrix, x: &[f32], bias: Option<&[f32]>, y: &mut [f32]) {
-    assert!(x.len() == m.cols() && y.len() == m.rows() && isa <= self::isa(), "gemv: {}x{} matrix, x {}, y {}",
-            m.rows(), m.cols(), x.len(), y.len());
+/// Rows `rows` of [`gemv`]: `y[i] = (M x + bias)[rows.start + i]`. Each row's value is
+/// bit-identical to the whole product's as long as `rows.start` is a multiple of 4 (the
+/// kernels' row blocks).
+pub(crate) fn gemv_rows(m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+    gemv_with(isa(), m, x, bias, rows, y)
+}
+
+/// [`gemv_rows`] with the given instruction set (which must be supported: `isa <= isa()`).
+fn gemv_with(isa: Isa, m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+    assert!(x.len() == m.cols() && rows.end <= m.rows() && y.len() == rows.len() && isa <= self::isa(),
+            "gemv: {}x{} matrix, x {}, rows {rows:?}, y {}", m.rows(), m.cols(), x.len(), y.len());
+    let (r0, r1) = (rows.start, rows.end);
     match m {
-        Matrix::F32 { cols, w, .. } => match isa {
-            // SAFETY (all arms): the features were detected; the kernels read rows*cols
-            // weights (the matrix holds exactly that, checked at load) and cols of x.
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx512 => unsafe { avx512::gemv_f32(w, *cols, x, y) },
-            #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { avx2::gemv_f32(w, *cols, x, y) },
-            _ => {
-                for (r, out) in y.iter_mut().enumerate() {
-                    *out = portable::dot(&w[r * cols..(r + 1) * cols], x);
+        MatRef::F32 { cols, w, .. } => {
+            let w = &w[r0 * cols..r1 * cols];
+            match isa {
+                // SAFETY (all arms): the features were detected; the kernels read
+                // y.len()*cols weights (the slice holds exactly that) and cols of x.
+                #[cfg(target_arch = "x86_64")]
+                Isa::Avx512 => unsafe { avx512::gemv_f32(w, cols, x, y) },
+                #[cfg(target_arch = "x86_64")]
+                Isa::Avx2 => unsafe { avx2::gemv_f32(w, cols, x, y) },
+                _ => {
+                    for (r, out) in y.iter_mut().enumerate() {
+                        *out = portable::dot(&w[r * cols..(r + 1) * cols], x);
+                    }
                 }
             }
-        },
-        Matrix::I8 { cols, q, scale, .. } => {
+        }
+        MatRef::I8 { cols, q, scale, .. } => {
+            let q = &q[r0 * cols..r1 * cols];
             match isa {
                 #[cfg(target_arch = "x86_64")]
-                Isa::Avx512 => unsafe { avx512::gemv_i8(q, *cols, x, y) },
+                Isa::Avx512 => unsafe { avx512::gemv_i8(q, cols, x, y) },
                 #[cfg(target_arch = "x86_64")]
-                Isa::Avx2 => unsafe { avx2::gemv_i8(q, *cols, x, y) },
+                Isa::Avx2 => unsafe { avx2::gemv_i8(q, cols, x, y) },
                 _ => {
                     for (r, out) in y.iter_mut().enumerate() {
                         *out = portable::dot_i8(&q[r * cols..(r + 1) * cols], x);
                     }
                 }
             }
-            for (o, s) in y.iter_mut().zip(scale) {
+            for (o, s) in y.iter_mut().zip(&scale[r0..r1]) {
                 *o *= s;
             }
         }
     }
-    add_bias(y, bias);
+    add_bias(y, bias.map(|b| &b[r0..r1]));
 }
 
-/// `n` (1..=4) GEMVs with the same matrix: `x` holds n inputs of `M.cols()` one after the
-/// other, `y` n outputs of `M.rows()`; each weight row is read once for all of them.
-pub(crate) fn gemm(m: &Matrix, x: &[f32], n: usize, bias: Option<&[f32]>, y: &mut [f32]) {
-    gemm_with(isa(), m, x, n, bias, y)
+/// `n` (1..=4) GEMVs with the same matrix, rows `rows` of them: `x` holds n inputs of
+/// `M.cols()` one after the other, `y` n outputs of `rows.len()`,
+/// `y[j * rows.len() + i] = (M x_j + bias)[rows.start + i]`; each weight row is read once
+/// for all of them, and every value is bit-identical to the whole product's (the kernels
+/// compute each row on its own).
+pub(crate) fn gemm_rows(m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+    gemm_with(isa(), m, x, n, bias, rows, y)
 }
 
-fn gemm_with(isa: Isa, m: &Matrix, x: &[f32], n: usize, bias: Option<&[f32]>, y: &mut [f32]) {
-    let (rows, cols) = (m.rows(), m.cols());
-    assert!((1..=4).contains(&n) && x.len() == n * cols && y.len() == n * rows && isa <= self::isa(),
-            "gemm: {rows}x{cols} matrix, n {n}, x {}, y {}", x.len(), y.len());
+fn gemm_with(isa: Isa, m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+    let cols = m.cols();
+    let part = rows.len();
+    assert!((1..=4).contains(&n) && x.len() == n * cols && rows.end <= m.rows() && y.len() == n * part
+            && isa <= self::isa(), "gemm: {}x{cols} matrix, n {n}, x {}, rows {rows:?}, y {}", m.rows(), x.len(), y.len());
+    let (r0, r1) = (rows.start, rows.end);
     #[cfg(target_arch = "x86_64")]
     if isa >= Isa::Avx2 {
         match m {
-            // SAFETY: AVX2+FMA detected; rows*cols weights, n*cols inputs, n*rows outputs.
-            Matrix::F32 { w, .. } => unsafe { avx2::gemm_f32(w, cols, x, n, y) },
-            Matrix::I8 { q, .. } => unsafe { avx2::gemm_i8(q, cols, x, n, y) },
+            // SAFETY: AVX2+FMA detected; part*cols weights, n*cols inputs, n*part outputs.
+            MatRef::F32 { w, .. } => unsafe { avx2::gemm_f32(&w[r0 * cols..r1 * cols], cols, x, n, y) },
+            MatRef::I8 { q, .. } => unsafe { avx2::gemm_i8(&q[r0 * cols..r1 * cols], cols, x, n, y) },
         }
         for j in 0..n {
-            let yj = &mut y[j * rows..(j + 1) * rows];
-            if let Matrix::I8 { scale, .. } = m {
-                for (o, s) in yj.iter_mut().zip(scale) {
+            let yj = &mut y[j * part..(j + 1) * part];
+            if let MatRef::I8 { scale, .. } = m {
+                for (o, s) in yj.iter_mut().zip(&scale[r0..r1]) {
                     *o *= s;
                 }
             }
-            add_bias(yj, bias);
+            add_bias(yj, bias.map(|b| &b[r0..r1]));
         }
         return;
     }
     for j in 0..n {
-        gemv_with(isa, m, &x[j * cols..(j + 1) * cols], bias, &mut y[j * rows..(j + 1) * rows]);
+        gemv_with(isa, m, &x[j * cols..(j + 1) * cols], bias, rows.clone(), &mut y[j * part..(j + 1) * part]);
     }
 }
 
@@ -492,6 +614,12 @@ pub(crate) fn add_assign(y: &mut [f32], x: &[f32]) {
 
 /// LayerNorm over the whole slice (PyTorch's biased variance): `out = (x - mean) / sqrt(var + eps) * w + b`.
 pub(crate) fn layer_norm(x: &[f32], w: &[f32], b: &[f32], eps: f32, out: &mut [f32]) {
+    layer_norm_rows(x, w, b, eps, 0..x.len(), out)
+}
+
+/// Elements `rows` of [`layer_norm`] (the statistics over all of `x`): `out[i]` is element
+/// `rows.start + i`, bit-identical to the whole LayerNorm's.
+pub(crate) fn layer_norm_rows(x: &[f32], w: &[f32], b: &[f32], eps: f32, rows: Range<usize>, out: &mut [f32]) {
     let n = x.len() as f32;
     let mut acc = [0.0f32; LANES];
     let cx = x.chunks_exact(LANES);
@@ -518,7 +646,8 @@ pub(crate) fn layer_norm(x: &[f32], w: &[f32], b: &[f32], eps: f32, out: &mut [f
     }
     let var = (acc.iter().sum::<f32>() + tail) / n;
     let inv = 1.0 / (var + eps).sqrt();
-    for i in 0..x.len() {
+    let (x, w, b) = (&x[rows.clone()], &w[rows.clone()], &b[rows]);
+    for i in 0..out.len() {
         out[i] = (x[i] - mean) * inv * w[i] + b[i];
     }
 }
@@ -576,14 +705,14 @@ mod tests {
                 .filter(|(_, i)| *i <= super::isa())
             {
                 let mut y = vec![0.0; rows];
-                gemv_with(isa, m, &x, Some(&bias), &mut y);
+                gemv_with(isa, m.into(), &x, Some(&bias), 0..rows, &mut y);
                 for (a, b) in y.iter().zip(&naive) {
                     assert!((a - b).abs() < 1e-4 * (1.0 + b.abs()), "{rows}x{cols}: {a} vs {b}");
                 }
                 for n in 1..=4 {
                     let xs: Vec<f32> = (0..n).flat_map(|j| x.iter().map(move |v| v * (j + 1) as f32)).collect();
                     let mut ys = vec![0.0; n * rows];
-                    gemm_with(isa, m, &xs, n, Some(&bias), &mut ys);
+                    gemm_with(isa, m.into(), &xs, n, Some(&bias), 0..rows, &mut ys);
                     for j in 0..n {
                         for r in 0..rows {
                             let want = (naive[r] - bias[r]) * (j + 1) as f32 + bias[r];
@@ -601,6 +730,64 @@ mod tests {
             assert!((dot(&a, &b) - want).abs() < 1e-4 * (1.0 + want.abs()));
             assert!((portable::dot(&a, &b) - want).abs() < 1e-4 * (1.0 + want.abs()));
         }
+    }
+
+    #[test]
+    fn row_parts_are_bit_identical_to_the_whole_product() {
+        for (rows, cols) in [(5, 19), (13, 200), (16, 33), (31, 64), (2, 7), (130, 47)] {
+            let (_, ms) = matrices(rows, cols);
+            let x: Vec<f32> = (0..cols).map(|c| (c as f32 * 0.37).sin()).collect();
+            let xs: Vec<f32> = (0..4 * cols).map(|c| (c as f32 * 0.11).cos()).collect();
+            let bias: Vec<f32> = (0..rows).map(|r| r as f32 * 0.3).collect();
+            for (m, isa) in ms.iter().flat_map(|m| [Isa::Portable, Isa::Avx2, Isa::Avx512].map(|i| (m, i)))
+                .filter(|(_, i)| *i <= super::isa())
+            {
+                let mut whole = vec![0.0; rows];
+                gemv_with(isa, m.into(), &x, Some(&bias), 0..rows, &mut whole);
+                let mut whole4 = vec![0.0; 4 * rows];
+                gemm_with(isa, m.into(), &xs, 4, Some(&bias), 0..rows, &mut whole4);
+                for block in [4, 8, 12, rows] {
+                    let mut got = Vec::new();
+                    let mut got4 = vec![0.0; 4 * rows];
+                    for r in (0..rows).step_by(block).map(|a| a..(a + block).min(rows)) {
+                        let mut y = vec![0.0; r.len()];
+                        gemv_with(isa, m.into(), &x, Some(&bias), r.clone(), &mut y);
+                        got.extend(y);
+                        let mut y4 = vec![0.0; 4 * r.len()];
+                        gemm_with(isa, m.into(), &xs, 4, Some(&bias), r.clone(), &mut y4);
+                        for j in 0..4 {
+                            got4[j * rows + r.start..j * rows + r.end].copy_from_slice(&y4[j * r.len()..(j + 1) * r.len()]);
+                        }
+                    }
+                    let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(&got), bits(&whole), "{isa:?} {rows}x{cols} in blocks of {block}");
+                    assert_eq!(bits(&got4), bits(&whole4), "{isa:?} gemm {rows}x{cols} in blocks of {block}");
+                }
+            }
+        }
+        // The row-at-a-time AVX2 f32 kernel sums every row as the 4-row body does.
+        #[cfg(target_arch = "x86_64")]
+        if super::isa() >= Isa::Avx2 {
+            for (rows, cols) in [(5, 19), (13, 200), (16, 33), (31, 64), (2, 7), (130, 47), (9, 1024)] {
+                let (w, _) = matrices(rows, cols);
+                let x: Vec<f32> = (0..cols).map(|c| (c as f32 * 0.37).sin()).collect();
+                let (mut a, mut b) = (vec![0.0f32; rows], vec![0.0f32; rows]);
+                // SAFETY: AVX2 detected; rows*cols weights, cols inputs.
+                unsafe {
+                    avx2::gemv_f32(&w, cols, &x, &mut a);
+                    avx2::gemv_f32_by_blocks(&w, cols, &x, &mut b);
+                }
+                assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                           "{rows}x{cols}");
+            }
+        }
+        let x: Vec<f32> = (0..37).map(|i| (i as f32).sin() * 3.0).collect();
+        let w: Vec<f32> = (0..37).map(|i| 1.0 + i as f32 * 0.01).collect();
+        let mut whole = vec![0.0; 37];
+        layer_norm(&x, &w, &w, 1e-5, &mut whole);
+        let mut part = vec![0.0; 17];
+        layer_norm_rows(&x, &w, &w, 1e-5, 20..37, &mut part);
+        assert_eq!(part, whole[20..]);
     }
 
     #[test]
@@ -644,7 +831,7 @@ mod throughput {
                 let mut best = f64::MAX;
                 for _ in 0..8 {
                     let t = std::time::Instant::now();
-                    gemv_with(isa, m, &x, None, &mut y);
+                    gemv_with(isa, m.into(), &x, None, 0..rows, &mut y);
                     best = best.min(t.elapsed().as_secs_f64());
                 }
                 println!("{isa:?} {}: {:.2} ms, {:.1} GB/s", if matches!(m, Matrix::F32 { .. }) { "f32" } else { "i8" },

@@ -13,5 +13,6 @@ pub(crate) mod weights;
 pub(crate) mod decoder;
 mod decoder_attention;
 mod decoder_conv;
-mod decoder_threads;
+// The second thread of the decoder and of the step (one helper per loaded model).
+mod helper_thread;
 mod gemm;

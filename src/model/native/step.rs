@@ -13,7 +13,36 @@
 //! The graph instead attends over the cache's slots `< pos` plus the new row as a separate
 //! score; that is the same softmax (masked slots weigh exactly 0), up to float rounding.
 //! LayerNorm eps is PyTorch's default 1e-5.
-use super::kernels::{add_assign, dot, gelu_erf, gemm, gemv, layer_norm, softmax};
+//!
+//! **Two threads.** A step is a fixed sequence of phases, each over all four streams at
+//! once: the input; per layer the coordination's input projections, its three MLP layers,
+//! its output projections and its norms, then the blocks' LN1 + qkv, attention, proj,
+//! LN2 + fc1 + GELU, fc2; the heads (2 + 5 L + 6 (L - 1) phases, 150 on the paper model).
+//! Each phase is cut into units (blocks of rows of its products, ~32 KB of weights each
+//! and a multiple of 4 rows, the GEMV kernels' row blocks; or attention heads). With two
+//! threads the caller and a helper thread (helper_thread.rs, one per loaded model,
+//! started at load) take the units of each phase from both ends and meet before the next
+//! phase; a thread the OS preempts, or a helper that wakes late, leaves its share to the
+//! other instead of stalling it. Every output value is computed by the same kernel in the
+//! same order whoever computes it, so logits and caches are bit-identical for any thread
+//! count (tests/native_step.rs, and the unit tests below). A step that finds the helper
+//! busy (another stream's step has it) runs alone, and no step allocates.
+//!
+//! `COMGRASP_STEP_THREADS=1|2` (read at load) picks the count; the default is 2 when the
+//! machine has two or more cores and the step reads at least [`SPLIT_MIN_BYTES`] of
+//! weights. Measured on the 2-core machine: models/tiny (0.5 MB, 16 us per step) is slower
+//! on two threads (~25 us: the hand-over costs ~10 us), models/default (10 MB int8) goes
+//! from 0.60 to 0.37 ms, int8 models of default's shape with the widths scaled down gain
+//! 1.3-1.6x down to 0.3 MB; the paper model is bound by the memory bandwidth, which one
+//! thread nearly saturates (63 -> 54 ms in one run of scripts/bench.sh).
+//!
+//! **Weights.** The step's matrices are copied at load into one arena (see [`Arena`]) in
+//! 2 MiB pages where the system allows: a fp32 GEMV streams ~28 GB/s through them on one
+//! core against ~15-20 GB/s through 4 KiB pages.
+use std::ops::Range;
+
+use super::helper_thread::{threads_from_env, Helper, Member, Phase};
+use super::kernels::{add_assign, dot, gelu_erf, gemm_rows, gemv_rows, layer_norm, layer_norm_rows, softmax, MatRef};
 use super::weights::{Matrix, Tensors};
 use crate::bundle::manifest::{Manifest, NativeSpec, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -21,21 +50,33 @@ use crate::error::{Error, Result};
 
 const LN_EPS: f32 = 1e-5;
 
+/// Environment variable: threads one native step uses, `1` or `2` (read at load; default:
+/// 2 when the machine has two or more cores and the model reads at least
+/// [`SPLIT_MIN_BYTES`] per step).
+pub(crate) const THREADS_ENV: &str = "COMGRASP_STEP_THREADS";
+/// Below this many weight bytes per step one thread is faster than two (the module doc's
+/// measurements: models/tiny's 0.5 MB lose, 0.3 MB models of default's shape gain, so the
+/// line is drawn conservatively).
+pub(crate) const SPLIT_MIN_BYTES: usize = 1 << 20;
+/// Team members a state has scratch buffers for.
+const MAX_THREADS: usize = 2;
+
 struct Linear {
-    w: Matrix,
+    w: Wm,
     b: Option<Vec<f32>>,
 }
 
 impl Linear {
-    fn load(t: &Tensors, name: &str, rows: usize, cols: usize, bias: bool) -> Result<Linear> {
+    fn load(t: &Tensors, arena: &mut Arena, name: &str, rows: usize, cols: usize, bias: bool) -> Result<Linear> {
         Ok(Linear {
-            w: t.matrix(&format!("{name}.weight"), rows, cols)?,
+            w: arena.put(t.matrix(&format!("{name}.weight"), rows, cols)?),
             b: if bias { Some(t.vector(&format!("{name}.bias"), rows)?) } else { None },
         })
     }
 
-    fn run(&self, x: &[f32], y: &mut [f32]) {
-        gemv(&self.w, x, self.b.as_deref(), y)
+    /// Rows `r` of the product (`y.len() == r.len()`).
+    fn rows(&self, a: &Arena, x: &[f32], r: Range<usize>, y: &mut [f32]) {
+        gemv_rows(a.mat(&self.w), x, self.b.as_deref(), r, y)
     }
 }
 
@@ -51,6 +92,11 @@ impl Norm {
 
     fn run(&self, x: &[f32], out: &mut [f32]) {
         layer_norm(x, &self.w, &self.b, LN_EPS, out)
+    }
+
+    /// Elements `r` of `run`.
+    fn rows(&self, x: &[f32], r: Range<usize>, out: &mut [f32]) {
+        layer_norm_rows(x, &self.w, &self.b, LN_EPS, r, out)
     }
 }
 
@@ -69,7 +115,7 @@ struct Stream {
     pos: Vec<f32>,
     blocks: Vec<Block>,
     ln_f: Norm,
-    head: Matrix,
+    head: Wm,
 }
 
 struct Coord {
@@ -97,12 +143,19 @@ struct Dims {
 
 /// The step's weights, shared by all states of a model.
 pub(crate) struct NativeStep {
+    /// Every weight matrix but the token tables (`Wm`s point into it).
+    arena: Arena,
     d: Dims,
     streams: Vec<Stream>,
     coord: Vec<Coord>,
     /// 1/sqrt(head_dim) per stream, as the graph's constant (computed in f64, then rounded).
     scale: [f32; N_STREAMS],
     bytes: usize,
+    /// The second thread, when steps use two, and the hand-out state of a step's phases.
+    helper: Option<Helper>,
+    phases: Vec<Phase>,
+    /// Weight bytes per unit of a phase ([`UNIT_BYTES`]; tests use smaller units).
+    unit_bytes: usize,
 }
 
 /// One generation's KV cache and scratch buffers (everything `step` writes).
@@ -110,19 +163,31 @@ pub(crate) struct NativeStepState {
     /// Per stream, (L, H, S, D) row-major: the layout of the graph's cache inputs.
     k: Vec<Vec<f32>>,
     v: Vec<Vec<f32>>,
+    /// Per stream: the residual stream, qkv, attention output, a product's output, the MLP's
+    /// hidden activations.
     h: Vec<Vec<f32>>,
-    x: Vec<Vec<f32>>,
-    qkv: Vec<f32>,
-    att: Vec<f32>,
-    tmp: Vec<f32>,
-    mlp: Vec<f32>,
-    scores: Vec<f32>,
-    /// Coordination: the four projections, the four concatenations, the MLP's activations.
+    qkv: Vec<Vec<f32>>,
+    att: Vec<Vec<f32>>,
+    tmp: Vec<Vec<f32>>,
+    mlp: Vec<Vec<f32>>,
+    /// Coordination: the four projections, the MLP's activations (four rows each).
     cp: Vec<f32>,
-    ccat: Vec<f32>,
     ch1: Vec<f32>,
     ch2: Vec<f32>,
     cm: Vec<f32>,
+    /// Per team member: what each computes in full for itself.
+    own: Vec<Own>,
+}
+
+/// A team member's private buffers.
+struct Own {
+    /// Per stream, a LayerNorm's output (the input of the next product).
+    x: Vec<Vec<f32>>,
+    /// The coordination's four concatenations.
+    ccat: Vec<f32>,
+    scores: Vec<f32>,
+    /// This member's rows of a coordination MLP product, four rows.
+    part: Vec<f32>,
 }
 
 impl NativeStep {
@@ -171,6 +236,7 @@ impl NativeStep {
             .filter(|&v| v <= 1 << 32)
             .ok_or_else(|| err("the KV cache would be absurdly large".into()))?;
 
+        let mut arena = Arena::new(arena_bytes(&d));
         let mut expected = std::collections::BTreeSet::new();
         let mut note = |n: String| -> String {
             expected.insert(n.clone());
@@ -180,7 +246,7 @@ impl NativeStep {
         for s in 0..N_STREAMS {
             let (w, v, hid) = (widths[s], d.vocab[s], hidden[s]);
             let p = |n: &str| format!("streams.{s}.{n}");
-            let lin = |t: &Tensors, n: String, rows, cols, bias| -> Result<Linear> { Linear::load(t, &n, rows, cols, bias) };
+            let mut lin = |n: String, rows, cols| -> Result<Linear> { Linear::load(&tensors, &mut arena, &n, rows, cols, true) };
             let mut blocks = Vec::with_capacity(d.n_layers);
             for l in 0..d.n_layers {
                 let b = |n: &str| format!("streams.{s}.blocks.{l}.{n}");
@@ -190,11 +256,11 @@ impl NativeStep {
                 }
                 blocks.push(Block {
                     ln1: Norm::load(&tensors, &b("ln1"), w)?,
-                    qkv: lin(&tensors, b("attn.qkv"), 3 * w, w, true)?,
-                    proj: lin(&tensors, b("attn.proj"), w, w, true)?,
+                    qkv: lin(b("attn.qkv"), 3 * w, w)?,
+                    proj: lin(b("attn.proj"), w, w)?,
                     ln2: Norm::load(&tensors, &b("ln2"), w)?,
-                    fc1: lin(&tensors, b("mlp.0"), hid, w, true)?,
-                    fc2: lin(&tensors, b("mlp.2"), w, hid, true)?,
+                    fc1: lin(b("mlp.0"), hid, w)?,
+                    fc2: lin(b("mlp.2"), w, hid)?,
                 });
             }
             for n in ["pos", "cond.weight", "cond.bias", "tok.weight", "ln_f.weight", "ln_f.bias", "head.weight"] {
@@ -205,12 +271,12 @@ impl NativeStep {
                 return Err(err(format!("native tensor {} has shape {pos_shape:?}, expected [{}, {w}]", p("pos"), d.slots)));
             }
             streams.push(Stream {
-                cond: lin(&tensors, p("cond"), w, d.d_text, true)?,
+                cond: lin(p("cond"), w, d.d_text)?,
                 tok: tensors.matrix(&p("tok.weight"), v, w)?,
                 pos: tensors.vector(&p("pos"), d.slots * w)?,
                 blocks,
                 ln_f: Norm::load(&tensors, &p("ln_f"), w)?,
-                head: tensors.matrix(&p("head.weight"), v, w)?,
+                head: arena.put(tensors.matrix(&p("head.weight"), v, w)?),
             });
         }
         let (cw, ch) = (coord_width, coord_hidden);
@@ -229,16 +295,16 @@ impl NativeStep {
                     note(n(&format!("{x}.{s}.weight")));
                     note(n(&format!("{x}.{s}.bias")));
                 }
-                inp.push(Linear::load(&tensors, &n(&format!("inp.{s}")), cw, widths[s], true)?);
-                out.push(Linear::load(&tensors, &n(&format!("out.{s}")), widths[s], cw, true)?);
+                inp.push(Linear::load(&tensors, &mut arena, &n(&format!("inp.{s}")), cw, widths[s], true)?);
+                out.push(Linear::load(&tensors, &mut arena, &n(&format!("out.{s}")), widths[s], cw, true)?);
                 norm.push(Norm::load(&tensors, &n(&format!("norm.{s}")), widths[s])?);
             }
             coord.push(Coord {
                 inp,
                 mlp: [
-                    Linear::load(&tensors, &n("mlp.0"), ch, (N_STREAMS - 1) * cw, true)?,
-                    Linear::load(&tensors, &n("mlp.2"), ch, ch, true)?,
-                    Linear::load(&tensors, &n("mlp.4"), cw, ch, true)?,
+                    Linear::load(&tensors, &mut arena, &n("mlp.0"), ch, (N_STREAMS - 1) * cw, true)?,
+                    Linear::load(&tensors, &mut arena, &n("mlp.2"), ch, ch, true)?,
+                    Linear::load(&tensors, &mut arena, &n("mlp.4"), cw, ch, true)?,
                 ],
                 out,
                 norm,
@@ -247,6 +313,13 @@ impl NativeStep {
         if let Some(extra) = tensors.names().find(|n| !expected.contains(*n)) {
             return Err(err(format!("native weights hold tensor {extra}, which the step does not use")));
         }
+        arena.trim();
+        let mut step = NativeStep::assemble(arena, d, streams, coord);
+        step.set_threads(threads_from_env(THREADS_ENV, step.bytes >= SPLIT_MIN_BYTES)?);
+        Ok(step)
+    }
+
+    fn assemble(arena: Arena, d: Dims, streams: Vec<Stream>, coord: Vec<Coord>) -> NativeStep {
         let mut bytes = 0;
         for s in &streams {
             bytes += s.cond.w.bytes() + s.head.bytes();
@@ -257,8 +330,22 @@ impl NativeStep {
         for c in &coord {
             bytes += c.mlp.iter().chain(&c.inp).chain(&c.out).map(|l| l.w.bytes()).sum::<usize>();
         }
-        let scale = std::array::from_fn(|s| (1.0 / (head_dims[s] as f64).sqrt()) as f32);
-        Ok(NativeStep { d, streams, coord, scale, bytes })
+        let scale = std::array::from_fn(|s| (1.0 / (d.head_dims[s] as f64).sqrt()) as f32);
+        NativeStep { arena, d, streams, coord, scale, bytes, helper: None, phases: Vec::new(), unit_bytes: UNIT_BYTES }
+    }
+
+    /// Steps use `n` threads (1 or 2; 1 if no thread can be started).
+    fn set_threads(&mut self, n: usize) {
+        self.helper = if n >= 2 { Helper::start_named("comgrasp-step").ok() } else { None };
+        // the input, 5 phases per layer, 6 per coordination, the heads
+        let n_phases = 2 + 5 * self.d.n_layers + 6 * self.d.n_layers.saturating_sub(1);
+        self.phases = if self.helper.is_some() { (0..n_phases).map(|_| Phase::default()).collect() } else { Vec::new() };
+    }
+
+    /// Threads a step uses (when the helper is not busy).
+    #[allow(dead_code)]
+    pub(crate) fn threads(&self) -> usize {
+        if self.helper.is_some() { 2 } else { 1 }
     }
 
     /// Bytes of weight matrices one step reads.
@@ -269,130 +356,519 @@ impl NativeStep {
     /// A state with a zero cache and every scratch buffer allocated.
     pub(crate) fn new_state(&self) -> NativeStepState {
         let d = &self.d;
-        let wmax = *d.widths.iter().max().unwrap_or(&0);
-        let hmax = *d.hidden.iter().max().unwrap_or(&0);
         let cache = |s: usize| vec![0.0f32; d.n_layers * d.slots * d.widths[s]];
+        let per_stream = |f: &dyn Fn(usize) -> usize| (0..N_STREAMS).map(|s| vec![0.0f32; f(s)]).collect::<Vec<_>>();
         NativeStepState {
             k: (0..N_STREAMS).map(cache).collect(),
             v: (0..N_STREAMS).map(cache).collect(),
-            h: d.widths.iter().map(|&w| vec![0.0; w]).collect(),
-            x: d.widths.iter().map(|&w| vec![0.0; w]).collect(),
-            qkv: vec![0.0; 3 * wmax],
-            att: vec![0.0; wmax],
-            tmp: vec![0.0; wmax],
-            mlp: vec![0.0; hmax],
-            scores: vec![0.0; d.slots],
+            h: per_stream(&|s| d.widths[s]),
+            qkv: per_stream(&|s| 3 * d.widths[s]),
+            att: per_stream(&|s| d.widths[s]),
+            tmp: per_stream(&|s| d.widths[s]),
+            mlp: per_stream(&|s| d.hidden[s]),
             cp: vec![0.0; N_STREAMS * d.coord_width],
-            ccat: vec![0.0; N_STREAMS * (N_STREAMS - 1) * d.coord_width],
             ch1: vec![0.0; N_STREAMS * d.coord_hidden],
             ch2: vec![0.0; N_STREAMS * d.coord_hidden],
             cm: vec![0.0; N_STREAMS * d.coord_width],
+            own: (0..MAX_THREADS)
+                .map(|_| Own {
+                    x: per_stream(&|s| d.widths[s]),
+                    ccat: vec![0.0; N_STREAMS * (N_STREAMS - 1) * d.coord_width],
+                    scores: vec![0.0; d.slots],
+                    part: vec![0.0; N_STREAMS * d.coord_width.max(d.coord_hidden)],
+                })
+                .collect(),
         }
     }
 
     /// One step at `pos` (validated by the caller: `pos < slots`, rows `0..pos` filled,
     /// tokens inside the vocabularies, `text_emb` of `d_text` finite values); writes the
     /// logits into `logits` and the new k/v rows into the state's cache. No allocation.
+    /// On two threads when the model has a helper and it is free (see the module doc);
+    /// panics if the helper thread panicked (after it has stopped touching the state).
     pub(crate) fn step(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
                        logits: &mut [Vec<f32>; N_STREAMS]) {
-        let d = &self.d;
-        for (s, sw) in self.streams.iter().enumerate() {
-            let w = d.widths[s];
-            let h = &mut st.h[s];
-            if pos == 0 {
-                sw.cond.run(text_emb, h);
-            } else {
-                sw.tok.row_into(tokens[s] as usize, h);
+        assert!(st.own.len() == MAX_THREADS && st.h.len() == N_STREAMS, "a NativeStepState of another model");
+        let view = View::new(st, logits);
+        // SAFETY (both calls): `view` points into `st` and `logits`, borrowed mutably for
+        // this whole call; `run` gives every output element to one member per phase.
+        let work = |m: &mut Member<'_>| unsafe { self.run(&view, m, tokens, pos, text_emb) };
+        if let Some(h) = &self.helper {
+            match h.run_team(&self.phases, &work) {
+                Some(false) => return,
+                Some(true) => panic!("the native step's helper thread panicked"),
+                None => {} // busy: another stream's step has it
             }
-            add_assign(h, &sw.pos[pos * w..(pos + 1) * w]);
         }
+        work(&mut Member::solo());
+    }
+
+    /// Member `m`'s part of a step (the whole step for a team of one). Every phase hands
+    /// out units (blocks of rows of the four streams' products, or attention heads); a
+    /// member computes the LayerNorm feeding a product itself (into its own buffer) before
+    /// its first unit of that stream in the phase.
+    ///
+    /// # Safety
+    /// `v` points at a live state and logits of this model that nothing else accesses
+    /// during the call, and every member of the team runs this with the same arguments.
+    unsafe fn run(&self, v: &View, m: &mut Member<'_>, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) {
+        let d = &self.d;
+        // SAFETY: the state has MAX_THREADS private buffers, one per member.
+        let own = &mut *v.own[m.index()];
+        let u = Units::new(d.widths, d.widths.map(|_| self.row_block(d.d_text * 4)));
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let (sw, w) = (&self.streams[s], d.widths[s]);
+                let h = v.h[s].rows(r.clone());
+                if pos == 0 {
+                    sw.cond.rows(&self.arena, text_emb, r.clone(), h);
+                } else {
+                    row_part(&sw.tok, tokens[s] as usize, r.clone(), h);
+                }
+                add_assign(h, &sw.pos[pos * w + r.start..pos * w + r.end]);
+            })
+        });
         for l in 0..d.n_layers {
             if l > 0 {
-                self.coordinate(&self.coord[l - 1], st);
+                self.coordinate(&self.coord[l - 1], v, own, m);
             }
-            for s in 0..N_STREAMS {
-                self.block(s, l, pos, st);
-            }
+            self.blocks(l, pos, v, own, m);
         }
-        for (s, sw) in self.streams.iter().enumerate() {
-            let w = d.widths[s];
-            sw.ln_f.run(&st.h[s], &mut st.x[s][..w]);
-            gemv(&sw.head, &st.x[s], None, &mut logits[s]);
-        }
-    }
-
-    fn block(&self, s: usize, l: usize, pos: usize, st: &mut NativeStepState) {
-        let d = &self.d;
-        let (w, hd, nh, slots) = (d.widths[s], d.head_dims[s], d.n_heads, d.slots);
-        let b = &self.streams[s].blocks[l];
-        let h = &mut st.h[s];
-        let x = &mut st.x[s];
-        b.ln1.run(h, x);
-        let qkv = &mut st.qkv[..3 * w];
-        b.qkv.run(x, qkv);
-        let (q, kv) = qkv.split_at(w);
-        let (k, v) = kv.split_at(w);
-        let (ck, cv) = (&mut st.k[s], &mut st.v[s]);
-        let att = &mut st.att[..w];
-        for head in 0..nh {
-            // cache (L, H, S, D): rows of this layer and head start at `base`
-            let base = (l * nh + head) * slots * hd;
-            let row = base + pos * hd;
-            ck[row..row + hd].copy_from_slice(&k[head * hd..(head + 1) * hd]);
-            cv[row..row + hd].copy_from_slice(&v[head * hd..(head + 1) * hd]);
-            let qh = &q[head * hd..(head + 1) * hd];
-            let scores = &mut st.scores[..=pos];
-            for (t, sc) in scores.iter_mut().enumerate() {
-                let kr = base + t * hd;
-                *sc = dot(qh, &ck[kr..kr + hd]) * self.scale[s];
-            }
-            softmax(scores);
-            let out = &mut att[head * hd..(head + 1) * hd];
-            out.fill(0.0);
-            for (t, &p) in scores.iter().enumerate() {
-                let vr = base + t * hd;
-                for (o, &vv) in out.iter_mut().zip(&cv[vr..vr + hd]) {
-                    *o += p * vv;
+        let u = self.units(d.vocab, |s| &self.streams[s].head);
+        let mut have = [false; N_STREAMS];
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let (sw, x) = (&self.streams[s], &mut own.x[s]);
+                if !std::mem::replace(&mut have[s], true) {
+                    sw.ln_f.run(v.h[s].all(), x);
                 }
-            }
-        }
-        let tmp = &mut st.tmp[..w];
-        b.proj.run(att, tmp);
-        add_assign(h, tmp);
-        b.ln2.run(h, x);
-        let mlp = &mut st.mlp[..d.hidden[s]];
-        b.fc1.run(x, mlp);
-        gelu_erf(mlp);
-        b.fc2.run(mlp, tmp);
-        add_assign(h, tmp);
+                gemv_rows(self.arena.mat(&sw.head), x, None, r.clone(), v.logits[s].rows(r));
+            })
+        });
     }
 
-    fn coordinate(&self, c: &Coord, st: &mut NativeStepState) {
+    /// The units of a phase computing `rows[s]` rows of the matrices `mat(s)`.
+    fn units<'a>(&'a self, rows: [usize; N_STREAMS], mat: impl Fn(usize) -> &'a Wm) -> Units {
+        Units::new(rows, std::array::from_fn(|s| self.row_block(mat(s).bytes() / mat(s).rows.max(1))))
+    }
+
+    /// Rows per unit for rows of `row_bytes`: a multiple of 4 (the GEMV kernels' row
+    /// blocks, so a row's sum does not depend on how rows are shared out).
+    fn row_block(&self, row_bytes: usize) -> usize {
+        (self.unit_bytes / row_bytes.max(1)).max(4) / 4 * 4
+    }
+
+    /// Layer `l`'s blocks of the four streams, phase by phase (see `run`).
+    unsafe fn blocks(&self, l: usize, pos: usize, v: &View, own: &mut Own, m: &mut Member<'_>) {
         let d = &self.d;
-        let cw = d.coord_width;
-        for s in 0..N_STREAMS {
-            c.inp[s].run(&st.h[s], &mut st.cp[s * cw..(s + 1) * cw]);
-        }
-        // concatenation i: the other streams' projections in stream order
+        let block = |s: usize| &self.streams[s].blocks[l];
+        let u = self.units(d.widths.map(|w| 3 * w), |s| &block(s).qkv.w);
+        let mut have = [false; N_STREAMS];
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let (b, x) = (block(s), &mut own.x[s]);
+                if !std::mem::replace(&mut have[s], true) {
+                    b.ln1.run(v.h[s].all(), x);
+                }
+                b.qkv.rows(&self.arena, x, r.clone(), v.qkv[s].rows(r));
+            })
+        });
+        let nh = d.n_heads;
+        let u = Units::new([nh; N_STREAMS], [1; N_STREAMS]);
+        m.phase(u.total(), |units| {
+            u.each(units, |s, heads| {
+                let (w, hd, slots) = (d.widths[s], d.head_dims[s], d.slots);
+                let qkv = v.qkv[s].all();
+                let (q, kv) = qkv.split_at(w);
+                let (k, vv) = kv.split_at(w);
+                for head in heads {
+                    // cache (L, H, S, D): this layer's and head's rows are `region`
+                    let base = (l * nh + head) * slots * hd;
+                    let region = base..base + slots * hd;
+                    let (ck, cv) = (v.k[s].rows(region.clone()), v.v[s].rows(region));
+                    let hs = head * hd..(head + 1) * hd;
+                    ck[pos * hd..(pos + 1) * hd].copy_from_slice(&k[hs.clone()]);
+                    cv[pos * hd..(pos + 1) * hd].copy_from_slice(&vv[hs.clone()]);
+                    let qh = &q[hs.clone()];
+                    let scores = &mut own.scores[..=pos];
+                    for (t, sc) in scores.iter_mut().enumerate() {
+                        *sc = dot(qh, &ck[t * hd..(t + 1) * hd]) * self.scale[s];
+                    }
+                    softmax(scores);
+                    let out = v.att[s].rows(hs);
+                    out.fill(0.0);
+                    for (t, &p) in scores.iter().enumerate() {
+                        for (o, &vv) in out.iter_mut().zip(&cv[t * hd..(t + 1) * hd]) {
+                            *o += p * vv;
+                        }
+                    }
+                }
+            })
+        });
+        let u = self.units(d.widths, |s| &block(s).proj.w);
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let tmp = v.tmp[s].rows(r.clone());
+                block(s).proj.rows(&self.arena, v.att[s].all(), r.clone(), tmp);
+                add_assign(v.h[s].rows(r), tmp);
+            })
+        });
+        let u = self.units(d.hidden, |s| &block(s).fc1.w);
+        let mut have = [false; N_STREAMS];
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let (b, x) = (block(s), &mut own.x[s]);
+                if !std::mem::replace(&mut have[s], true) {
+                    b.ln2.run(v.h[s].all(), x);
+                }
+                let mlp = v.mlp[s].rows(r.clone());
+                b.fc1.rows(&self.arena, x, r, mlp);
+                gelu_erf(mlp);
+            })
+        });
+        let u = self.units(d.widths, |s| &block(s).fc2.w);
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let tmp = v.tmp[s].rows(r.clone());
+                block(s).fc2.rows(&self.arena, v.mlp[s].all(), r.clone(), tmp);
+                add_assign(v.h[s].rows(r), tmp);
+            })
+        });
+    }
+
+    /// The coordination before a layer, phase by phase (see `run`).
+    unsafe fn coordinate(&self, c: &Coord, v: &View, own: &mut Own, m: &mut Member<'_>) {
+        let d = &self.d;
+        let (cw, ch) = (d.coord_width, d.coord_hidden);
+        let u = self.units([cw; N_STREAMS], |s| &c.inp[s].w);
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                c.inp[s].rows(&self.arena, v.h[s].all(), r.clone(), v.cp.rows(s * cw + r.start..s * cw + r.end));
+            })
+        });
+        // The shared MLP on the four concatenations at once (rows of one matrix as units).
+        let mlp = |m: &mut Member<'_>, lin: &Linear, x: &[f32], out: Buf, width: usize, part: &mut [f32], gelu: bool| {
+            let u = Units::new([width, 0, 0, 0], [self.row_block(lin.w.bytes() / lin.w.rows.max(1)), 1, 1, 1]);
+            m.phase(u.total(), |units| {
+                u.each(units, |_, r| {
+                    let part = &mut part[..N_STREAMS * r.len()];
+                    gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
+                    for (j, pj) in part.chunks_exact(r.len()).enumerate() {
+                        let dst = out.rows(j * width + r.start..j * width + r.end);
+                        dst.copy_from_slice(pj);
+                        if gelu {
+                            gelu_erf(dst);
+                        }
+                    }
+                })
+            });
+        };
+        // concatenation i: the other streams' projections in stream order (each member
+        // builds its own copy)
+        let cp = v.cp.all();
         let cat_len = (N_STREAMS - 1) * cw;
         for i in 0..N_STREAMS {
             let mut at = i * cat_len;
             for j in (0..N_STREAMS).filter(|&j| j != i) {
-                st.ccat[at..at + cw].copy_from_slice(&st.cp[j * cw..(j + 1) * cw]);
+                own.ccat[at..at + cw].copy_from_slice(&cp[j * cw..(j + 1) * cw]);
                 at += cw;
             }
         }
-        gemm(&c.mlp[0].w, &st.ccat, N_STREAMS, c.mlp[0].b.as_deref(), &mut st.ch1);
-        gelu_erf(&mut st.ch1);
-        gemm(&c.mlp[1].w, &st.ch1, N_STREAMS, c.mlp[1].b.as_deref(), &mut st.ch2);
-        gelu_erf(&mut st.ch2);
-        gemm(&c.mlp[2].w, &st.ch2, N_STREAMS, c.mlp[2].b.as_deref(), &mut st.cm);
+        mlp(m, &c.mlp[0], &own.ccat, v.ch1, ch, &mut own.part, true);
+        mlp(m, &c.mlp[1], v.ch1.all(), v.ch2, ch, &mut own.part, true);
+        mlp(m, &c.mlp[2], v.ch2.all(), v.cm, cw, &mut own.part, false);
+        let u = self.units(d.widths, |s| &c.out[s].w);
+        let cm = v.cm.all();
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| {
+                let tmp = v.tmp[s].rows(r.clone());
+                c.out[s].rows(&self.arena, &cm[s * cw..(s + 1) * cw], r.clone(), tmp);
+                add_assign(tmp, &v.h[s].all()[r]);
+            })
+        });
+        let u = Units::new(d.widths, d.widths);
+        m.phase(u.total(), |units| {
+            u.each(units, |s, r| c.norm[s].rows(v.tmp[s].all(), r.clone(), v.h[s].rows(r)))
+        });
+    }
+}
+
+/// Weight bytes per unit of work a step's team hands out: small enough that the last
+/// units of a phase balance the two threads, large enough that one unit is one kernel
+/// call's worth of streaming (members take several consecutive units at once anyway).
+const UNIT_BYTES: usize = 32 << 10;
+
+/// The units of a phase over the four streams: stream s's `len[s]` rows (or heads) in
+/// blocks of `block[s]`, stream after stream.
+struct Units {
+    len: [usize; N_STREAMS],
+    block: [usize; N_STREAMS],
+    start: [usize; N_STREAMS + 1],
+}
+
+impl Units {
+    fn new(len: [usize; N_STREAMS], block: [usize; N_STREAMS]) -> Units {
+        let mut start = [0; N_STREAMS + 1];
         for s in 0..N_STREAMS {
-            let w = d.widths[s];
-            let tmp = &mut st.tmp[..w];
-            c.out[s].run(&st.cm[s * cw..(s + 1) * cw], tmp);
-            add_assign(tmp, &st.h[s]);
-            c.norm[s].run(tmp, &mut st.h[s]);
+            start[s + 1] = start[s] + len[s].div_ceil(block[s].max(1));
+        }
+        Units { len, block, start }
+    }
+
+    fn total(&self) -> usize {
+        self.start[N_STREAMS]
+    }
+
+    /// `f(s, rows)` for each stream's rows among `units`.
+    fn each(&self, units: Range<usize>, mut f: impl FnMut(usize, Range<usize>)) {
+        for s in 0..N_STREAMS {
+            let (a, b) = (units.start.max(self.start[s]), units.end.min(self.start[s + 1]));
+            if a < b {
+                let r0 = (a - self.start[s]) * self.block[s];
+                f(s, r0..((b - self.start[s]) * self.block[s]).min(self.len[s]));
+            }
+        }
+    }
+}
+
+/// Bytes an [`Arena`] needs at most for a model of sizes `d` (every matrix as f32, plus
+/// int8 scales and alignment).
+fn arena_bytes(d: &Dims) -> usize {
+    let mut shapes = Vec::new();
+    for s in 0..N_STREAMS {
+        let (w, hid) = (d.widths[s], d.hidden[s]);
+        shapes.extend([(w, d.d_text), (d.vocab[s], w)]);
+        for _ in 0..d.n_layers {
+            shapes.extend([(3 * w, w), (w, w), (hid, w), (w, hid)]);
+        }
+    }
+    let (cw, ch) = (d.coord_width, d.coord_hidden);
+    for _ in 1..d.n_layers {
+        shapes.extend([(ch, (N_STREAMS - 1) * cw), (ch, ch), (cw, ch)]);
+        for s in 0..N_STREAMS {
+            shapes.extend([(cw, d.widths[s]), (d.widths[s], cw)]);
+        }
+    }
+    shapes.iter().map(|&(r, c)| Arena::size(r * c * 4) + Arena::size(r * 4)).sum()
+}
+
+/// A matrix in an [`Arena`]: offsets of its values (f32, or int8 and then the f32 row
+/// scales).
+#[derive(Clone, Copy, Debug)]
+struct Wm {
+    rows: usize,
+    cols: usize,
+    int8: bool,
+    at: usize,
+    scale_at: usize,
+}
+
+impl Wm {
+    /// Bytes one product reads.
+    fn bytes(&self) -> usize {
+        if self.int8 { self.rows * self.cols + 4 * self.rows } else { 4 * self.rows * self.cols }
+    }
+}
+
+/// The step's weight matrices in one buffer, copied there at load. On Linux the buffer is
+/// 2 MiB-aligned and advised for transparent huge pages before it is touched: a GEMV
+/// streaming 1.8 GB through 4 KiB pages (where the loader's allocations usually end up)
+/// reads ~15 GB/s on one Zen 4 core, through 2 MiB pages ~24 GB/s (measured on the 2-core
+/// machine; the prefetchers stop at 4 KiB boundaries and every page costs a TLB walk).
+/// Pages past what is written are never touched, so the int8 matrices' share of the
+/// f32-sized bound costs address space only.
+struct Arena {
+    base: *mut u8,
+    layout: std::alloc::Layout,
+    used: usize,
+    /// `used` at the last `trim`.
+    trimmed: usize,
+}
+
+// SAFETY: the buffer is owned (freed on drop), written only while loading (`&mut self`),
+// then only read.
+unsafe impl Send for Arena {}
+unsafe impl Sync for Arena {}
+
+impl Arena {
+    const ALIGN: usize = 2 << 20;
+
+    /// `n` bytes rounded up to the 64-byte slots an arena hands out.
+    fn size(n: usize) -> usize {
+        n.div_ceil(64) * 64
+    }
+
+    fn new(bytes: usize) -> Arena {
+        let layout = std::alloc::Layout::from_size_align(bytes.max(64), Self::ALIGN).expect("arena layout");
+        // SAFETY: the layout has a non-zero size.
+        let base = unsafe { std::alloc::alloc(layout) };
+        if base.is_null() {
+            std::alloc::handle_alloc_error(layout);
+        }
+        #[cfg(target_os = "linux")]
+        // SAFETY: advice on memory this arena owns; base is page-aligned. A failure only
+        // means 4 KiB pages.
+        unsafe {
+            libc::madvise(base as *mut libc::c_void, layout.size(), libc::MADV_HUGEPAGE);
+        }
+        Arena { base, layout, used: 0, trimmed: 0 }
+    }
+
+    /// Copies `n` bytes from `src` into the next slot; returns its offset.
+    fn push(&mut self, src: *const u8, n: usize) -> usize {
+        let at = self.used;
+        assert!(at + Self::size(n) <= self.layout.size(), "native step arena: {} + {n} bytes of {}", at, self.layout.size());
+        // SAFETY: [at, at + n) is inside the buffer (checked) and not yet handed out.
+        unsafe { std::ptr::copy_nonoverlapping(src, self.base.add(at), n) };
+        self.used += Self::size(n);
+        at
+    }
+
+    /// Moves `m` into the arena.
+    fn put(&mut self, m: Matrix) -> Wm {
+        let (rows, cols) = (m.rows(), m.cols());
+        let w = match &m {
+            Matrix::F32 { w, .. } => {
+                let at = self.push(w.as_ptr() as *const u8, 4 * w.len());
+                Wm { rows, cols, int8: false, at, scale_at: 0 }
+            }
+            Matrix::I8 { q, scale, .. } => {
+                let at = self.push(q.as_ptr() as *const u8, q.len());
+                let scale_at = self.push(scale.as_ptr() as *const u8, 4 * scale.len());
+                Wm { rows, cols, int8: true, at, scale_at }
+            }
+        };
+        debug_assert_eq!(w.bytes(), m.bytes());
+        drop(m);
+        if self.used - self.trimmed >= 256 << 20 {
+            self.trim();
+        }
+        w
+    }
+
+    /// Gives the loader's freed buffers back to the system: each tensor is read, converted
+    /// and copied here, and glibc keeps the freed heap memory mapped (without this the
+    /// paper model's step keeps ~1.4 GB more resident after load).
+    fn trim(&mut self) {
+        self.trimmed = self.used;
+        #[cfg(all(target_os = "linux", target_env = "gnu"))]
+        // SAFETY: malloc_trim only releases free heap memory.
+        unsafe {
+            libc::malloc_trim(0);
+        }
+    }
+
+    /// The matrix `w` (made by this arena's `put`).
+    fn mat(&self, w: &Wm) -> MatRef<'_> {
+        let n = w.rows * w.cols;
+        let end = if w.int8 { w.scale_at + 4 * w.rows } else { w.at + 4 * n };
+        assert!(end <= self.used, "a matrix of another arena");
+        // SAFETY: `put` wrote these ranges (64-byte aligned offsets into a 2 MiB-aligned
+        // buffer, so f32 reads are aligned) and nothing writes them again.
+        unsafe {
+            if w.int8 {
+                MatRef::I8 {
+                    rows: w.rows, cols: w.cols,
+                    q: std::slice::from_raw_parts(self.base.add(w.at) as *const i8, n),
+                    scale: std::slice::from_raw_parts(self.base.add(w.scale_at) as *const f32, w.rows),
+                }
+            } else {
+                MatRef::F32 { rows: w.rows, cols: w.cols, w: std::slice::from_raw_parts(self.base.add(w.at) as *const f32, n) }
+            }
+        }
+    }
+}
+
+impl Drop for Arena {
+    fn drop(&mut self) {
+        // SAFETY: allocated in `new` with this layout.
+        unsafe { std::alloc::dealloc(self.base, self.layout) }
+    }
+}
+
+/// Elements `cols` of row `r` of `m`, as f32 (`Matrix::row_into` on a part of the row).
+fn row_part(m: &Matrix, r: usize, cols: Range<usize>, out: &mut [f32]) {
+    match m {
+        Matrix::F32 { cols: c, w, .. } => out.copy_from_slice(&w[r * c + cols.start..r * c + cols.end]),
+        Matrix::I8 { cols: c, q, scale, .. } => {
+            for (o, &v) in out.iter_mut().zip(&q[r * c + cols.start..r * c + cols.end]) {
+                *o = f32::from(v) * scale[r];
+            }
+        }
+    }
+}
+
+/// A buffer the team members share: raw, so that each can borrow its own part mutably.
+#[derive(Clone, Copy)]
+struct Buf {
+    p: *mut f32,
+    len: usize,
+}
+
+impl Buf {
+    fn new(v: &mut [f32]) -> Buf {
+        Buf { p: v.as_mut_ptr(), len: v.len() }
+    }
+
+    /// The whole buffer.
+    /// # Safety
+    /// Live, and nobody writes it while the slice is in use (within a phase).
+    unsafe fn all<'a>(self) -> &'a [f32] {
+        std::slice::from_raw_parts(self.p, self.len)
+    }
+
+    /// Elements `r` (checked against the length).
+    /// # Safety
+    /// Live, and nobody else reads or writes them while the slice is in use.
+    #[allow(clippy::mut_from_ref)]
+    unsafe fn rows<'a>(self, r: Range<usize>) -> &'a mut [f32] {
+        assert!(r.start <= r.end && r.end <= self.len, "{r:?} outside a buffer of {}", self.len);
+        std::slice::from_raw_parts_mut(self.p.add(r.start), r.len())
+    }
+}
+
+/// Every buffer one step writes, shared by the members of its team.
+struct View {
+    k: [Buf; N_STREAMS],
+    v: [Buf; N_STREAMS],
+    h: [Buf; N_STREAMS],
+    qkv: [Buf; N_STREAMS],
+    att: [Buf; N_STREAMS],
+    tmp: [Buf; N_STREAMS],
+    mlp: [Buf; N_STREAMS],
+    logits: [Buf; N_STREAMS],
+    cp: Buf,
+    ch1: Buf,
+    ch2: Buf,
+    cm: Buf,
+    own: [*mut Own; MAX_THREADS],
+}
+
+// SAFETY: a View is only used by the members of one step's team, which split their
+// accesses (NativeStep::run).
+unsafe impl Sync for View {}
+
+impl View {
+    fn new(st: &mut NativeStepState, logits: &mut [Vec<f32>; N_STREAMS]) -> View {
+        let bufs = |v: &mut Vec<Vec<f32>>| -> [Buf; N_STREAMS] {
+            let mut it = v.iter_mut();
+            std::array::from_fn(|_| Buf::new(it.next().expect("one buffer per stream")))
+        };
+        let mut own = st.own.iter_mut();
+        View {
+            k: bufs(&mut st.k),
+            v: bufs(&mut st.v),
+            h: bufs(&mut st.h),
+            qkv: bufs(&mut st.qkv),
+            att: bufs(&mut st.att),
+            tmp: bufs(&mut st.tmp),
+            mlp: bufs(&mut st.mlp),
+            logits: std::array::from_fn(|s| Buf::new(&mut logits[s])),
+            cp: Buf::new(&mut st.cp),
+            ch1: Buf::new(&mut st.ch1),
+            ch2: Buf::new(&mut st.ch2),
+            cm: Buf::new(&mut st.cm),
+            own: std::array::from_fn(|_| own.next().expect("one scratch per member") as *mut Own),
         }
     }
 }
@@ -409,5 +885,208 @@ impl NativeStepState {
     #[allow(dead_code)]
     pub(crate) fn cache(&self, s: usize) -> (&[f32], &[f32]) {
         (&self.k[s], &self.v[s])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A deterministic pseudo-random source (xorshift64*), values in [-1, 1).
+    struct Rng(u64);
+
+    impl Rng {
+        fn next(&mut self) -> f32 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            ((self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 23) as f32) - 1.0
+        }
+
+        fn vec(&mut self, n: usize, amp: f32) -> Vec<f32> {
+            (0..n).map(|_| self.next() * amp).collect()
+        }
+
+        fn matrix(&mut self, rows: usize, cols: usize, int8: bool) -> Matrix {
+            let amp = 1.0 / (cols as f32).sqrt();
+            if int8 {
+                let q = (0..rows * cols).map(|_| (self.next() * 127.0) as i8).collect();
+                Matrix::I8 { rows, cols, q, scale: (0..rows).map(|_| amp / 127.0 * (1.0 + 0.5 * self.next())).collect() }
+            } else {
+                Matrix::F32 { rows, cols, w: self.vec(rows * cols, amp) }
+            }
+        }
+
+        fn linear(&mut self, a: &mut Arena, rows: usize, cols: usize, int8: bool) -> Linear {
+            Linear { w: a.put(self.matrix(rows, cols, int8)), b: Some(self.vec(rows, 0.1)) }
+        }
+
+        fn norm(&mut self, n: usize) -> Norm {
+            Norm { w: (0..n).map(|_| 1.0 + 0.2 * self.next()).collect(), b: self.vec(n, 0.1) }
+        }
+    }
+
+    /// A model of the given sizes with random weights (int8 matrices or f32).
+    pub(super) fn random_model(d: Dims, int8: bool, seed: u64) -> NativeStep {
+        let mut g = Rng(seed | 1);
+        let mut a = Arena::new(arena_bytes(&d));
+        let a = &mut a;
+        let streams = (0..N_STREAMS)
+            .map(|s| {
+                let (w, hid) = (d.widths[s], d.hidden[s]);
+                Stream {
+                    cond: g.linear(a, w, d.d_text, int8),
+                    tok: g.matrix(d.vocab[s], w, int8),
+                    pos: g.vec(d.slots * w, 0.5),
+                    blocks: (0..d.n_layers)
+                        .map(|_| Block {
+                            ln1: g.norm(w),
+                            qkv: g.linear(a, 3 * w, w, int8),
+                            proj: g.linear(a, w, w, int8),
+                            ln2: g.norm(w),
+                            fc1: g.linear(a, hid, w, int8),
+                            fc2: g.linear(a, w, hid, int8),
+                        })
+                        .collect(),
+                    ln_f: g.norm(w),
+                    head: a.put(g.matrix(d.vocab[s], w, int8)),
+                }
+            })
+            .collect();
+        let (cw, ch) = (d.coord_width, d.coord_hidden);
+        let coord = (1..d.n_layers)
+            .map(|_| Coord {
+                inp: (0..N_STREAMS).map(|s| g.linear(a, cw, d.widths[s], int8)).collect(),
+                mlp: [g.linear(a, ch, (N_STREAMS - 1) * cw, int8), g.linear(a, ch, ch, int8), g.linear(a, cw, ch, int8)],
+                out: (0..N_STREAMS).map(|s| g.linear(a, d.widths[s], cw, int8)).collect(),
+                norm: (0..N_STREAMS).map(|s| g.norm(d.widths[s])).collect(),
+            })
+            .collect();
+        let arena = std::mem::replace(a, Arena::new(64));
+        NativeStep::assemble(arena, d, streams, coord)
+    }
+
+    /// Odd sizes: no width, hidden width or vocabulary a multiple of 4 or 8 everywhere, so
+    /// the row splits fall inside and beside the kernels' row blocks and column tails.
+    fn odd_dims() -> Dims {
+        let widths = [20, 36, 28, 12];
+        Dims {
+            n_layers: 3, n_heads: 4, slots: 9, d_text: 11, widths, head_dims: widths.map(|w| w / 4),
+            vocab: [13, 30, 7, 9], hidden: [60, 110, 84, 35], coord_width: 10, coord_hidden: 22,
+        }
+    }
+
+    /// Logits and caches of a generation of `steps` steps on one state.
+    fn generate(m: &NativeStep, steps: usize) -> Vec<Vec<f32>> {
+        let mut st = m.new_state();
+        let mut logits: [Vec<f32>; N_STREAMS] = std::array::from_fn(|s| vec![0.0; m.d.vocab[s]]);
+        let emb: Vec<f32> = (0..m.d.d_text).map(|i| (i as f32 * 0.7).sin()).collect();
+        let mut out = Vec::new();
+        for k in 0..steps {
+            let tokens = std::array::from_fn(|s| ((k * 5 + s * 3) % m.d.vocab[s]) as i64);
+            m.step(&mut st, tokens, k, &emb, &mut logits);
+            out.extend(logits.iter().cloned());
+        }
+        out.extend(st.k.iter().chain(&st.v).cloned());
+        out
+    }
+
+    fn bits(v: &[Vec<f32>]) -> Vec<Vec<u32>> {
+        v.iter().map(|x| x.iter().map(|f| f.to_bits()).collect()).collect()
+    }
+
+    #[test]
+    fn two_threads_give_bit_identical_logits_and_caches() {
+        for int8 in [false, true] {
+            let mut m = random_model(odd_dims(), int8, 7);
+            m.unit_bytes = 1; // units of 4 rows: many per product
+            let steps = m.d.slots;
+            let one = generate(&m, steps);
+            assert!(one.iter().flatten().all(|v| v.is_finite()));
+            m.set_threads(2);
+            assert_eq!(m.threads(), 2);
+            assert_eq!(bits(&generate(&m, steps)), bits(&one), "int8 {int8}: 2 threads differ from 1");
+            // Two streams at once: one gets the helper, the other finds it busy and runs
+            // alone; both give the same results.
+            std::thread::scope(|sc| {
+                let hs: Vec<_> = (0..2).map(|_| sc.spawn(|| (0..20).map(|_| generate(&m, steps)).collect::<Vec<_>>())).collect();
+                for h in hs {
+                    for g in h.join().unwrap() {
+                        assert_eq!(bits(&g), bits(&one), "int8 {int8}: concurrent streams differ");
+                    }
+                }
+            });
+        }
+    }
+
+    /// Where two threads start to pay: int8 models shaped like models/default (4 layers,
+    /// 4 heads) with the widths scaled, median step over a generation on 1 and 2 threads
+    /// (`cargo test --release --lib step_crossover -- --ignored --nocapture`).
+    #[test]
+    #[ignore]
+    fn step_crossover() {
+        for f in [0.125, 0.25, 0.375, 0.5, 0.75, 1.0] {
+            let widths = [128, 256, 192, 192].map(|w: usize| ((w as f64 * f) as usize).max(4) / 4 * 4);
+            let d = Dims {
+                n_layers: 4, n_heads: 4, slots: 76, d_text: 384, widths, head_dims: widths.map(|w| w / 4),
+                vocab: [514, 1026, 514, 514], hidden: widths.map(|w| 4 * w),
+                coord_width: ((128.0 * f) as usize).max(4), coord_hidden: ((256.0 * f) as usize).max(4),
+            };
+            let mut m = random_model(d, true, 3);
+            let mut med = [0.0f64; 2];
+            for _round in 0..3 {
+                for threads in [1, 2] {
+                    m.set_threads(threads);
+                    let mut st = m.new_state();
+                    let mut logits: [Vec<f32>; N_STREAMS] = std::array::from_fn(|s| vec![0.0; m.d.vocab[s]]);
+                    let emb = vec![0.1; d.d_text];
+                    let mut times = Vec::new();
+                    for k in 0..d.slots {
+                        let t = std::time::Instant::now();
+                        m.step(&mut st, [(k % 500) as i64; N_STREAMS], k, &emb, &mut logits);
+                        times.push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                    times.sort_by(f64::total_cmp);
+                    med[threads - 1] += times[times.len() / 2] / 3.0;
+                }
+            }
+            println!("widths {widths:?}: {:.2} MB, 1 thread {:.3} ms, 2 threads {:.3} ms ({:.2}x)",
+                     m.weight_bytes() as f64 / 1e6, med[0], med[1], med[0] / med[1]);
+        }
+    }
+
+    /// One step of the paper-size model (random f32 weights, ~1.8 GB) on 1 and 2 threads,
+    /// averaged over a generation (run with `cargo test --release --lib step_throughput --
+    /// --ignored --nocapture`; `COMGRASP_STEP_BENCH_INT8=1` for int8 weights,
+    /// `COMGRASP_STEP_BENCH_THREADS="1 2"` for the thread counts, in order).
+    #[test]
+    #[ignore]
+    fn step_throughput() {
+        let widths = [512, 1024, 768, 768];
+        let d = Dims {
+            n_layers: 14, n_heads: 16, slots: 76, d_text: 384, widths, head_dims: widths.map(|w| w / 16),
+            vocab: [514, 1026, 514, 514], hidden: widths.map(|w| 4 * w), coord_width: 256, coord_hidden: 512,
+        };
+        let int8 = std::env::var("COMGRASP_STEP_BENCH_INT8").is_ok_and(|v| v == "1");
+        let mut m = random_model(d, int8, 1);
+        println!("weights {:.1} MB per step", m.weight_bytes() as f64 / 1e6);
+        let steps = 74;
+        let counts = std::env::var("COMGRASP_STEP_BENCH_THREADS").unwrap_or_else(|_| "1 2 1 2".into());
+        for threads in counts.split_whitespace().map(|t| t.parse::<usize>().expect("thread counts")) {
+            m.set_threads(threads);
+            let mut st = m.new_state();
+            let mut logits: [Vec<f32>; N_STREAMS] = std::array::from_fn(|s| vec![0.0; m.d.vocab[s]]);
+            let emb = vec![0.1; d.d_text];
+            m.step(&mut st, [0; N_STREAMS], 0, &emb, &mut logits);
+            let mut times = Vec::new();
+            for k in 0..steps {
+                let t = std::time::Instant::now();
+                m.step(&mut st, [(k % 500) as i64; N_STREAMS], k, &emb, &mut logits);
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+            times.sort_by(f64::total_cmp);
+            println!("{threads} thread(s): median {:.2} ms/step, min {:.2}, mean {:.2}", times[steps / 2], times[0],
+                     times.iter().sum::<f64>() / steps as f64);
+        }
     }
 }
