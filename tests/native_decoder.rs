@@ -171,7 +171,7 @@ fn some_tensor(b: &TempBundle, dtype: &str) -> (String, Vec<usize>) {
 
 fn write_npy_f32(p: &Path, shape: &[usize], data: &[f32]) {
     let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-    std::fs::write(p, npy_bytes("<f4", shape, &bytes)).unwrap();
+    std::fs::write(p, comgrasp::bundle::npy::encode("<f4", shape, &bytes)).unwrap();
 }
 
 #[test]

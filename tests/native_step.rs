@@ -157,7 +157,7 @@ fn rel(name: &str) -> String {
 
 
 fn f32_npy(shape: &[usize], values: &[f32]) -> Vec<u8> {
-    npy_bytes("<f4", shape, &values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>())
+    comgrasp::bundle::npy::encode("<f4", shape, &values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>())
 }
 
 /// Writes `bytes` as `rel` and lists it in the files table with its real digest.
@@ -198,12 +198,12 @@ fn native_tensor_with_a_wrong_dtype() {
     let b = TempBundle::copy_of(&tiny_dir());
     let shape = declared_shape(&b, TENSOR);
     let n = shape[0] * shape[1];
-    put(&b, &rel(TENSOR), &npy_bytes("<f8", &shape, &vec![0u8; 8 * n]));
+    put(&b, &rel(TENSOR), &comgrasp::bundle::npy::encode("<f8", &shape, &vec![0u8; 8 * n]));
     expect(&b, &rel(TENSOR), &["float64", "float32"]);
 
     // Declared int8 without its scale file.
     let b = TempBundle::copy_of(&tiny_dir());
-    put(&b, &rel(TENSOR), &npy_bytes("|i1", &shape, &vec![0u8; n]));
+    put(&b, &rel(TENSOR), &comgrasp::bundle::npy::encode("|i1", &shape, &vec![0u8; n]));
     b.edit_manifest(|m| m["transformer"]["native"]["tensors"][TENSOR]["dtype"] = "int8".into());
     expect(&b, &format!("native/step/{TENSOR}.scale.npy"), &["cannot read"]);
 }

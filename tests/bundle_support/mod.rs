@@ -132,20 +132,3 @@ pub fn assert_bundle_error(loaded: comgrasp::Result<()>, dir: &Path, file: &str,
         Err(e) => panic!("expected Error::Bundle about {file}, got {e:?}"),
     }
 }
-
-/// A `.npy` file (format 1.0, C order) holding `data`, for hand-made bundle tensors.
-#[allow(dead_code)]
-pub fn npy_bytes(descr: &str, shape: &[usize], data: &[u8]) -> Vec<u8> {
-    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape = if dims.len() == 1 { format!("({},)", dims[0]) } else { format!("({})", dims.join(", ")) };
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    out.extend_from_slice(data);
-    out
-}

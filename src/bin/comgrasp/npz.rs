@@ -33,22 +33,7 @@ impl Array {
 
     /// The array as a `.npy` file (format 1.0, header padded to a multiple of 64 bytes).
     pub fn to_npy(&self) -> Vec<u8> {
-        let shape = match self.shape.as_slice() {
-            [] => "()".to_string(),
-            [n] => format!("({n},)"),
-            dims => format!("({})", dims.iter().map(usize::to_string).collect::<Vec<_>>().join(", ")),
-        };
-        let mut header = format!("{{'descr': '{}', 'fortran_order': False, 'shape': {shape}, }}", self.descr);
-        // magic (6) + version (2) + header length (2) + header, ending in '\n'.
-        let unpadded = 10 + header.len() + 1;
-        header.extend(std::iter::repeat_n(' ', unpadded.next_multiple_of(64) - unpadded));
-        header.push('\n');
-        let mut out = Vec::with_capacity(10 + header.len() + self.data.len());
-        out.extend_from_slice(b"\x93NUMPY\x01\x00");
-        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-        out.extend_from_slice(header.as_bytes());
-        out.extend_from_slice(&self.data);
-        out
+        comgrasp::bundle::npy::encode(self.descr, &self.shape, &self.data)
     }
 }
 
