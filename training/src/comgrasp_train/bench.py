@@ -520,6 +520,11 @@ def limit_row(e: dict, ort_step: float | None) -> dict:
             "ort_over": None if ort_step is None or not lim(fp32) else ort_step / lim(fp32)}
 
 
+def _separator(header: str) -> str:
+    """The Markdown separator row for a table's header row (one cell per column)."""
+    return "|" + "---|" * (header.count("|") - 1)
+
+
 def markdown_table(runs: list[tuple[str, dict, dict]]) -> str:
     """Markdown tables from (bundle name, engine JSON, python JSON) triples, one row per
     triple (a bundle x engine path x thread count). Ratios are engine time / other time
@@ -581,7 +586,7 @@ def markdown_table(runs: list[tuple[str, dict, dict]]) -> str:
                "time (< 1: engine faster).\n")
     out.append("| bundle | engine path | threads | text ms | step ms | chunk ms | TTFF ms | RTF | engine/ORT text | "
                "step | chunk | TTFF | RTF |")
-    out.append("|" + "---|" * 13)
+    out.append(_separator(out[-1]))
     out += ort_rows
     out.append("\n**Bandwidth limit of a token step** = (weight bytes read per step + the fp32 KV cache) ÷ the read "
                "bandwidth measured in the same run at the run's thread count. fp32 = every step-graph weight as "
@@ -593,14 +598,14 @@ def markdown_table(runs: list[tuple[str, dict, dict]]) -> str:
                "limit is no floor (ratios < 1 are possible); it binds once the weights exceed the L3.\n")
     out.append("| bundle | engine path | threads | read GB/s | fp32 weights MB/step | int8 weights MB/step | "
                "KV cache MB | limit ms (fp32) | limit ms (int8) | engine step ms | engine/limit | ORT/limit (fp32) |")
-    out.append("|" + "---|" * 12)
+    out.append(_separator(out[-1]))
     out += bw_rows
     out.append("\n**PyTorch reference** (same tokens; KV = `decode_step` with its fixed cache, no KV = the full "
                "forward over the prefix at every step, mean over the sequence). Ratios = engine time / PyTorch "
                "time.\n")
     out.append("| bundle | engine path | threads | weights | text ms | KV step ms | no-KV step ms | chunk ms | "
                "TTFF ms | RTF | engine/torch KV | engine/torch no KV | engine/torch chunk | engine/torch RTF |")
-    out.append("|" + "---|" * 14)
+    out.append(_separator(out[-1]))
     out += torch_rows
     out.append("\n**The engine end to end** (`Engine::start` .. last frame on the loaded bundle; TTFF = start to "
                "first frame in the consumer's hands; RTF = frames/s ÷ fps over the whole generation, text "
@@ -608,7 +613,7 @@ def markdown_table(runs: list[tuple[str, dict, dict]]) -> str:
                "python process) and minor page faults per token.\n")
     out.append("| bundle | engine path | threads | TTFF ms | ms/token | frames/s | RTF | load ms | poll empty ns | "
                "poll ready ns | engine RSS | python RSS | faults/token |")
-    out.append("|" + "---|" * 13)
+    out.append(_separator(out[-1]))
     out += stream_rows
     out.append("\n**Same tokens** (SHA-256 of the (steps, 4) int64 tokens, compared with the engine's; its stream "
                "frames are compared with its step loop's tokens decoded and assembled; text ids = the "
@@ -616,7 +621,7 @@ def markdown_table(runs: list[tuple[str, dict, dict]]) -> str:
                "tokenizer.json).\n")
     out.append("| bundle | engine path | threads | steps | engine tokens | = onnxruntime | = torch KV | "
                "= torch no KV | stream = step loop | text ids = |")
-    out.append("|" + "---|" * 10)
+    out.append(_separator(out[-1]))
     out += agree_rows
     return "\n".join(out)
 
