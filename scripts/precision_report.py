@@ -232,15 +232,12 @@ def _fmt(x, nd=3):
     return "–" if x is None else f"{x:.{nd}f}"
 
 
-def _ci(v: np.ndarray) -> float:
-    v = v[~np.isnan(v)]
-    return float(1.96 * v.std(ddof=1) / np.sqrt(len(v))) if len(v) > 1 else 0.0
-
-
 def _quality_table(ev: dict, keys) -> tuple[list[str], dict]:
     """Per metric: fp32 mean ± 95% (over samples), int8 mean, Δ with its paired 95% interval,
     and for generation the reference change of fp32 itself under other seeds (repeat 2 −
     repeat 1, paired by sequence)."""
+    from comgrasp_train.metrics import ci95
+
     lines = ["| setting | metric | fp32 (mean ± 95%, per sample) | int8 | Δ int8 − fp32 (paired 95%) | "
              "Δ fp32 other seeds (repeat 2 − 1) | abs(Δ) ≤ fp32 95% |", "|---|---|---|---|---|---|---|"]
     verdict = {}
@@ -255,14 +252,14 @@ def _quality_table(ev: dict, keys) -> tuple[list[str], dict]:
             f = np.array([r.get(k, np.nan) for r in rows["fp32"]], dtype=np.float64)
             i = np.array([r.get(k, np.nan) for r in rows["int8"]], dtype=np.float64)
             d = i - f
-            ok = abs(np.nanmean(d)) <= _ci(f)
+            ok = abs(np.nanmean(d)) <= ci95(f)
             verdict[(setting, k)] = ok
             seed = "–"
             if reps is not None and len(reps) > 1:
                 s2 = np.array([r.get(k, np.nan) for r in reps[1]]) - np.array([r.get(k, np.nan) for r in reps[0]])
-                seed = f"{np.nanmean(s2):+.3f} (± {_ci(s2):.3f})"
-            lines.append(f"| {setting} | {k} | {np.nanmean(f):.3f} ± {_ci(f):.3f} | {np.nanmean(i):.3f} | "
-                         f"{np.nanmean(d):+.3f} (± {_ci(d):.3f}) | {seed} | {'yes' if ok else 'NO'} |")
+                seed = f"{np.nanmean(s2):+.3f} (± {ci95(s2):.3f})"
+            lines.append(f"| {setting} | {k} | {np.nanmean(f):.3f} ± {ci95(f):.3f} | {np.nanmean(i):.3f} | "
+                         f"{np.nanmean(d):+.3f} (± {ci95(d):.3f}) | {seed} | {'yes' if ok else 'NO'} |")
     return lines, verdict
 
 

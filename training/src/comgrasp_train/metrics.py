@@ -338,6 +338,14 @@ class Summary:
         return f"{self.mean:.3f} ± {self.ci95:.3f}"
 
 
+def ci95(v: np.ndarray) -> float:
+    """Half-width of the 95% interval of the mean of the non-NaN values (normal approximation:
+    1.96 x std / sqrt(n)); 0 for fewer than two."""
+    v = np.asarray(v, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(1.96 * v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else 0.0
+
+
 def summarize(rows: Sequence[Mapping[str, float]]) -> dict[str, Summary]:
     """Mean and 95% interval of every key over rows (sequences, or repeats' means); NaN skipped."""
     keys = list(dict.fromkeys(k for row in rows for k in row))
@@ -346,9 +354,7 @@ def summarize(rows: Sequence[Mapping[str, float]]) -> dict[str, Summary]:
         v = np.array([row[k] for row in rows if k in row], dtype=np.float64)
         v = v[~np.isnan(v)]
         n = int(v.size)
-        mean = float(v.mean()) if n else math.nan
-        ci = float(1.96 * v.std(ddof=1) / math.sqrt(n)) if n > 1 else 0.0
-        out[k] = Summary(mean, ci, n)
+        out[k] = Summary(float(v.mean()) if n else math.nan, ci95(v), n)
     return out
 
 
