@@ -183,6 +183,12 @@ impl DecoderModel {
     /// contact channels 240 and 334 as probabilities. Advances `state`. The native path
     /// allocates nothing.
     pub fn decode(&self, state: &mut DecoderState, tokens: [i64; N_STREAMS], out: &mut [f32]) -> Result<()> {
+        self.check(state, tokens, out)?;
+        self.decode_checked(state, tokens, out, None)
+    }
+
+    /// The errors [`decode`](Self::decode) reports before it touches `state`.
+    pub(crate) fn check(&self, state: &DecoderState, tokens: [i64; N_STREAMS], out: &[f32]) -> Result<()> {
         let same = match (&self.imp, &state.imp) {
             (Imp::Tract(t), StateImp::Tract { plan, .. }) => Arc::ptr_eq(plan, &t.plan),
             (Imp::Native(n), StateImp::Native { model, .. }) => Arc::ptr_eq(model, n),
@@ -201,12 +207,33 @@ impl DecoderModel {
                 return Err(Error::InvalidArgument(format!("code {t} of component {s} outside the codebook 0..{j}")));
             }
         }
+        Ok(())
+    }
+
+    /// [`decode`](Self::decode) after [`check`](Self::check) passed. The native decoder
+    /// runs `extra` as one more job of its two threads; otherwise it runs after the decode.
+    pub(crate) fn decode_checked(&self, state: &mut DecoderState, tokens: [i64; N_STREAMS], out: &mut [f32],
+                                 extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
         match &mut state.imp {
-            StateImp::Tract { run, inputs, .. } => self.decode_tract(run, inputs, tokens, out)?,
-            StateImp::Native { model, state } => model.decode(state, tokens.map(|t| t as usize), out)?,
+            StateImp::Tract { run, inputs, .. } => {
+                self.decode_tract(run, inputs, tokens, out)?;
+                if let Some(f) = extra {
+                    f();
+                }
+            }
+            StateImp::Native { model, state } => model.decode_with(state, tokens.map(|t| t as usize), out, extra)?,
         }
         state.decoded += 1;
         Ok(())
+    }
+
+    /// Native decoders only: whether a decode uses two threads, and the bytes of weights
+    /// it reads.
+    pub(crate) fn native_threads_and_bytes(&self) -> Option<(usize, usize)> {
+        match &self.imp {
+            Imp::Native(n) => Some((if n.has_helper() { 2 } else { 1 }, n.weight_bytes())),
+            Imp::Tract(_) => None,
+        }
     }
 
     fn decode_tract(&self, run: &mut PlanState, inputs: &mut [Arc<Tensor>; 2], tokens: [i64; N_STREAMS],

@@ -1,10 +1,12 @@
 //! The bundle's two token-level networks, run with tract: the 4-stream Transformer step
 //! with a Rust-owned KV cache ([`StepModel`] / [`StepState`]) and the streaming VQ decoder
 //! ([`DecoderModel`] / [`DecoderState`]). A model is loaded once per bundle and shared by
-//! every stream; each stream owns its states.
+//! every stream; each stream owns its states. [`overlap`] runs a stream's decode of
+//! chunk k and its step k+1 at once.
 mod decoder;
 pub(crate) mod graph;
 pub(crate) mod native;
+pub mod overlap;
 mod step;
 
 pub use decoder::{DecoderBackend, DecoderModel, DecoderState, DECODER_ENV};

@@ -238,6 +238,13 @@ impl StepModel {
     /// from there on are then recomputed) but never skip one: the cache must hold rows 0..pos.
     pub fn step<'s>(&self, state: &'s mut StepState, tokens: [i64; N_STREAMS], pos: usize,
                     text_emb: &[f32]) -> Result<[&'s [f32]; N_STREAMS]> {
+        self.check(state, tokens, pos, text_emb)?;
+        self.run_checked(state, tokens, pos, text_emb, false)?;
+        Ok(state.logits())
+    }
+
+    /// The errors [`step`](Self::step) reports before it touches `state`.
+    pub(crate) fn check(&self, state: &StepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) -> Result<()> {
         if !Arc::ptr_eq(&state.owner, &self.owner) {
             return Err(Error::WrongState("this StepState was created by another StepModel".into()));
         }
@@ -258,7 +265,15 @@ impl StepModel {
                 return Err(Error::InvalidArgument(format!("token {t} of stream {s} outside the vocabulary 0..{v}")));
             }
         }
+        Ok(())
+    }
+
+    /// [`step`](Self::step) after [`check`](Self::check) passed; `solo`: the native step
+    /// stays on the calling thread.
+    pub(crate) fn run_checked(&self, state: &mut StepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
+                              solo: bool) -> Result<()> {
         match (&self.imp, &mut state.imp) {
+            (Imp::Native(n), StateImp::Native(st)) if solo => n.step_solo(st, tokens, pos, text_emb, &mut state.logits),
             (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, &mut state.logits),
             (Imp::Tract(t), StateImp::Tract { run, inputs }) => {
                 self.tract_step(t, run, inputs, &mut state.logits, tokens, pos, text_emb)?
@@ -267,7 +282,7 @@ impl StepModel {
         }
         // Rows after `pos` (from an earlier, longer run) are stale now.
         state.filled = pos + 1;
-        Ok(state.logits())
+        Ok(())
     }
 
     #[allow(clippy::too_many_arguments)]

@@ -21,6 +21,8 @@
 //! `Error::Bundle` at load.
 use std::collections::BTreeSet;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::{AcqRel, Relaxed}};
+use std::time::Instant;
 
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
@@ -44,29 +46,60 @@ pub(crate) struct NativeDecoder {
     frames: usize,
     /// The state after the manifest's initial (pad) tokens: what a new sequence starts from.
     initial: NativeState,
-    /// The second thread, and which components it decodes.
+    /// The second thread (two-thread decodes).
     helper: Option<Helper>,
-    helper_comps: [bool; N_STREAMS],
+    /// Recent time of each job (the components, then the extra job of
+    /// [`decode_with`](NativeDecoder::decode_with)), ns: the order jobs are handed out in.
+    cost_ns: [AtomicU64; N_STREAMS + 1],
 }
 
-/// What the helper thread reads for one decode (lives on the caller's stack meanwhile).
-struct SplitArg {
-    dec: *const NativeDecoder,
+/// The extra job's index in [`NativeDecoder::cost_ns`] and in a [`Jobs`] order.
+const EXTRA: usize = N_STREAMS;
+
+/// One decode's jobs, shared by the caller and the helper: each claims the next job of
+/// `order` (longest recent time first) until none is left, so the two threads split the
+/// work by how fast they actually go (a helper that wakes late, or that the OS preempts,
+/// leaves its share to the caller).
+struct Jobs<'a> {
+    dec: &'a NativeDecoder,
     states: *mut CompState,
     ids: [usize; N_STREAMS],
+    extra: Option<*mut (dyn FnMut() + Send + 'a)>,
+    order: [usize; N_STREAMS + 1],
+    n: usize,
+    next: AtomicUsize,
 }
 
-/// # Safety
-/// `arg` is a live `SplitArg` whose `states` point at `N_STREAMS` states of which only the
-/// helper's components are touched here.
-unsafe fn run_helper_part(arg: *const ()) {
-    let a = &*(arg as *const SplitArg);
-    let dec = &*a.dec;
-    for (ci, c) in dec.comps.iter().enumerate() {
-        if dec.helper_comps[ci] {
-            c.run(&mut *a.states.add(ci), a.ids[ci]);
+impl Jobs<'_> {
+    /// Runs jobs until none is left.
+    ///
+    /// # Safety
+    /// `states` points at `N_STREAMS` live states and `extra` at a live closure, none of
+    /// them used by anything but this decode; each job runs once, on one thread.
+    unsafe fn drain(&self) {
+        loop {
+            let i = self.next.fetch_add(1, AcqRel);
+            if i >= self.n {
+                return;
+            }
+            let job = self.order[i];
+            let t = Instant::now();
+            match (job, self.extra) {
+                (EXTRA, Some(f)) => (*f)(),
+                (EXTRA, None) => unreachable!("the extra job is only ordered when there is one"),
+                (c, _) => self.dec.comps[c].run(&mut *self.states.add(c), self.ids[c]),
+            }
+            self.dec.note_cost(job, t.elapsed().as_nanos() as u64);
         }
     }
+}
+
+/// The helper's side of a decode.
+///
+/// # Safety
+/// `arg` is a live `Jobs` (see [`Jobs::drain`]).
+unsafe fn drain_jobs(arg: *const ()) {
+    (*(arg as *const Jobs<'_>)).drain()
 }
 
 /// One stream's decoder context: every layer's history, plus scratch.
@@ -354,8 +387,9 @@ impl NativeDecoder {
                     "native decoder tensor {name} is not part of the decoder architecture the other tensors describe")));
             }
         }
-        let (helper, helper_comps) = start_helper(&comps)?;
-        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, helper_comps };
+        let helper = start_helper(&comps)?;
+        let cost_ns = std::array::from_fn(|_| AtomicU64::new(0));
+        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, cost_ns };
         // The context of a new sequence: zero histories, then the initial state's tokens.
         let mut st = NativeState { comps: dec.comps.iter().map(|c| c.new_state(frames)).collect() };
         let init = d.initial_state.first().ok_or_else(|| Error::bundle(&dir, "decoder initial_state is empty"))?;
@@ -365,7 +399,10 @@ impl NativeDecoder {
                 let id = usize::try_from(id).ok().filter(|&i| i <= m.components[ci].codebook_size).ok_or_else(|| {
                     Error::bundle(&dir, format!("decoder initial_state id {id} is neither a code nor the pad id"))
                 })?;
+                // timed: the first decodes' job order
+                let t = Instant::now();
                 c.run(&mut st.comps[ci], id);
+                dec.note_cost(ci, t.elapsed().as_nanos() as u64);
             }
         }
         dec.initial = st;
@@ -385,73 +422,81 @@ impl NativeDecoder {
     }
 
     /// Decodes one code per component (checked by the caller: `0 <= id < codebook size`)
-    /// into `out` (F x 335 normalized features, contact as probability). Allocation-free.
-    /// Fails only if the helper thread panicked (`Error::Panic`; the state is then not
-    /// to be trusted).
-    pub(crate) fn decode(&self, st: &mut NativeState, ids: [usize; N_STREAMS], out: &mut [f32]) -> Result<()> {
+    /// into `out` (F x 335 normalized features, contact as probability), and runs `extra`
+    /// (independent work, once, on either thread) as one more job for the two threads: how
+    /// a stream overlaps the next token step with a decode (`model::overlap`).
+    /// Allocation-free. Fails only if the helper thread panicked (`Error::Panic`; the state
+    /// is then not to be trusted).
+    pub(crate) fn decode_with(&self, st: &mut NativeState, ids: [usize; N_STREAMS], out: &mut [f32],
+                              extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
         assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
-        let mut split = false;
+        let mut jobs = Jobs {
+            dec: self,
+            states: st.comps.as_mut_ptr(),
+            ids,
+            extra: extra.map(|f| f as *mut (dyn FnMut() + Send)),
+            order: [0; N_STREAMS + 1],
+            n: 0,
+            next: AtomicUsize::new(0),
+        };
+        // longest recent time first (an insertion sort: no allocation)
+        for job in (0..N_STREAMS).chain(jobs.extra.map(|_| EXTRA)) {
+            let c = self.cost_ns[job].load(Relaxed);
+            let mut i = jobs.n;
+            while i > 0 && self.cost_ns[jobs.order[i - 1]].load(Relaxed) < c {
+                jobs.order[i] = jobs.order[i - 1];
+                i -= 1;
+            }
+            jobs.order[i] = job;
+            jobs.n += 1;
+        }
+        let mut helped = false;
         if let Some(h) = &self.helper {
-            let states = st.comps.as_mut_ptr();
-            let arg = SplitArg { dec: self, states, ids };
-            let job = Job { run: run_helper_part, arg: &arg as *const SplitArg as *const () };
-            let mine = || {
-                for (ci, c) in self.comps.iter().enumerate() {
-                    if !self.helper_comps[ci] {
-                        // SAFETY: `states` has one state per component; the helper touches
-                        // only its own components' states.
-                        c.run(unsafe { &mut *states.add(ci) }, ids[ci]);
-                    }
-                }
-            };
-            // SAFETY: `arg` and the states outlive the call (it waits for the helper), and
-            // the two sides decode disjoint components.
-            match unsafe { h.run_split(job, mine) } {
-                Some(false) => split = true,
+            let job = Job { run: drain_jobs, arg: &jobs as *const Jobs<'_> as *const () };
+            // SAFETY: `jobs` and what it points to outlive the call (it waits for the
+            // helper), and every job runs on one thread only (claimed atomically).
+            match unsafe { h.run_split(job, || jobs.drain()) } {
+                Some(false) => helped = true,
                 Some(true) => return Err(Error::Panic("the native decoder's helper thread panicked".into())),
-                None => {}
+                None => {} // busy: another stream's decode has it
             }
         }
-        if !split {
-            for ((c, s), &id) in self.comps.iter().zip(st.comps.iter_mut()).zip(&ids) {
-                c.run(s, id);
-            }
+        if !helped {
+            // SAFETY: as above, on this thread alone.
+            unsafe { jobs.drain() };
         }
         for (c, s) in self.comps.iter().zip(&st.comps) {
             c.emit(s, self.frames, out);
         }
         Ok(())
     }
+
+    /// Whether decodes run on two threads (when the helper is free).
+    pub(crate) fn has_helper(&self) -> bool {
+        self.helper.is_some()
+    }
+
+    /// Bytes of weights one decode reads.
+    pub(crate) fn weight_bytes(&self) -> usize {
+        self.comps.iter().flat_map(|c| c.matrices()).map(|m| m.bytes()).sum()
+    }
+
+    /// Folds a job's time into its recent time (a quarter of the new one: follows a change
+    /// of load within a few tokens).
+    fn note_cost(&self, job: usize, ns: u64) {
+        let old = self.cost_ns[job].load(Relaxed);
+        let new = if old == 0 { ns.max(1) } else { (3 * old + ns) / 4 };
+        self.cost_ns[job].store(new, Relaxed);
+    }
 }
 
-/// The helper thread and its components, if one decode should use two threads
-/// (`COMGRASP_DECODER_THREADS`, else: two or more cores and a model big enough). The split
-/// balances the components' weight counts (all components have the same layer structure,
-/// so multiply-adds are proportional to weights).
-fn start_helper(comps: &[Component]) -> Result<(Option<Helper>, [bool; N_STREAMS])> {
-    let none = Ok((None, [false; N_STREAMS]));
-    let cost: Vec<usize> = comps.iter().map(|c| c.matrices().iter().map(|m| m.rows() * m.cols()).sum()).collect();
-    let total: usize = cost.iter().sum();
-    let two = threads_from_env(THREADS_ENV, total >= SPLIT_MIN_WEIGHTS)? == 2;
-    if !two || comps.len() < 2 {
-        return none;
+/// The helper thread, if decodes should use two threads (`COMGRASP_DECODER_THREADS`, else:
+/// two or more cores and a model big enough for the hand-over to pay).
+fn start_helper(comps: &[Component]) -> Result<Option<Helper>> {
+    let total: usize = comps.iter().flat_map(|c| c.matrices()).map(|m| m.rows() * m.cols()).sum();
+    if threads_from_env(THREADS_ENV, total >= SPLIT_MIN_WEIGHTS)? != 2 {
+        return Ok(None);
     }
-    // the subset for the helper (component 0 stays with the caller) minimizing the larger side
-    let n = comps.len();
-    let mut best = (usize::MAX, 0u32);
-    for mask in 1u32..(1 << (n - 1)) {
-        let helper: usize = (0..n - 1).filter(|i| (mask >> i) & 1 == 1).map(|i| cost[i + 1]).sum();
-        let worst = helper.max(total - helper);
-        if worst < best.0 {
-            best = (worst, mask);
-        }
-    }
-    let mut which = [false; N_STREAMS];
-    for i in 0..n - 1 {
-        which[i + 1] = (best.1 >> i) & 1 == 1;
-    }
-    match Helper::start() {
-        Ok(helper) => Ok((Some(helper), which)),
-        Err(_) => none, // no thread to be had: decode on the caller's alone
-    }
+    // no thread to be had: decode on the caller's alone
+    Ok(Helper::start().ok())
 }

@@ -388,12 +388,24 @@ impl NativeStep {
     /// panics if the helper thread panicked (after it has stopped touching the state).
     pub(crate) fn step(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
                        logits: &mut [Vec<f32>; N_STREAMS]) {
+        self.step_on(st, tokens, pos, text_emb, logits, true)
+    }
+
+    /// [`step`](Self::step) on the calling thread alone (the helper is left alone: the
+    /// caller's other thread is busy with a decode), bit-identical.
+    pub(crate) fn step_solo(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
+                            logits: &mut [Vec<f32>; N_STREAMS]) {
+        self.step_on(st, tokens, pos, text_emb, logits, false)
+    }
+
+    fn step_on(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
+               logits: &mut [Vec<f32>; N_STREAMS], team: bool) {
         assert!(st.own.len() == MAX_THREADS && st.h.len() == N_STREAMS, "a NativeStepState of another model");
         let view = View::new(st, logits);
         // SAFETY (both calls): `view` points into `st` and `logits`, borrowed mutably for
         // this whole call; `run` gives every output element to one member per phase.
         let work = |m: &mut Member<'_>| unsafe { self.run(&view, m, tokens, pos, text_emb) };
-        if let Some(h) = &self.helper {
+        if let Some(h) = self.helper.as_ref().filter(|_| team) {
             match h.run_team(&self.phases, &work) {
                 Some(false) => return,
                 Some(true) => panic!("the native step's helper thread panicked"),
