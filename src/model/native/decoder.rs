@@ -27,7 +27,8 @@ use std::time::Instant;
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
 use super::helper_thread::{threads_from_env, Helper, Job};
-use super::weights::{Matrix, Tensors};
+use super::arena::{Arena, Wm};
+use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
@@ -48,6 +49,8 @@ pub(crate) struct NativeDecoder {
     initial: NativeState,
     /// The second thread (two-thread decodes).
     helper: Option<Helper>,
+    /// Every component's weight matrices (the layers hold their places in it).
+    arena: Arena,
     /// Recent time of each job (the components, then the extra job of
     /// [`decode_with`](NativeDecoder::decode_with)), ns: the order jobs are handed out in.
     cost_ns: [AtomicU64; N_STREAMS + 1],
@@ -87,7 +90,7 @@ impl Jobs<'_> {
             match (job, self.extra) {
                 (EXTRA, Some(f)) => (*f)(),
                 (EXTRA, None) => unreachable!("the extra job is only ordered when there is one"),
-                (c, _) => self.dec.comps[c].run(&mut *self.states.add(c), self.ids[c]),
+                (c, _) => self.dec.comps[c].run(&self.dec.arena, &mut *self.states.add(c), self.ids[c]),
             }
             self.dec.note_cost(job, t.elapsed().as_nanos() as u64);
         }
@@ -187,7 +190,7 @@ impl Names<'_> {
 }
 
 impl Component {
-    fn load(t: &Tensors, names: &mut Names, dir: &Path, m: &Manifest, ci: usize) -> Result<Component> {
+    fn load(t: &Tensors, ar: &mut Arena, names: &mut Names, dir: &Path, m: &Manifest, ci: usize) -> Result<Component> {
         let spec = &m.components[ci];
         let bad = |msg: String| Error::bundle(dir, msg);
         let part = format!("parts.{}", spec.name);
@@ -212,12 +215,12 @@ impl Component {
         }
         table[j * code_dim..].copy_from_slice(&pad);
 
-        let conv_in = CausalConv::load(t, &format!("{}.conv", layer(0)), code_dim, width, k)?;
+        let conv_in = CausalConv::load(t, ar, &format!("{}.conv", layer(0)), code_dim, width, k)?;
         names.note(&format!("{}.conv", layer(0)), &["weight", "bias"]);
         // layer 1: ReLU
         let mut i = 2;
         let attn = if names.has(&format!("{}.qkv.weight", layer(2))) {
-            let a = WindowAttention::load(t, dir, &layer(2), width)?;
+            let a = WindowAttention::load(t, ar, dir, &layer(2), width)?;
             names.note(&layer(2), &WindowAttention::TENSORS);
             i = 3;
             Some(a)
@@ -232,20 +235,20 @@ impl Component {
         for _ in 0..levels_n {
             let mut res = Vec::with_capacity(depth);
             for _ in 0..depth {
-                res.push(ResBlock::load(t, &layer(i), width, k)?);
+                res.push(ResBlock::load(t, ar, &layer(i), width, k)?);
                 names.note(&layer(i), &["conv.conv.weight", "conv.conv.bias", "proj.weight", "proj.bias"]);
                 i += 1;
             }
             // layer i: Upsample2, then the Conv
-            let up = UpConv::load(t, &format!("{}.conv", layer(i + 1)), width, k)?;
+            let up = UpConv::load(t, ar, &format!("{}.conv", layer(i + 1)), width, k)?;
             names.note(&format!("{}.conv", layer(i + 1)), &["weight", "bias"]);
             i += 2;
             levels.push(Level { res, up });
         }
-        let final_a = CausalConv::load(t, &format!("{}.conv", layer(i)), width, width, k)?;
+        let final_a = CausalConv::load(t, ar, &format!("{}.conv", layer(i)), width, width, k)?;
         names.note(&format!("{}.conv", layer(i)), &["weight", "bias"]);
         // layer i + 1: ReLU
-        let final_b = CausalConv::load(t, &format!("{}.conv", layer(i + 2)), width, dim, k)?;
+        let final_b = CausalConv::load(t, ar, &format!("{}.conv", layer(i + 2)), width, dim, k)?;
         names.note(&format!("{}.conv", layer(i + 2)), &["weight", "bias"]);
 
         let contact = CONTACT_CHANNELS.iter().filter(|&&c| (start..stop).contains(&c)).map(|&c| c - start).collect();
@@ -299,29 +302,29 @@ impl Component {
     }
 
     /// Decodes `id` (a code, or the pad id = codebook size) into `s.out` (F x dim, raw).
-    fn run(&self, s: &mut CompState, id: usize) {
+    fn run(&self, ar: &Arena, s: &mut CompState, id: usize) {
         let (d, w) = (self.code_dim, self.width);
         self.conv_in.input(&mut s.emb, 1).copy_from_slice(&self.table[id * d..(id + 1) * d]);
-        self.conv_in.run(&mut s.emb, 1, &mut s.x[..w]);
+        self.conv_in.run(ar, &mut s.emb, 1, &mut s.x[..w]);
         relu(&mut s.x[..w]);
         if let (Some(a), Some(st)) = (&self.attn, s.attn.as_mut()) {
-            a.step(&mut s.x[..w], st);
+            a.step(ar, &mut s.x[..w], st);
         }
         let mut n = 1;
         for (l, lev) in self.levels.iter().enumerate() {
             for (r, buf) in lev.res.iter().zip(&mut s.res[l * self.depth..(l + 1) * self.depth]) {
-                r.run(&mut s.x, n, buf, &mut s.a, &mut s.b);
+                r.run(ar, &mut s.x, n, buf, &mut s.a, &mut s.b);
             }
-            lev.up.run(&s.x[..n * w], n, &mut s.z[l], &mut s.y[..2 * n * w]);
+            lev.up.run(ar, &s.x[..n * w], n, &mut s.z[l], &mut s.y[..2 * n * w]);
             std::mem::swap(&mut s.x, &mut s.y);
             n *= 2;
         }
         self.final_a.input(&mut s.fa, n).copy_from_slice(&s.x[..n * w]);
-        self.final_a.run(&mut s.fa, n, &mut s.y[..n * w]);
+        self.final_a.run(ar, &mut s.fa, n, &mut s.y[..n * w]);
         for (d, v) in self.final_b.input(&mut s.fb, n).iter_mut().zip(&s.y[..n * w]) {
             *d = v.max(0.0);
         }
-        self.final_b.run(&mut s.fb, n, &mut s.out[..n * self.dim]);
+        self.final_b.run(ar, &mut s.fb, n, &mut s.out[..n * self.dim]);
     }
 
     /// Writes `s.out` into the component's channels of `out` (F x 335), contact as probability.
@@ -335,8 +338,8 @@ impl Component {
         }
     }
 
-    fn matrices(&self) -> Vec<&Matrix> {
-        let mut v: Vec<&Matrix> = self.conv_in.matrices().to_vec();
+    fn matrices(&self) -> Vec<Wm> {
+        let mut v: Vec<Wm> = self.conv_in.matrices().to_vec();
         if let Some(a) = &self.attn {
             v.extend(a.matrices());
         }
@@ -367,9 +370,11 @@ impl NativeDecoder {
         }
         let t = Tensors::new(src, spec);
         let mut names = Names { known: BTreeSet::new(), t: &t };
+        let mut arena = Arena::new(Arena::bound(spec.tensors.values().map(|v| v.shape.as_slice())))
+            .ok_or_else(|| Error::bundle(&dir, "no memory for the native decoder's weights"))?;
         let mut comps = Vec::with_capacity(N_STREAMS);
         for ci in 0..N_STREAMS {
-            let c = Component::load(&t, &mut names, &dir, m, ci)?;
+            let c = Component::load(&t, &mut arena, &mut names, &dir, m, ci)?;
             let k = c.context_tokens(frames);
             if k != d.context_tokens {
                 return Err(Error::bundle(&dir, format!(
@@ -388,8 +393,9 @@ impl NativeDecoder {
             }
         }
         let helper = start_helper(&comps)?;
+        arena.trim();
         let cost_ns = std::array::from_fn(|_| AtomicU64::new(0));
-        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, cost_ns };
+        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, arena, cost_ns };
         // The context of a new sequence: zero histories, then the initial state's tokens.
         let mut st = NativeState { comps: dec.comps.iter().map(|c| c.new_state(frames)).collect() };
         let init = d.initial_state.first().ok_or_else(|| Error::bundle(&dir, "decoder initial_state is empty"))?;
@@ -401,7 +407,7 @@ impl NativeDecoder {
                 })?;
                 // timed: the first decodes' job order
                 let t = Instant::now();
-                c.run(&mut st.comps[ci], id);
+                c.run(&dec.arena, &mut st.comps[ci], id);
                 dec.note_cost(ci, t.elapsed().as_nanos() as u64);
             }
         }
@@ -493,7 +499,7 @@ impl NativeDecoder {
 /// The helper thread, if decodes should use two threads (`COMGRASP_DECODER_THREADS`, else:
 /// two or more cores and a model big enough for the hand-over to pay).
 fn start_helper(comps: &[Component]) -> Result<Option<Helper>> {
-    let total: usize = comps.iter().flat_map(|c| c.matrices()).map(|m| m.rows() * m.cols()).sum();
+    let total: usize = comps.iter().flat_map(|c| c.matrices()).map(|m| m.rows * m.cols).sum();
     if threads_from_env(THREADS_ENV, total >= SPLIT_MIN_WEIGHTS)? != 2 {
         return Ok(None);
     }

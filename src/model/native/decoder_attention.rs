@@ -5,9 +5,10 @@
 //! sequence a position attends to the positions that exist (the graph's mask).
 use std::path::Path;
 
+use super::arena::{Arena, Wm};
 use super::gemm::gemm;
 use super::kernels::{dot, gelu_erf, layer_norm, softmax};
-use super::weights::{Matrix, Tensors};
+use super::weights::Tensors;
 use crate::error::{Error, Result};
 
 const LN_EPS: f32 = 1e-5; // nn.LayerNorm's default
@@ -18,14 +19,14 @@ pub(crate) struct WindowAttention {
     heads: usize,
     window: usize,
     norm1: (Vec<f32>, Vec<f32>),
-    qkv: Matrix,
+    qkv: Wm,
     qkv_b: Vec<f32>,
-    out: Matrix,
+    out: Wm,
     out_b: Vec<f32>,
     norm2: (Vec<f32>, Vec<f32>),
-    mlp0: Matrix,
+    mlp0: Wm,
     mlp0_b: Vec<f32>,
-    mlp2: Matrix,
+    mlp2: Wm,
     mlp2_b: Vec<f32>,
     /// (heads, window): bias of key offset `query - key`.
     rel_bias: Vec<f32>,
@@ -57,7 +58,7 @@ impl AttnState {
 
 impl WindowAttention {
     /// `prefix` = `parts.<name>.decoder.layers.<i>`; heads and window come from `rel_bias`.
-    pub(crate) fn load(t: &Tensors, dir: &Path, prefix: &str, width: usize) -> Result<WindowAttention> {
+    pub(crate) fn load(t: &Tensors, a: &mut Arena, dir: &Path, prefix: &str, width: usize) -> Result<WindowAttention> {
         let name = |s: &str| format!("{prefix}.{s}");
         let rb = name("rel_bias");
         let (heads, window) = match t.shape(&rb)? {
@@ -71,14 +72,14 @@ impl WindowAttention {
             heads,
             window,
             norm1: (t.vector(&name("norm1.weight"), w)?, t.vector(&name("norm1.bias"), w)?),
-            qkv: t.matrix(&name("qkv.weight"), 3 * w, w)?,
+            qkv: a.put(t.matrix(&name("qkv.weight"), 3 * w, w)?),
             qkv_b: t.vector(&name("qkv.bias"), 3 * w)?,
-            out: t.matrix(&name("out.weight"), w, w)?,
+            out: a.put(t.matrix(&name("out.weight"), w, w)?),
             out_b: t.vector(&name("out.bias"), w)?,
             norm2: (t.vector(&name("norm2.weight"), w)?, t.vector(&name("norm2.bias"), w)?),
-            mlp0: t.matrix(&name("mlp.0.weight"), 2 * w, w)?,
+            mlp0: a.put(t.matrix(&name("mlp.0.weight"), 2 * w, w)?),
             mlp0_b: t.vector(&name("mlp.0.bias"), 2 * w)?,
-            mlp2: t.matrix(&name("mlp.2.weight"), w, 2 * w)?,
+            mlp2: a.put(t.matrix(&name("mlp.2.weight"), w, 2 * w)?),
             mlp2_b: t.vector(&name("mlp.2.bias"), w)?,
             rel_bias: t.vector(&rb, heads * window)?,
         })
@@ -110,11 +111,11 @@ impl WindowAttention {
     }
 
     /// `h (width) <- block(h)` for the next position.
-    pub(crate) fn step(&self, h: &mut [f32], st: &mut AttnState) {
+    pub(crate) fn step(&self, a: &Arena, h: &mut [f32], st: &mut AttnState) {
         let (w, nh, win) = (self.width, self.heads, self.window);
         let dh = w / nh;
         layer_norm(h, &self.norm1.0, &self.norm1.1, LN_EPS, &mut st.ln);
-        gemm(&self.qkv, &st.ln, w, 1, Some(&self.qkv_b), &mut st.qkv, 3 * w);
+        gemm(a.mat(&self.qkv), &st.ln, w, 1, Some(&self.qkv_b), &mut st.qkv, 3 * w);
         let slot = st.pos % win;
         st.k[slot * w..(slot + 1) * w].copy_from_slice(&st.qkv[w..2 * w]);
         st.v[slot * w..(slot + 1) * w].copy_from_slice(&st.qkv[2 * w..3 * w]);
@@ -139,20 +140,20 @@ impl WindowAttention {
                 }
             }
         }
-        gemm(&self.out, &st.y, w, 1, Some(&self.out_b), &mut st.t, w);
+        gemm(a.mat(&self.out), &st.y, w, 1, Some(&self.out_b), &mut st.t, w);
         for (a, b) in h.iter_mut().zip(&st.t) {
             *a += b;
         }
         layer_norm(h, &self.norm2.0, &self.norm2.1, LN_EPS, &mut st.ln);
-        gemm(&self.mlp0, &st.ln, w, 1, Some(&self.mlp0_b), &mut st.hid, 2 * w);
+        gemm(a.mat(&self.mlp0), &st.ln, w, 1, Some(&self.mlp0_b), &mut st.hid, 2 * w);
         gelu_erf(&mut st.hid);
-        gemm(&self.mlp2, &st.hid, 2 * w, 1, Some(&self.mlp2_b), &mut st.t, w);
+        gemm(a.mat(&self.mlp2), &st.hid, 2 * w, 1, Some(&self.mlp2_b), &mut st.t, w);
         for (a, b) in h.iter_mut().zip(&st.t) {
             *a += b;
         }
     }
 
-    pub(crate) fn matrices(&self) -> [&Matrix; 4] {
-        [&self.qkv, &self.out, &self.mlp0, &self.mlp2]
+    pub(crate) fn matrices(&self) -> [Wm; 4] {
+        [self.qkv, self.out, self.mlp0, self.mlp2]
     }
 }

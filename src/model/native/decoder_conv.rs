@@ -11,6 +11,7 @@
 //! The convolution after a nearest x2 upsampling ([`UpConv`]) reads every input value
 //! twice; it is computed per tap on the *un-upsampled* positions (`Z_tap = W_tap u`, half
 //! the products) and the outputs are sums of the right `Z`s.
+use super::arena::{Arena, Wm};
 use super::gemm::gemm;
 use super::weights::{Matrix, Tensors};
 use crate::error::Result;
@@ -70,13 +71,13 @@ pub(crate) struct CausalConv {
     pub(crate) cin: usize,
     pub(crate) cout: usize,
     pub(crate) k: usize,
-    w: Matrix,
+    w: Wm,
     b: Vec<f32>,
 }
 
 impl CausalConv {
-    pub(crate) fn load(t: &Tensors, prefix: &str, cin: usize, cout: usize, k: usize) -> Result<CausalConv> {
-        let w = tap_major(t.matrix(&format!("{prefix}.weight"), cout, cin * k)?, cin, k);
+    pub(crate) fn load(t: &Tensors, a: &mut Arena, prefix: &str, cin: usize, cout: usize, k: usize) -> Result<CausalConv> {
+        let w = a.put(tap_major(t.matrix(&format!("{prefix}.weight"), cout, cin * k)?, cin, k));
         let b = t.vector(&format!("{prefix}.bias"), cout)?;
         Ok(CausalConv { cin, cout, k, w, b })
     }
@@ -92,13 +93,13 @@ impl CausalConv {
     }
 
     /// `y (npos x cout) = conv(buf)`, then the history moves to the front of `buf`.
-    pub(crate) fn run(&self, buf: &mut [f32], npos: usize, y: &mut [f32]) {
-        gemm(&self.w, buf, self.cin, npos, Some(&self.b), y, self.cout);
+    pub(crate) fn run(&self, a: &Arena, buf: &mut [f32], npos: usize, y: &mut [f32]) {
+        gemm(a.mat(&self.w), buf, self.cin, npos, Some(&self.b), y, self.cout);
         shift_history(buf, self.cin, self.k - 1, npos);
     }
 
-    pub(crate) fn matrices(&self) -> [&Matrix; 1] {
-        [&self.w]
+    pub(crate) fn matrices(&self) -> [Wm; 1] {
+        [self.w]
     }
 }
 
@@ -117,13 +118,13 @@ fn shift_history(buf: &mut [f32], c: usize, hist: usize, npos: usize) {
 pub(crate) struct UpConv {
     pub(crate) c: usize,
     pub(crate) k: usize,
-    taps: Matrix,
+    taps: Wm,
     b: Vec<f32>,
 }
 
 impl UpConv {
-    pub(crate) fn load(t: &Tensors, prefix: &str, c: usize, k: usize) -> Result<UpConv> {
-        let taps = taps_stacked(t.matrix(&format!("{prefix}.weight"), c, c * k)?, c, k);
+    pub(crate) fn load(t: &Tensors, a: &mut Arena, prefix: &str, c: usize, k: usize) -> Result<UpConv> {
+        let taps = a.put(taps_stacked(t.matrix(&format!("{prefix}.weight"), c, c * k)?, c, k));
         let b = t.vector(&format!("{prefix}.bias"), c)?;
         Ok(UpConv { c, k, taps, b })
     }
@@ -138,10 +139,10 @@ impl UpConv {
     }
 
     /// `y (2 npos x c)` from `x (npos x c)`; `z` is this layer's `Z` buffer.
-    pub(crate) fn run(&self, x: &[f32], npos: usize, z: &mut [f32], y: &mut [f32]) {
+    pub(crate) fn run(&self, a: &Arena, x: &[f32], npos: usize, z: &mut [f32], y: &mut [f32]) {
         let (c, k, h) = (self.c, self.k, self.hist());
         let kc = k * c;
-        gemm(&self.taps, x, c, npos, None, &mut z[h * kc..], kc);
+        gemm(a.mat(&self.taps), x, c, npos, None, &mut z[h * kc..], kc);
         for t in 0..2 * npos {
             let yo = &mut y[t * c..(t + 1) * c];
             yo.copy_from_slice(&self.b);
@@ -157,8 +158,8 @@ impl UpConv {
         shift_history(z, kc, h, npos);
     }
 
-    pub(crate) fn matrices(&self) -> [&Matrix; 1] {
-        [&self.taps]
+    pub(crate) fn matrices(&self) -> [Wm; 1] {
+        [self.taps]
     }
 }
 
@@ -166,35 +167,35 @@ impl UpConv {
 #[derive(Debug)]
 pub(crate) struct ResBlock {
     pub(crate) conv: CausalConv,
-    proj: Matrix,
+    proj: Wm,
     proj_b: Vec<f32>,
 }
 
 impl ResBlock {
-    pub(crate) fn load(t: &Tensors, prefix: &str, c: usize, k: usize) -> Result<ResBlock> {
-        let conv = CausalConv::load(t, &format!("{prefix}.conv.conv"), c, c, k)?;
-        let proj = t.matrix(&format!("{prefix}.proj.weight"), c, c)?;
+    pub(crate) fn load(t: &Tensors, ar: &mut Arena, prefix: &str, c: usize, k: usize) -> Result<ResBlock> {
+        let conv = CausalConv::load(t, ar, &format!("{prefix}.conv.conv"), c, c, k)?;
+        let proj = ar.put(t.matrix(&format!("{prefix}.proj.weight"), c, c)?);
         let proj_b = t.vector(&format!("{prefix}.proj.bias"), c)?;
         Ok(ResBlock { conv, proj, proj_b })
     }
 
     /// In place on `x (npos x c)`; `buf` is the conv's input buffer, `a` and `b` scratch of
     /// `npos x c`.
-    pub(crate) fn run(&self, x: &mut [f32], npos: usize, buf: &mut [f32], a: &mut [f32], b: &mut [f32]) {
+    pub(crate) fn run(&self, ar: &Arena, x: &mut [f32], npos: usize, buf: &mut [f32], a: &mut [f32], b: &mut [f32]) {
         let n = npos * self.conv.cin;
         let inp = self.conv.input(buf, npos);
         for (d, s) in inp.iter_mut().zip(&x[..n]) {
             *d = s.max(0.0);
         }
-        self.conv.run(buf, npos, &mut a[..n]);
+        self.conv.run(ar, buf, npos, &mut a[..n]);
         relu(&mut a[..n]);
-        gemm(&self.proj, &a[..n], self.conv.cin, npos, Some(&self.proj_b), &mut b[..n], self.conv.cin);
+        gemm(ar.mat(&self.proj), &a[..n], self.conv.cin, npos, Some(&self.proj_b), &mut b[..n], self.conv.cin);
         for (d, s) in x[..n].iter_mut().zip(&b[..n]) {
             *d += s;
         }
     }
 
-    pub(crate) fn matrices(&self) -> [&Matrix; 2] {
-        [&self.conv.w, &self.proj]
+    pub(crate) fn matrices(&self) -> [Wm; 2] {
+        [self.conv.w, self.proj]
     }
 }

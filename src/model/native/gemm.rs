@@ -11,13 +11,14 @@
 //! 4 positions of 8-lane accumulators); other targets a portable loop over
 //! [`kernels::dot`]/[`kernels::dot_i8`]. Results equal the naive product up to fp32
 //! rounding (summation order), which is all the parity tolerance asks.
-use super::kernels::{self, Isa};
+use super::kernels::{self, Isa, MatRef};
+#[cfg(test)]
 use super::weights::Matrix;
 
 /// `y[p * ys + r] = W[r] · x[p * xs .. p * xs + cols] (+ bias[r])` for `p < npos`,
 /// `r < rows` (`W = m`, int8 rows times their scale). Panics if a slice is too short
 /// (caller bug; the decoder sizes every buffer at load).
-pub(crate) fn gemm(m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize) {
+pub(crate) fn gemm(m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize) {
     let (rows, cols) = (m.rows(), m.cols());
     if npos == 0 || rows == 0 {
         return;
@@ -29,7 +30,7 @@ pub(crate) fn gemm(m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&
     }
     if npos == 1 && xs >= cols {
         // one position: the GEMV kernels (rows share each load of x)
-        kernels::gemv(m, &x[..cols], bias, &mut y[..rows]);
+        kernels::gemv_rows(m, &x[..cols], bias, 0..rows, &mut y[..rows]);
         return;
     }
     #[cfg(target_arch = "x86_64")]
@@ -50,18 +51,18 @@ pub(crate) fn gemm(m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&
     portable(m, x, xs, npos, bias, y, ys);
 }
 
-fn portable(m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize) {
+fn portable(m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize) {
     let (rows, cols) = (m.rows(), m.cols());
     for p in 0..npos {
         let xp = &x[p * xs..p * xs + cols];
         let yp = &mut y[p * ys..p * ys + rows];
         match m {
-            Matrix::F32 { w, .. } => {
+            MatRef::F32 { w, .. } => {
                 for (r, o) in yp.iter_mut().enumerate() {
                     *o = kernels::dot(&w[r * cols..(r + 1) * cols], xp);
                 }
             }
-            Matrix::I8 { q, scale, .. } => {
+            MatRef::I8 { q, scale, .. } => {
                 for (r, o) in yp.iter_mut().enumerate() {
                     *o = kernels::dot_i8(&q[r * cols..(r + 1) * cols], xp) * scale[r];
                 }
@@ -80,7 +81,7 @@ fn portable(m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>,
 mod x86 {
     use std::arch::x86_64::*;
 
-    use super::Matrix;
+    use super::MatRef;
 
     #[target_feature(enable = "avx2,fma")]
     unsafe fn hsum(v: __m256) -> f32 {
@@ -312,12 +313,12 @@ mod x86 {
     /// AVX-512F is available; the bounds `super::gemm` asserts hold.
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn gemm512(
-        m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
+        m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
     ) {
         let (rows, cols) = (m.rows(), m.cols());
         match m {
-            Matrix::F32 { w, .. } => gemm512_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
-            Matrix::I8 { q, scale, .. } => {
+            MatRef::F32 { w, .. } => gemm512_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
+            MatRef::I8 { q, scale, .. } => {
                 gemm512_i8(q.as_ptr(), Some(scale), rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
             }
         }
@@ -327,12 +328,12 @@ mod x86 {
     /// AVX2 and FMA are available; the bounds `super::gemm` asserts hold.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn gemm(
-        m: &Matrix, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
+        m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
     ) {
         let (rows, cols) = (m.rows(), m.cols());
         match m {
-            Matrix::F32 { w, .. } => gemm_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
-            Matrix::I8 { q, scale, .. } => {
+            MatRef::F32 { w, .. } => gemm_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
+            MatRef::I8 { q, scale, .. } => {
                 gemm_i8(q.as_ptr(), Some(scale), rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
             }
         }
@@ -366,23 +367,23 @@ mod tests {
                 // output stride wider than rows: the untouched gap stays as it was
                 let ys = rows + 2;
                 let mut y = vec![-9.0; npos * ys];
-                gemm(&m, &x, xs, npos, Some(&bias), &mut y, ys);
+                gemm((&m).into(), &x, xs, npos, Some(&bias), &mut y, ys);
                 // every kernel this CPU has, not only the one gemm picks
                 let mut ys_all = vec![y];
                 let mut y2 = vec![-9.0; npos * ys];
-                portable(&m, &x, xs, npos, Some(&bias), &mut y2, ys);
+                portable((&m).into(), &x, xs, npos, Some(&bias), &mut y2, ys);
                 ys_all.push(y2);
                 #[cfg(target_arch = "x86_64")]
                 {
                     let isa = kernels::isa();
                     if isa >= Isa::Avx2 {
                         let mut y3 = vec![-9.0; npos * ys];
-                        unsafe { x86::gemm(&m, &x, xs, npos, Some(&bias), &mut y3, ys) };
+                        unsafe { x86::gemm((&m).into(), &x, xs, npos, Some(&bias), &mut y3, ys) };
                         ys_all.push(y3);
                     }
                     if isa >= Isa::Avx512 {
                         let mut y4 = vec![-9.0; npos * ys];
-                        unsafe { x86::gemm512(&m, &x, xs, npos, Some(&bias), &mut y4, ys) };
+                        unsafe { x86::gemm512((&m).into(), &x, xs, npos, Some(&bias), &mut y4, ys) };
                         ys_all.push(y4);
                     }
                 }
@@ -418,7 +419,7 @@ mod speed {
             let reps = 2000 / npos;
             let t = std::time::Instant::now();
             for _ in 0..reps {
-                gemm(&m, &x, 512, npos, None, &mut y, rows);
+                gemm((&m).into(), &x, 512, npos, None, &mut y, rows);
             }
             let s = t.elapsed().as_secs_f64();
             println!("npos {npos:2}: {:.1} GMAC/s, {:.1} us/call", (reps * rows * cols * npos) as f64 / s / 1e9, s / reps as f64 * 1e6);

@@ -512,12 +512,7 @@ fn add_bias(y: &mut [f32], bias: Option<&[f32]>) {
     }
 }
 
-/// `y = M x (+ bias)`; `x.len() == M.cols()`, `y.len() == M.rows()`.
-pub(crate) fn gemv(m: &Matrix, x: &[f32], bias: Option<&[f32]>, y: &mut [f32]) {
-    gemv_rows(m.into(), x, bias, 0..m.rows(), y)
-}
-
-/// Rows `rows` of [`gemv`]: `y[i] = (M x + bias)[rows.start + i]`. Each row's value is
+/// Rows `rows` of `y = M x (+ bias)`: `y[i] = (M x + bias)[rows.start + i]`. Each row's value is
 /// bit-identical to the whole product's as long as `rows.start` is a multiple of 4 (the
 /// kernels' row blocks).
 pub(crate) fn gemv_rows(m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {

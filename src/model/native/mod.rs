@@ -6,6 +6,7 @@
 //! dominates a batch-1 decode step (DESIGN §7); these kernels work in buffers allocated once
 //! per stream, and read int8 weights directly (a quarter of the memory traffic of fp32).
 //! The ONNX graphs stay the reference: parity tests compare both paths.
+mod arena;
 pub(crate) mod kernels;
 pub(crate) mod step;
 pub(crate) mod weights;

@@ -41,8 +41,9 @@
 //! core against ~15-20 GB/s through 4 KiB pages.
 use std::ops::Range;
 
+use super::arena::{Arena, Wm};
 use super::helper_thread::{threads_from_env, Helper, Member, Phase};
-use super::kernels::{add_assign, dot, gelu_erf, gemm_rows, gemv_rows, layer_norm, layer_norm_rows, softmax, MatRef};
+use super::kernels::{add_assign, dot, gelu_erf, gemm_rows, gemv_rows, layer_norm, layer_norm_rows, softmax};
 use super::weights::{Matrix, Tensors};
 use crate::bundle::manifest::{Manifest, NativeSpec, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -236,7 +237,8 @@ impl NativeStep {
             .filter(|&v| v <= 1 << 32)
             .ok_or_else(|| err("the KV cache would be absurdly large".into()))?;
 
-        let mut arena = Arena::new(arena_bytes(&d));
+        let mut arena = Arena::new(arena_bytes(&d))
+            .ok_or_else(|| Error::bundle(src.path_of(&spec.dir), "no memory for the native step's weights"))?;
         let mut expected = std::collections::BTreeSet::new();
         let mut note = |n: String| -> String {
             expected.insert(n.clone());
@@ -664,140 +666,6 @@ fn arena_bytes(d: &Dims) -> usize {
     shapes.iter().map(|&(r, c)| Arena::size(r * c * 4) + Arena::size(r * 4)).sum()
 }
 
-/// A matrix in an [`Arena`]: offsets of its values (f32, or int8 and then the f32 row
-/// scales).
-#[derive(Clone, Copy, Debug)]
-struct Wm {
-    rows: usize,
-    cols: usize,
-    int8: bool,
-    at: usize,
-    scale_at: usize,
-}
-
-impl Wm {
-    /// Bytes one product reads.
-    fn bytes(&self) -> usize {
-        if self.int8 { self.rows * self.cols + 4 * self.rows } else { 4 * self.rows * self.cols }
-    }
-}
-
-/// The step's weight matrices in one buffer, copied there at load. On Linux the buffer is
-/// 2 MiB-aligned and advised for transparent huge pages before it is touched: a GEMV
-/// streaming 1.8 GB through 4 KiB pages (where the loader's allocations usually end up)
-/// reads ~15 GB/s on one Zen 4 core, through 2 MiB pages ~24 GB/s (measured on the 2-core
-/// machine; the prefetchers stop at 4 KiB boundaries and every page costs a TLB walk).
-/// Pages past what is written are never touched, so the int8 matrices' share of the
-/// f32-sized bound costs address space only.
-struct Arena {
-    base: *mut u8,
-    layout: std::alloc::Layout,
-    used: usize,
-    /// `used` at the last `trim`.
-    trimmed: usize,
-}
-
-// SAFETY: the buffer is owned (freed on drop), written only while loading (`&mut self`),
-// then only read.
-unsafe impl Send for Arena {}
-unsafe impl Sync for Arena {}
-
-impl Arena {
-    const ALIGN: usize = 2 << 20;
-
-    /// `n` bytes rounded up to the 64-byte slots an arena hands out.
-    fn size(n: usize) -> usize {
-        n.div_ceil(64) * 64
-    }
-
-    fn new(bytes: usize) -> Arena {
-        let layout = std::alloc::Layout::from_size_align(bytes.max(64), Self::ALIGN).expect("arena layout");
-        // SAFETY: the layout has a non-zero size.
-        let base = unsafe { std::alloc::alloc(layout) };
-        if base.is_null() {
-            std::alloc::handle_alloc_error(layout);
-        }
-        #[cfg(target_os = "linux")]
-        // SAFETY: advice on memory this arena owns; base is page-aligned. A failure only
-        // means 4 KiB pages.
-        unsafe {
-            libc::madvise(base as *mut libc::c_void, layout.size(), libc::MADV_HUGEPAGE);
-        }
-        Arena { base, layout, used: 0, trimmed: 0 }
-    }
-
-    /// Copies `n` bytes from `src` into the next slot; returns its offset.
-    fn push(&mut self, src: *const u8, n: usize) -> usize {
-        let at = self.used;
-        assert!(at + Self::size(n) <= self.layout.size(), "native step arena: {} + {n} bytes of {}", at, self.layout.size());
-        // SAFETY: [at, at + n) is inside the buffer (checked) and not yet handed out.
-        unsafe { std::ptr::copy_nonoverlapping(src, self.base.add(at), n) };
-        self.used += Self::size(n);
-        at
-    }
-
-    /// Moves `m` into the arena.
-    fn put(&mut self, m: Matrix) -> Wm {
-        let (rows, cols) = (m.rows(), m.cols());
-        let w = match &m {
-            Matrix::F32 { w, .. } => {
-                let at = self.push(w.as_ptr() as *const u8, 4 * w.len());
-                Wm { rows, cols, int8: false, at, scale_at: 0 }
-            }
-            Matrix::I8 { q, scale, .. } => {
-                let at = self.push(q.as_ptr() as *const u8, q.len());
-                let scale_at = self.push(scale.as_ptr() as *const u8, 4 * scale.len());
-                Wm { rows, cols, int8: true, at, scale_at }
-            }
-        };
-        debug_assert_eq!(w.bytes(), m.bytes());
-        drop(m);
-        if self.used - self.trimmed >= 256 << 20 {
-            self.trim();
-        }
-        w
-    }
-
-    /// Gives the loader's freed buffers back to the system: each tensor is read, converted
-    /// and copied here, and glibc keeps the freed heap memory mapped (without this the
-    /// paper model's step keeps ~1.4 GB more resident after load).
-    fn trim(&mut self) {
-        self.trimmed = self.used;
-        #[cfg(all(target_os = "linux", target_env = "gnu"))]
-        // SAFETY: malloc_trim only releases free heap memory.
-        unsafe {
-            libc::malloc_trim(0);
-        }
-    }
-
-    /// The matrix `w` (made by this arena's `put`).
-    fn mat(&self, w: &Wm) -> MatRef<'_> {
-        let n = w.rows * w.cols;
-        let end = if w.int8 { w.scale_at + 4 * w.rows } else { w.at + 4 * n };
-        assert!(end <= self.used, "a matrix of another arena");
-        // SAFETY: `put` wrote these ranges (64-byte aligned offsets into a 2 MiB-aligned
-        // buffer, so f32 reads are aligned) and nothing writes them again.
-        unsafe {
-            if w.int8 {
-                MatRef::I8 {
-                    rows: w.rows, cols: w.cols,
-                    q: std::slice::from_raw_parts(self.base.add(w.at) as *const i8, n),
-                    scale: std::slice::from_raw_parts(self.base.add(w.scale_at) as *const f32, w.rows),
-                }
-            } else {
-                MatRef::F32 { rows: w.rows, cols: w.cols, w: std::slice::from_raw_parts(self.base.add(w.at) as *const f32, n) }
-            }
-        }
-    }
-}
-
-impl Drop for Arena {
-    fn drop(&mut self) {
-        // SAFETY: allocated in `new` with this layout.
-        unsafe { std::alloc::dealloc(self.base, self.layout) }
-    }
-}
-
 /// Elements `cols` of row `r` of `m`, as f32 (`Matrix::row_into` on a part of the row).
 fn row_part(m: &Matrix, r: usize, cols: Range<usize>, out: &mut [f32]) {
     match m {
@@ -941,7 +809,7 @@ mod tests {
     /// A model of the given sizes with random weights (int8 matrices or f32).
     pub(super) fn random_model(d: Dims, int8: bool, seed: u64) -> NativeStep {
         let mut g = Rng(seed | 1);
-        let mut a = Arena::new(arena_bytes(&d));
+        let mut a = Arena::new(arena_bytes(&d)).expect("arena");
         let a = &mut a;
         let streams = (0..N_STREAMS)
             .map(|s| {
@@ -974,7 +842,7 @@ mod tests {
                 norm: (0..N_STREAMS).map(|s| g.norm(d.widths[s])).collect(),
             })
             .collect();
-        let arena = std::mem::replace(a, Arena::new(64));
+        let arena = std::mem::replace(a, Arena::new(64).expect("arena"));
         NativeStep::assemble(arena, d, streams, coord)
     }
 
