@@ -21,8 +21,8 @@ impl Wm {
 }
 
 /// A model's weight matrices in one buffer, copied there at load (the native step's and
-/// the native decoder's). On Linux the buffer is
-/// 2 MiB-aligned and advised for transparent huge pages before it is touched: a GEMV
+/// the native decoder's). On Linux the buffer is 2 MiB-aligned and advised for
+/// transparent huge pages before it is touched: a GEMV
 /// streaming 1.8 GB through 4 KiB pages (where the loader's allocations usually end up)
 /// reads ~15 GB/s on one Zen 4 core, through 2 MiB pages ~24 GB/s (measured on the 2-core
 /// machine; the prefetchers stop at 4 KiB boundaries and every page costs a TLB walk).
