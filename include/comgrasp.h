@@ -440,7 +440,7 @@ cg_status cg_poll_frame(struct cg_stream *stream, struct cg_frame *out);
 // on a game's main thread. One thread at a time per stream.
 cg_status cg_stream_wait(struct cg_stream *stream, uint32_t timeout_ms, struct cg_frame *out);
 
-// Asks the stream's worker to stop; it stops within about one token step and releases
+// Asks the stream's worker to stop; it stops within one generator call (a few ms) and releases
 // its model state. From then on `cg_poll_frame` returns `CG_CANCELLED`. Never blocks.
 // Idempotent (cancelling twice, or a finished stream, is `CG_OK`). The handle stays valid:
 // destroy it with `cg_stream_destroy`. **Any thread**, also while another thread is inside
@@ -449,7 +449,7 @@ cg_status cg_stream_wait(struct cg_stream *stream, uint32_t timeout_ms, struct c
 cg_status cg_cancel(struct cg_stream *stream);
 
 // Destroys a stream: cancels its worker if it is still running, joins it (waits at most
-// about one token step) and frees everything. After this call the handle is invalid and
+// one generator call, a few ms) and frees everything. After this call the handle is invalid and
 // any use of it, including a second destroy, returns `CG_ERR_INVALID_HANDLE`. NULL is
 // accepted and ignored (`CG_OK`). Works on a poisoned stream and after its engine was
 // destroyed. Any thread, but not while another thread still uses the stream (a

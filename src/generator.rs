@@ -1,6 +1,7 @@
 //! One generation: text → condition → token steps → decoded 16-frame chunks → assembled
-//! frames, as a [`ChunkSource`] driven by a stream's worker thread (one token step per
-//! `next_chunk` call, so a cancel is seen within one step).
+//! frames, as a [`ChunkSource`] driven by a stream's worker thread (one decode per
+//! `next_chunk` call, so a cancel is seen within one call: one token step, or G of them
+//! when decodes are grouped, plus the decode).
 //!
 //! Per call, at step `k` (DESIGN §3, `sampler` docs):
 //! 1. first call only: `TextEncoder::embed(text)`; step 0's input is the condition token
@@ -8,29 +9,35 @@
 //! 2. `StepModel::step(tokens of step k-1, pos = k)` → logits → `TokenSampler::sample_step`
 //!    (unless the previous call already ran step k, see *overlap*);
 //! 3. if any stream sampled its End id, the sequence has `k` codes: stop;
-//! 4. else decode the four codes → F (= 16) normalized frames → `FrameAssembler::assemble`.
+//! 4. *decode group*: after the first call, steps k+1 .. k+G-1 run too (stopping at End or
+//!    the step limit), G = [`decode_group::tokens_per_decode`] (4 on the default bundle);
+//! 5. decode those codes in one call (G chunks of F = 16 normalized frames, the same bits
+//!    as one decode per token) → `FrameAssembler::assemble`.
+//!
+//! The first call decodes its token alone, so the time to first frame does not wait for
+//! a group.
 //!
 //! **Overlap.** When [`overlap::overlaps`](crate::model::overlap::overlaps) says so (both
-//! models native, the step no bigger than the decoder: the default bundle), step k+1 runs
-//! *with* the decode of chunk k on the decoder's two threads
+//! models native, the step no bigger than the decoder: the default bundle), the step after
+//! the group runs *with* its decode on the decoder's two threads
 //! ([`overlap::decode_and_step`](crate::model::overlap::decode_and_step)) and is sampled
 //! right after; the next call starts from those codes. Same tokens and frames; on the
 //! 2-core test machine a stream's median real-time factor went from 187x to 199x (README,
 //! Performance).
 //!
-//! **`is_last`.** Whether a chunk is the last one is decided at the *next* step (End
-//! sampled there). With overlap that step has run by the time the chunk is assembled, so
-//! every frame goes out at once with the right `is_last`. Without it, every chunk's
-//! first F-1 frames are emitted as soon as they are decoded and its final frame is held
+//! **`is_last`.** Whether a call's last chunk is the sequence's last is decided at the
+//! *next* step (End sampled there). With overlap that step has run by the time the chunks
+//! are assembled, so every frame goes out at once with the right `is_last`. Without it,
+//! all but the final frame go out as soon as they are decoded and the final frame is held
 //! until the next step has decided, then emitted with the right `is_last` (1 if that step
 //! sampled End). Either way:
 //! * `is_last` is exact and set on a real frame (no marker frame, no frame patched after
 //!   it was handed out);
-//! * when held, frame F-1 of a chunk arrives one token step late, while the host is still
-//!   playing the chunk's first F-1 frames (~0.5 s at 30 fps versus a step of a few ms), so
+//! * when held, the final frame arrives one call late, while the host is still playing
+//!   the chunk's first F-1 frames (~0.5 s at 30 fps versus a call of a few ms), so
 //!   playback never waits for it;
-//! * when the step limit forces End (`k + 1 == max_len`), nothing is held: the final
-//!   chunk goes out whole, its last frame marked, without running the forced step;
+//! * when End is sampled inside a group or the step limit forces it, nothing is held: the
+//!   final chunk goes out whole, its last frame marked, without running the forced step;
 //! * if End is sampled at step 0 (possible only with `min_len = 0`) the stream has no
 //!   frames and ends directly (poll reports End without any frame).
 use std::sync::Arc;
@@ -40,7 +47,7 @@ use crate::bundle::{Bundle, N_STREAMS};
 use crate::engine::{EngineConfig, SourceFactory, StreamRequest};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::model::{overlap, DecoderState, StepState};
+use crate::model::{decode_group, overlap, DecoderState, StepState, MAX_DECODE_GROUP};
 use crate::sampler::{SamplingParams, TokenSampler};
 
 pub use crate::stream::ChunkSource;
@@ -66,6 +73,8 @@ pub struct Pipeline {
     pad_ids: [i64; N_STREAMS],
     /// Step k+1 runs with the decode of chunk k (`model::overlap`).
     overlap: bool,
+    /// Tokens per decode after the first chunk (`model::decode_group`).
+    group: usize,
 }
 
 impl Pipeline {
@@ -89,7 +98,8 @@ impl Pipeline {
             return Err(Error::bundle(&manifest_path, "negative pad id"));
         }
         let overlap = overlap::overlaps(&bundle.step, &bundle.decoder)?;
-        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap })
+        let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder)?;
+        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group })
     }
 
     /// The bundle the pipeline runs.
@@ -111,6 +121,18 @@ impl Pipeline {
     /// way; on models that cannot overlap, "on" runs the two one after the other).
     pub fn with_overlap(mut self, on: bool) -> Pipeline {
         self.overlap = on;
+        self
+    }
+
+    /// Tokens a stream decodes at once after its first chunk (`model::decode_group`).
+    pub fn group(&self) -> usize {
+        self.group
+    }
+
+    /// The same pipeline decoding `tokens` at once (clamped to 1 ..= `MAX_DECODE_GROUP`;
+    /// the tokens and frames are the same for every value).
+    pub fn with_group(mut self, tokens: usize) -> Pipeline {
+        self.group = tokens.clamp(1, MAX_DECODE_GROUP);
         self
     }
 }
@@ -177,16 +199,17 @@ impl Generator {
         })
     }
 
-    /// Runs step k and samples its codes; `None` when the sequence ends at k.
-    fn sample(&mut self) -> Result<Option<[i64; N_STREAMS]>> {
+    /// Runs step `k` on the codes of step `k - 1` and samples its codes; `None` when the
+    /// sequence ends at `k`.
+    fn sample(&mut self, k: usize, prev: [i64; N_STREAMS]) -> Result<Option<[i64; N_STREAMS]>> {
         let b = &self.pipe.bundle;
         if self.text_emb.is_none() {
             self.text_emb = Some(b.text.embed(&self.text)?);
         }
         let emb = self.text_emb.as_deref().unwrap_or_default();
         let state = self.state.get_or_insert_with(|| State::new(b));
-        let logits = b.step.step(&mut state.step, self.prev, self.k, emb)?;
-        let codes = self.sampler.sample_step(self.k, logits)?;
+        let logits = b.step.step(&mut state.step, prev, k, emb)?;
+        let codes = self.sampler.sample_step(k, logits)?;
         if self.pipe.ends(&codes) {
             return Ok(None);
         }
@@ -198,30 +221,31 @@ impl Generator {
 struct State {
     step: StepState,
     decoder: DecoderState,
-    /// The normalized output of one decode (F x 335), reused.
+    /// The normalized output of one decode (up to MAX_DECODE_GROUP x F x 335), reused.
     normalized: Vec<f32>,
 }
 
 impl State {
     fn new(b: &Bundle) -> State {
-        State { step: b.step.new_state(), decoder: b.decoder.new_state(), normalized: vec![0.0; b.decoder.chunk_len()] }
+        let normalized = vec![0.0; MAX_DECODE_GROUP * b.decoder.chunk_len()];
+        State { step: b.step.new_state(), decoder: b.decoder.new_state(), normalized }
     }
 }
 
 impl ChunkSource for Generator {
-    /// A chunk plus the previous chunk's held frame (the forced last chunk emits both).
+    /// A decode's chunks plus the previous call's held frame.
     fn max_chunk_frames(&self) -> usize {
-        self.pipe.bundle.manifest.frames_per_token + 1
+        self.pipe.group * self.pipe.bundle.manifest.frames_per_token + 1
     }
 
     fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool> {
         if self.done {
             return Ok(false);
         }
-        let codes = match self.ahead.take() {
+        let first = match self.ahead.take() {
             Some(codes) => codes,
             None => {
-                let codes = if self.k >= self.max_len { None } else { self.sample()? };
+                let codes = if self.k >= self.max_len { None } else { self.sample(self.k, self.prev)? };
                 let Some(codes) = codes else {
                     // The previous chunk was the last one: release its held frame, marked.
                     self.done = true;
@@ -237,30 +261,53 @@ impl ChunkSource for Generator {
                 codes
             }
         };
+        // The tokens of this decode: step k's, then (after the first chunk, which goes out
+        // alone for the time to first frame) the next steps' up to the group size.
+        let mut group = [[0i64; N_STREAMS]; MAX_DECODE_GROUP];
+        group[0] = first;
+        let mut g = 1;
+        let want = if self.k == 0 { 1 } else { self.pipe.group };
+        // Whether the group's last chunk ends the sequence: known when a step in the group
+        // samples End or the step limit forces it, or once the next step ran with the
+        // decode (overlap); otherwise the next call decides.
+        let mut last = None;
+        while g < want && self.k + g < self.max_len {
+            match self.sample(self.k + g, group[g - 1])? {
+                Some(codes) => {
+                    group[g] = codes;
+                    g += 1;
+                }
+                None => {
+                    last = Some(true);
+                    break;
+                }
+            }
+        }
+        let next = self.k + g;
+        if next >= self.max_len {
+            last = Some(true);
+        }
         let b = &self.pipe.bundle;
         let state = self.state.get_or_insert_with(|| State::new(b));
-        // Whether this chunk is the last: known now if the step limit forces End at k + 1,
-        // or once step k+1 ran with the decode; otherwise the next call decides.
-        let last = if self.k + 1 >= self.max_len {
-            b.decoder.decode(&mut state.decoder, codes, &mut state.normalized)?;
-            Some(true)
+        let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
+        if last.is_some() {
+            b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
         } else if self.pipe.overlap {
             let emb = self.text_emb.as_deref().unwrap_or_default();
-            let logits = overlap::decode_and_step(&b.decoder, &mut state.decoder, codes, &mut state.normalized,
-                                                  &b.step, &mut state.step, self.k + 1, emb, true)?;
-            let next = self.sampler.sample_step(self.k + 1, logits)?;
-            let end = self.pipe.ends(&next);
+            let logits = overlap::decode_and_step(&b.decoder, &mut state.decoder, &group[..g], normalized,
+                                                  &b.step, &mut state.step, next, emb, true)?;
+            let codes = self.sampler.sample_step(next, logits)?;
+            let end = self.pipe.ends(&codes);
             if !end {
-                self.ahead = Some(next.map(|c| c as i64));
+                self.ahead = Some(codes.map(|c| c as i64));
             }
-            Some(end)
+            last = Some(end);
         } else {
-            b.decoder.decode(&mut state.decoder, codes, &mut state.normalized)?;
-            None
-        };
+            b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
+        }
         let width = crate::bundle::manifest::FRAME_DIM;
-        let n = state.normalized.len() / width;
-        for (i, feats) in state.normalized.chunks_exact(width).enumerate() {
+        let n = normalized.len() / width;
+        for (i, feats) in normalized.chunks_exact(width).enumerate() {
             let mut frame = Frame::default();
             let last_of_chunk = i + 1 == n;
             let is_last = last_of_chunk && last == Some(true);
@@ -272,8 +319,8 @@ impl ChunkSource for Generator {
                 out.push(frame);
             }
         }
-        self.prev = codes;
-        self.k += 1;
+        self.prev = group[g - 1];
+        self.k = next;
         if last == Some(true) {
             self.done = true;
         }

@@ -7,8 +7,10 @@
 //!   never allocate; it is a `try_pop` plus a few atomics.
 //! * Backpressure instead of loss: when the ring is full the worker parks (after a short spin)
 //!   and the consumer unparks it after taking a frame. Frames are never dropped or reordered.
-//! * Cancellation is an atomic flag the worker checks between chunks (one token step each) and
-//!   while it waits for room, so a cancel takes effect within one step; it also unparks the
+//! * Cancellation is an atomic flag the worker checks between `next_chunk` calls (a token
+//!   step and a decode each, or a few steps and one decode when decodes are grouped: a few
+//!   ms on the default bundle) and while it waits for room, so a cancel takes effect within
+//!   one call; it also unparks the
 //!   worker so a parked worker exits at once.
 //! * The worker catches panics of its source and reports them as an error through `poll`, so a
 //!   bug in inference never takes the host down with it.
@@ -42,11 +44,11 @@ pub use crate::engine::StreamConfig;
 /// [`crate::generator::Generator`] (text → tokens → decoded, assembled frames); tests use
 /// deterministic doubles.
 pub trait ChunkSource: Send {
-    /// Produces the next chunk (normally 16 frames, already assembled, with `stream_id`,
+    /// Produces the next chunk (normally 16 frames per decoded token, already assembled, with `stream_id`,
     /// consecutive `frame_index` and a correct `is_last`) by appending to `out`, which the
     /// caller passes in empty. Returns `Ok(true)` when more chunks follow and `Ok(false)` when
-    /// this chunk (possibly empty) was the last one. Must return promptly (about one token
-    /// step): cancellation is checked between calls.
+    /// this chunk (possibly empty) was the last one. Must return promptly (a few token
+    /// steps at most): cancellation is checked between calls.
     fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool>;
 
     /// The most frames one `next_chunk` call appends: the worker reserves this much once, so
@@ -170,7 +172,7 @@ impl StreamCanceller {
 }
 
 /// A running (or finished) generation. Owned by one consumer; `poll`/`wait` take `&mut self`.
-/// Dropping it cancels the worker and joins it (waits at most about one token step).
+/// Dropping it cancels the worker and joins it (waits at most one generator call).
 pub struct Stream {
     shared: Arc<StreamShared>,
     /// `None` once the stream was cancelled and its buffer released.
@@ -222,7 +224,7 @@ impl Stream {
     /// (and frees the ring buffer); after `End`/`Error` it keeps returning the same result.
     pub fn poll(&mut self, out: &mut Frame) -> PollResult {
         if self.shared.is_cancelled() {
-            // Release the ring now (the worker drops its half within one step); a cancelled
+            // Release the ring now (the worker drops its half within one call); a cancelled
             // stream holds no frame memory even if the host keeps the handle for a while.
             self.cons = None;
             return PollResult::Cancelled;
@@ -287,7 +289,7 @@ impl Stream {
         }
     }
 
-    /// Asks the worker to stop. Takes effect within one token step; from then on `poll`
+    /// Asks the worker to stop. Takes effect within one generator call (a few ms); from then on `poll`
     /// returns `Cancelled`. Idempotent; also fine after the stream ended.
     pub fn cancel(&self) {
         self.shared.cancel()
@@ -313,7 +315,7 @@ impl Stream {
     }
 
     /// Cancels (unless already finished) and joins the worker, then frees the ring. Waits at
-    /// most about one token step. Idempotent; `Drop` calls it.
+    /// most one generator call (a few ms). Idempotent; `Drop` calls it.
     pub fn close(&mut self) {
         if let Some(join) = self.join.take() {
             if self.shared.state.load(Ordering::Acquire) == RUNNING {

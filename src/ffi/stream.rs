@@ -96,7 +96,7 @@ pub unsafe extern "C" fn cg_stream_wait(stream: *mut cg_stream, timeout_ms: u32,
     })
 }
 
-/// Asks the stream's worker to stop; it stops within about one token step and releases
+/// Asks the stream's worker to stop; it stops within one generator call (a few ms) and releases
 /// its model state. From then on `cg_poll_frame` returns `CG_CANCELLED`. Never blocks.
 /// Idempotent (cancelling twice, or a finished stream, is `CG_OK`). The handle stays valid:
 /// destroy it with `cg_stream_destroy`. **Any thread**, also while another thread is inside
@@ -113,7 +113,7 @@ pub unsafe extern "C" fn cg_cancel(stream: *mut cg_stream) -> cg_status {
 }
 
 /// Destroys a stream: cancels its worker if it is still running, joins it (waits at most
-/// about one token step) and frees everything. After this call the handle is invalid and
+/// one generator call, a few ms) and frees everything. After this call the handle is invalid and
 /// any use of it, including a second destroy, returns `CG_ERR_INVALID_HANDLE`. NULL is
 /// accepted and ignored (`CG_OK`). Works on a poisoned stream and after its engine was
 /// destroyed. Any thread, but not while another thread still uses the stream (a

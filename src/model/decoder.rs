@@ -19,7 +19,7 @@ use parking_lot::Mutex;
 use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
-use super::native::decoder::{NativeDecoder, NativeState};
+use super::native::decoder::{NativeDecoder, NativeState, MAX_GROUP};
 use crate::bundle::manifest::{Manifest, FRAME_DIM, MANIFEST_FILE, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
@@ -27,6 +27,9 @@ use crate::error::{Error, Result};
 /// Environment variable that forces the decoder implementation: `tract` or `native`
 /// (unset or empty: native when the bundle has native weights, else tract).
 pub const DECODER_ENV: &str = "COMGRASP_DECODER";
+
+/// Most tokens one [`DecoderModel::decode_group`] takes.
+pub const MAX_DECODE_GROUP: usize = MAX_GROUP;
 
 /// Which implementation runs a [`DecoderModel`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -183,12 +186,20 @@ impl DecoderModel {
     /// contact channels 240 and 334 as probabilities. Advances `state`. The native path
     /// allocates nothing.
     pub fn decode(&self, state: &mut DecoderState, tokens: [i64; N_STREAMS], out: &mut [f32]) -> Result<()> {
+        self.decode_group(state, &[tokens], out)
+    }
+
+    /// [`decode`](Self::decode) of 1 to [`MAX_DECODE_GROUP`] consecutive tokens in one
+    /// call: `out` holds `tokens.len()` chunks, the same values as one call per token (the
+    /// same bits on the native path, which reads each weight once per call instead of once
+    /// per token; tract decodes them one by one).
+    pub fn decode_group(&self, state: &mut DecoderState, tokens: &[[i64; N_STREAMS]], out: &mut [f32]) -> Result<()> {
         self.check(state, tokens, out)?;
         self.decode_checked(state, tokens, out, None)
     }
 
-    /// The errors [`decode`](Self::decode) reports before it touches `state`.
-    pub(crate) fn check(&self, state: &DecoderState, tokens: [i64; N_STREAMS], out: &[f32]) -> Result<()> {
+    /// The errors [`decode_group`](Self::decode_group) reports before it touches `state`.
+    pub(crate) fn check(&self, state: &DecoderState, tokens: &[[i64; N_STREAMS]], out: &[f32]) -> Result<()> {
         let same = match (&self.imp, &state.imp) {
             (Imp::Tract(t), StateImp::Tract { plan, .. }) => Arc::ptr_eq(plan, &t.plan),
             (Imp::Native(n), StateImp::Native { model, .. }) => Arc::ptr_eq(model, n),
@@ -197,14 +208,20 @@ impl DecoderModel {
         if !same {
             return Err(Error::WrongState("this DecoderState was created by another DecoderModel".into()));
         }
-        if out.len() != self.chunk_len() {
-            return Err(Error::InvalidArgument(format!(
-                "decode output buffer has {} values, needs {} ({} frames x {FRAME_DIM})",
-                out.len(), self.chunk_len(), self.frames_per_token)));
+        let g = tokens.len();
+        if !(1..=MAX_DECODE_GROUP).contains(&g) {
+            return Err(Error::InvalidArgument(format!("a decode takes 1 to {MAX_DECODE_GROUP} tokens, got {g}")));
         }
-        for (s, (&t, &j)) in tokens.iter().zip(&self.codebook).enumerate() {
-            if t < 0 || t as u64 >= j as u64 {
-                return Err(Error::InvalidArgument(format!("code {t} of component {s} outside the codebook 0..{j}")));
+        if out.len() != g * self.chunk_len() {
+            return Err(Error::InvalidArgument(format!(
+                "decode output buffer has {} values, needs {} ({g} x {} frames x {FRAME_DIM})",
+                out.len(), g * self.chunk_len(), self.frames_per_token)));
+        }
+        for t in tokens {
+            for (s, (&t, &j)) in t.iter().zip(&self.codebook).enumerate() {
+                if t < 0 || t as u64 >= j as u64 {
+                    return Err(Error::InvalidArgument(format!("code {t} of component {s} outside the codebook 0..{j}")));
+                }
             }
         }
         Ok(())
@@ -212,18 +229,27 @@ impl DecoderModel {
 
     /// [`decode`](Self::decode) after [`check`](Self::check) passed. The native decoder
     /// runs `extra` as one more job of its two threads; otherwise it runs after the decode.
-    pub(crate) fn decode_checked(&self, state: &mut DecoderState, tokens: [i64; N_STREAMS], out: &mut [f32],
+    pub(crate) fn decode_checked(&self, state: &mut DecoderState, tokens: &[[i64; N_STREAMS]], out: &mut [f32],
                                  extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
         match &mut state.imp {
             StateImp::Tract { run, inputs, .. } => {
-                self.decode_tract(run, inputs, tokens, out)?;
+                for (t, o) in tokens.iter().zip(out.chunks_exact_mut(self.chunk_len())) {
+                    self.decode_tract(run, inputs, *t, o)?;
+                    state.decoded += 1;
+                }
                 if let Some(f) = extra {
                     f();
                 }
             }
-            StateImp::Native { model, state } => model.decode_with(state, tokens.map(|t| t as usize), out, extra)?,
+            StateImp::Native { model, state: st } => {
+                let mut ids = [[0; N_STREAMS]; MAX_GROUP];
+                for (d, t) in ids.iter_mut().zip(tokens) {
+                    *d = t.map(|c| c as usize);
+                }
+                model.decode_with(st, &ids[..tokens.len()], out, extra)?;
+                state.decoded += tokens.len();
+            }
         }
-        state.decoded += 1;
         Ok(())
     }
 

@@ -36,25 +36,26 @@ pub fn overlaps(step: &StepModel, decoder: &DecoderModel) -> Result<bool> {
     }
 }
 
-/// `decoder.decode(dstate, codes, out)` and then `step.step(sstate, codes, pos, text_emb)`,
-/// with the same results and errors; the two run at once when `overlap` (see
-/// [`overlaps`]). Nothing is changed if an argument is invalid. Allocation-free on the
-/// native path.
+/// `decoder.decode_group(dstate, codes, out)` and then `step.step(sstate, last, pos,
+/// text_emb)` where `last` is the last of `codes`, with the same results and errors; the
+/// two run at once when `overlap` (see [`overlaps`]). Nothing is changed if an argument is
+/// invalid. Allocation-free on the native path.
 #[allow(clippy::too_many_arguments)]
 pub fn decode_and_step<'s>(
-    decoder: &DecoderModel, dstate: &mut DecoderState, codes: [i64; N_STREAMS], out: &mut [f32],
+    decoder: &DecoderModel, dstate: &mut DecoderState, codes: &[[i64; N_STREAMS]], out: &mut [f32],
     step: &StepModel, sstate: &'s mut StepState, pos: usize, text_emb: &[f32], overlap: bool,
 ) -> Result<[&'s [f32]; N_STREAMS]> {
     decoder.check(dstate, codes, out)?;
-    step.check(sstate, codes, pos, text_emb)?;
+    let last = *codes.last().ok_or_else(|| Error::InvalidArgument("no codes to decode".into()))?;
+    step.check(sstate, last, pos, text_emb)?;
     if overlap {
         let mut stepped = Ok(());
-        let mut job = || stepped = step.run_checked(sstate, codes, pos, text_emb, true);
+        let mut job = || stepped = step.run_checked(sstate, last, pos, text_emb, true);
         decoder.decode_checked(dstate, codes, out, Some(&mut job))?;
         stepped?;
     } else {
         decoder.decode_checked(dstate, codes, out, None)?;
-        step.run_checked(sstate, codes, pos, text_emb, false)?;
+        step.run_checked(sstate, last, pos, text_emb, false)?;
     }
     Ok(sstate.logits())
 }

@@ -61,6 +61,7 @@ use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::bundle::{Bundle, N_STREAMS};
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
+use comgrasp::model::{decode_group, MAX_DECODE_GROUP};
 use comgrasp::sampler::{SamplingParams, TokenSampler};
 use comgrasp::{ChunkSource, CoordinateSystem, Engine, EngineConfig, Frame, PollResult, StreamConfig};
 use serde_json::{json, Value};
@@ -511,6 +512,27 @@ fn bench(o: &Options) -> Result<Value, String> {
         normalized.extend_from_slice(&chunk);
     }
     let decode_faults = minor_faults() - faults0;
+    // the same tokens as a stream decodes them: the first alone, then in groups
+    let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder).map_err(err)?;
+    ds.reset().map_err(err)?;
+    let mut grouped = vec![0f32; MAX_DECODE_GROUP * chunk.len()];
+    let mut group_ms_per_token = Vec::with_capacity(steps);
+    let mut group_same = true;
+    let mut k = 0;
+    while k < tokens.len() {
+        let g = if k == 0 { 1 } else { group.min(tokens.len() - k) };
+        let mut ids = [[0i64; N_STREAMS]; MAX_DECODE_GROUP];
+        for (d, t) in ids.iter_mut().zip(&tokens[k..k + g]) {
+            *d = t.map(|c| c as i64);
+        }
+        let out = &mut grouped[..g * chunk.len()];
+        let t = Instant::now();
+        bundle.decoder.decode_group(&mut ds, &ids[..g], out).map_err(err)?;
+        group_ms_per_token.push(ms(t.elapsed()) / g as f64);
+        let want = &normalized[k * chunk.len()..(k + g) * chunk.len()];
+        group_same &= out.iter().zip(want).all(|(a, b)| a.to_bits() == b.to_bits());
+        k += g;
+    }
     drop(ds);
     let config = EngineConfig {
         bundle_path: Some(o.bundle.clone()),
@@ -714,7 +736,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     let tokens_json: Vec<Vec<usize>> = tokens.iter().map(|r| r.to_vec()).collect();
     Ok(json!({
         "runtime": format!("comgrasp (step: {step_path}, decoder: {decoder_path}; tract-onnx 0.23)"),
-        "engine_path": {"step": step_path, "decoder": decoder_path, "overlap": overlap},
+        "engine_path": {"step": step_path, "decoder": decoder_path, "overlap": overlap, "decode_group": group},
         "bundle": o.bundle.display().to_string(),
         "machine": {"cpu": cpu_model(), "logical_cpus": std::thread::available_parallelism().map(|n| n.get()).ok()},
         "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note,
@@ -733,6 +755,8 @@ fn bench(o: &Options) -> Result<Value, String> {
         "sample_us": stats(&sample_us),
         "decode_ms": stats(&decode_ms),
         "first_decode_ms": decode_ms[0],
+        "decode_group": {"tokens": group, "ms_per_token": stats(&group_ms_per_token),
+                         "same_bits_as_one_by_one": group_same},
         "derived": derived,
         "assemble_us_per_chunk": stats(&assemble_us),
         "stream": {
@@ -793,6 +817,10 @@ fn print_report(r: &Value) {
     line("step", "step_ms", "ms");
     line("sample", "sample_us", "us");
     line("decode", "decode_ms", "ms");
+    println!("  grouped   {} tokens per decode after the first: median {:.3} ms per token, p90 {:.3} \
+              (same bits as one by one: {})", s(&["decode_group", "tokens"]),
+             g(&["decode_group", "ms_per_token", "median"]), g(&["decode_group", "ms_per_token", "p90"]),
+             s(&["decode_group", "same_bits_as_one_by_one"]));
     line("assemble", "assemble_us_per_chunk", "us");
     println!("  derived   TTFF {:.2} ms (text + step 0 + chunk 0), RTF {:.1} (frames per token / (step + chunk))",
              g(&["derived", "ttff_ms"]), g(&["derived", "rtf"]));

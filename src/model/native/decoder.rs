@@ -39,6 +39,9 @@ pub(crate) const THREADS_ENV: &str = "COMGRASP_DECODER_THREADS";
 /// Below this many weights (all components) one thread is faster than two (the hand-over
 /// costs tens of microseconds).
 const SPLIT_MIN_WEIGHTS: usize = 1 << 20;
+/// Most tokens one decode takes ([`NativeDecoder::decode_with`]); states have scratch for
+/// this many.
+pub(crate) const MAX_GROUP: usize = 8;
 
 /// The loaded decoders of the four components (shared by every stream).
 #[derive(Debug)]
@@ -66,7 +69,7 @@ const EXTRA: usize = N_STREAMS;
 struct Jobs<'a> {
     dec: &'a NativeDecoder,
     states: *mut CompState,
-    ids: [usize; N_STREAMS],
+    ids: &'a [[usize; N_STREAMS]],
     extra: Option<*mut (dyn FnMut() + Send + 'a)>,
     order: [usize; N_STREAMS + 1],
     n: usize,
@@ -90,7 +93,13 @@ impl Jobs<'_> {
             match (job, self.extra) {
                 (EXTRA, Some(f)) => (*f)(),
                 (EXTRA, None) => unreachable!("the extra job is only ordered when there is one"),
-                (c, _) => self.dec.comps[c].run(&self.dec.arena, &mut *self.states.add(c), self.ids[c]),
+                (c, _) => {
+                    let mut col = [0; MAX_GROUP];
+                    for (d, t) in col.iter_mut().zip(self.ids) {
+                        *d = t[c];
+                    }
+                    self.dec.comps[c].run(&self.dec.arena, &mut *self.states.add(c), &col[..self.ids.len()]);
+                }
             }
             self.dec.note_cost(job, t.elapsed().as_nanos() as u64);
         }
@@ -152,24 +161,6 @@ struct CompState {
     a: Vec<f32>,
     b: Vec<f32>,
     out: Vec<f32>,
-}
-
-impl CompState {
-    /// Copies the context (not the scratch) of `o`, without allocating.
-    fn copy_from(&mut self, o: &CompState) {
-        self.emb.copy_from_slice(&o.emb);
-        if let (Some(a), Some(b)) = (self.attn.as_mut(), o.attn.as_ref()) {
-            a.copy_from(b);
-        }
-        for (a, b) in self.res.iter_mut().zip(&o.res) {
-            a.copy_from_slice(b);
-        }
-        for (a, b) in self.z.iter_mut().zip(&o.z) {
-            a.copy_from_slice(b);
-        }
-        self.fa.copy_from_slice(&o.fa);
-        self.fb.copy_from_slice(&o.fb);
-    }
 }
 
 /// Names `parts.<c>.decoder.layers.<i>` tensors are read under, collected while loading.
@@ -276,41 +267,69 @@ impl Component {
         (n - pos + 1) as usize
     }
 
+    /// A zero context with scratch for [`MAX_GROUP`] tokens per decode.
     fn new_state(&self, frames: usize) -> CompState {
-        let w = self.width;
+        let (w, g) = (self.width, MAX_GROUP);
         let mut res = Vec::new();
         let mut z = Vec::new();
         for (l, lev) in self.levels.iter().enumerate() {
             for r in &lev.res {
-                res.push(vec![0.0; r.conv.buf_len(1 << l)]);
+                res.push(vec![0.0; r.conv.buf_len(g << l)]);
             }
-            z.push(vec![0.0; lev.up.z_len(1 << l)]);
+            z.push(vec![0.0; lev.up.z_len(g << l)]);
         }
         CompState {
-            emb: vec![0.0; self.conv_in.buf_len(1)],
-            attn: self.attn.as_ref().map(WindowAttention::new_state),
+            emb: vec![0.0; self.conv_in.buf_len(g)],
+            attn: self.attn.as_ref().map(|a| a.new_state(g)),
             res,
             z,
-            fa: vec![0.0; self.final_a.buf_len(frames)],
-            fb: vec![0.0; self.final_b.buf_len(frames)],
-            x: vec![0.0; frames * w],
-            y: vec![0.0; frames * w],
-            a: vec![0.0; frames * w],
-            b: vec![0.0; frames * w],
-            out: vec![0.0; frames * self.dim],
+            fa: vec![0.0; self.final_a.buf_len(g * frames)],
+            fb: vec![0.0; self.final_b.buf_len(g * frames)],
+            x: vec![0.0; g * frames * w],
+            y: vec![0.0; g * frames * w],
+            a: vec![0.0; g * frames * w],
+            b: vec![0.0; g * frames * w],
+            out: vec![0.0; g * frames * self.dim],
         }
     }
 
-    /// Decodes `id` (a code, or the pad id = codebook size) into `s.out` (F x dim, raw).
-    fn run(&self, ar: &Arena, s: &mut CompState, id: usize) {
-        let (d, w) = (self.code_dim, self.width);
-        self.conv_in.input(&mut s.emb, 1).copy_from_slice(&self.table[id * d..(id + 1) * d]);
-        self.conv_in.run(ar, &mut s.emb, 1, &mut s.x[..w]);
-        relu(&mut s.x[..w]);
-        if let (Some(a), Some(st)) = (&self.attn, s.attn.as_mut()) {
-            a.step(ar, &mut s.x[..w], st);
+    /// Copies the context of `o` into `s` (every buffer's history and the attention's keys
+    /// and values, not the scratch after them), without allocating.
+    fn copy_context(&self, s: &mut CompState, o: &CompState) {
+        fn prefix(d: &mut [f32], o: &[f32], n: usize) {
+            d[..n].copy_from_slice(&o[..n]);
         }
-        let mut n = 1;
+        prefix(&mut s.emb, &o.emb, self.conv_in.buf_len(0));
+        if let (Some(a), Some(b)) = (s.attn.as_mut(), o.attn.as_ref()) {
+            a.copy_from(b);
+        }
+        let res = self.levels.iter().flat_map(|l| &l.res);
+        for ((d, src), r) in s.res.iter_mut().zip(&o.res).zip(res) {
+            prefix(d, src, r.conv.buf_len(0));
+        }
+        for ((d, src), l) in s.z.iter_mut().zip(&o.z).zip(&self.levels) {
+            prefix(d, src, l.up.z_len(0));
+        }
+        prefix(&mut s.fa, &o.fa, self.final_a.buf_len(0));
+        prefix(&mut s.fb, &o.fb, self.final_b.buf_len(0));
+    }
+
+    /// Decodes `ids` (1 to [`MAX_GROUP`] tokens, in order; each a code or the pad id =
+    /// codebook size) into `s.out` (`ids.len()` x F x dim, raw). Every layer takes the new
+    /// positions of all the tokens at once, so a weight is read once per call, not once
+    /// per token; the results are the bits one token per call gives (the layers are
+    /// causal and `gemm` does not depend on the number of positions).
+    fn run(&self, ar: &Arena, s: &mut CompState, ids: &[usize]) {
+        let (d, w, g) = (self.code_dim, self.width, ids.len());
+        for (dst, &id) in self.conv_in.input(&mut s.emb, g).chunks_exact_mut(d).zip(ids) {
+            dst.copy_from_slice(&self.table[id * d..(id + 1) * d]);
+        }
+        self.conv_in.run(ar, &mut s.emb, g, &mut s.x[..g * w]);
+        relu(&mut s.x[..g * w]);
+        if let (Some(a), Some(st)) = (&self.attn, s.attn.as_mut()) {
+            a.run(ar, &mut s.x[..g * w], g, st);
+        }
+        let mut n = g;
         for (l, lev) in self.levels.iter().enumerate() {
             for (r, buf) in lev.res.iter().zip(&mut s.res[l * self.depth..(l + 1) * self.depth]) {
                 r.run(ar, &mut s.x, n, buf, &mut s.a, &mut s.b);
@@ -407,7 +426,7 @@ impl NativeDecoder {
                 })?;
                 // timed: the first decodes' job order
                 let t = Instant::now();
-                c.run(&dec.arena, &mut st.comps[ci], id);
+                c.run(&dec.arena, &mut st.comps[ci], &[id]);
                 dec.note_cost(ci, t.elapsed().as_nanos() as u64);
             }
         }
@@ -417,25 +436,30 @@ impl NativeDecoder {
 
     /// A new sequence's state (allocates; `reset` does not).
     pub(crate) fn new_state(&self) -> NativeState {
-        self.initial.clone()
+        let mut st = NativeState { comps: self.comps.iter().map(|c| c.new_state(self.frames)).collect() };
+        self.reset(&mut st);
+        st
     }
 
     /// Back to the start of a sequence, without allocating.
     pub(crate) fn reset(&self, st: &mut NativeState) {
-        for (a, b) in st.comps.iter_mut().zip(&self.initial.comps) {
-            a.copy_from(b);
+        for ((c, a), b) in self.comps.iter().zip(&mut st.comps).zip(&self.initial.comps) {
+            c.copy_context(a, b);
         }
     }
 
-    /// Decodes one code per component (checked by the caller: `0 <= id < codebook size`)
-    /// into `out` (F x 335 normalized features, contact as probability), and runs `extra`
+    /// Decodes `ids` (1 to [`MAX_GROUP`] tokens in order, one code per component each,
+    /// checked by the caller: `0 <= id < codebook size`) into `out` (`ids.len()` x F x 335
+    /// normalized features, contact as probability: the same bits as one call per token),
+    /// and runs `extra`
     /// (independent work, once, on either thread) as one more job for the two threads: how
     /// a stream overlaps the next token step with a decode (`model::overlap`).
     /// Allocation-free. Fails only if the helper thread panicked (`Error::Panic`; the state
     /// is then not to be trusted).
-    pub(crate) fn decode_with(&self, st: &mut NativeState, ids: [usize; N_STREAMS], out: &mut [f32],
+    pub(crate) fn decode_with(&self, st: &mut NativeState, ids: &[[usize; N_STREAMS]], out: &mut [f32],
                               extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
         assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
+        assert!((1..=MAX_GROUP).contains(&ids.len()), "decode of {} tokens", ids.len());
         let mut jobs = Jobs {
             dec: self,
             states: st.comps.as_mut_ptr(),
@@ -472,7 +496,7 @@ impl NativeDecoder {
             unsafe { jobs.drain() };
         }
         for (c, s) in self.comps.iter().zip(&st.comps) {
-            c.emit(s, self.frames, out);
+            c.emit(s, ids.len() * self.frames, out);
         }
         Ok(())
     }

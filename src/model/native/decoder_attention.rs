@@ -1,5 +1,5 @@
-//! The decoder's token-rate `AttentionBlock(width, heads, window=W)` (models/layers.py), one
-//! new position at a time: pre-LN causal local attention over the last `W` positions
+//! The decoder's token-rate `AttentionBlock(width, heads, window=W)` (models/layers.py), on
+//! the new positions only: pre-LN causal local attention over the last `W` positions
 //! (itself included) with a learned per-head relative-position bias, then a GELU MLP.
 //! The keys and values of the last `W` positions are kept in a ring; at the start of a
 //! sequence a position attends to the positions that exist (the graph's mask).
@@ -95,60 +95,72 @@ impl WindowAttention {
         self.window
     }
 
-    pub(crate) fn new_state(&self) -> AttnState {
+    /// A new stream's context, with scratch for up to `max_pos` positions per call.
+    pub(crate) fn new_state(&self, max_pos: usize) -> AttnState {
         let w = self.width;
         AttnState {
             k: vec![0.0; self.window * w],
             v: vec![0.0; self.window * w],
             pos: 0,
-            ln: vec![0.0; w],
-            qkv: vec![0.0; 3 * w],
-            y: vec![0.0; w],
-            t: vec![0.0; w],
-            hid: vec![0.0; 2 * w],
+            ln: vec![0.0; max_pos * w],
+            qkv: vec![0.0; max_pos * 3 * w],
+            y: vec![0.0; max_pos * w],
+            t: vec![0.0; max_pos * w],
+            hid: vec![0.0; max_pos * 2 * w],
             scores: vec![0.0; self.window],
         }
     }
 
-    /// `h (width) <- block(h)` for the next position.
-    pub(crate) fn step(&self, a: &Arena, h: &mut [f32], st: &mut AttnState) {
+    /// `h (n x width) <- block(h)` for the next `n` positions (at most the state's
+    /// `max_pos`). The matrix products take the `n` positions at once (each weight read
+    /// once); position `p` attends to the positions before it, in this call or earlier,
+    /// and gets the same bits as when the positions come one call at a time.
+    pub(crate) fn run(&self, a: &Arena, h: &mut [f32], n: usize, st: &mut AttnState) {
         let (w, nh, win) = (self.width, self.heads, self.window);
         let dh = w / nh;
-        layer_norm(h, &self.norm1.0, &self.norm1.1, LN_EPS, &mut st.ln);
-        gemm(a.mat(&self.qkv), &st.ln, w, 1, Some(&self.qkv_b), &mut st.qkv, 3 * w);
-        let slot = st.pos % win;
-        st.k[slot * w..(slot + 1) * w].copy_from_slice(&st.qkv[w..2 * w]);
-        st.v[slot * w..(slot + 1) * w].copy_from_slice(&st.qkv[2 * w..3 * w]);
-        st.pos += 1;
-        let n = st.pos.min(win);
+        let nw = n * w;
+        for (x, o) in h[..nw].chunks_exact(w).zip(st.ln.chunks_exact_mut(w)) {
+            layer_norm(x, &self.norm1.0, &self.norm1.1, LN_EPS, o);
+        }
+        gemm(a.mat(&self.qkv), &st.ln, w, n, Some(&self.qkv_b), &mut st.qkv, 3 * w);
         let inv = 1.0 / (dh as f32).sqrt();
-        for hh in 0..nh {
-            let q = &st.qkv[hh * dh..(hh + 1) * dh];
-            for o in 0..n {
-                let s = (st.pos - 1 - o) % win;
-                let k = &st.k[s * w + hh * dh..s * w + (hh + 1) * dh];
-                st.scores[o] = dot(q, k) * inv + self.rel_bias[hh * win + o];
-            }
-            softmax(&mut st.scores[..n]);
-            let y = &mut st.y[hh * dh..(hh + 1) * dh];
-            y.fill(0.0);
-            for o in 0..n {
-                let s = (st.pos - 1 - o) % win;
-                let p = st.scores[o];
-                for (a, b) in y.iter_mut().zip(&st.v[s * w + hh * dh..s * w + (hh + 1) * dh]) {
-                    *a += p * b;
+        for p in 0..n {
+            let qkv = &st.qkv[p * 3 * w..(p + 1) * 3 * w];
+            let slot = st.pos % win;
+            st.k[slot * w..(slot + 1) * w].copy_from_slice(&qkv[w..2 * w]);
+            st.v[slot * w..(slot + 1) * w].copy_from_slice(&qkv[2 * w..3 * w]);
+            st.pos += 1;
+            let seen = st.pos.min(win);
+            for hh in 0..nh {
+                let q = &qkv[hh * dh..(hh + 1) * dh];
+                for o in 0..seen {
+                    let s = (st.pos - 1 - o) % win;
+                    let k = &st.k[s * w + hh * dh..s * w + (hh + 1) * dh];
+                    st.scores[o] = dot(q, k) * inv + self.rel_bias[hh * win + o];
+                }
+                softmax(&mut st.scores[..seen]);
+                let y = &mut st.y[p * w + hh * dh..p * w + (hh + 1) * dh];
+                y.fill(0.0);
+                for o in 0..seen {
+                    let s = (st.pos - 1 - o) % win;
+                    let pr = st.scores[o];
+                    for (a, b) in y.iter_mut().zip(&st.v[s * w + hh * dh..s * w + (hh + 1) * dh]) {
+                        *a += pr * b;
+                    }
                 }
             }
         }
-        gemm(a.mat(&self.out), &st.y, w, 1, Some(&self.out_b), &mut st.t, w);
-        for (a, b) in h.iter_mut().zip(&st.t) {
+        gemm(a.mat(&self.out), &st.y, w, n, Some(&self.out_b), &mut st.t, w);
+        for (a, b) in h[..nw].iter_mut().zip(&st.t) {
             *a += b;
         }
-        layer_norm(h, &self.norm2.0, &self.norm2.1, LN_EPS, &mut st.ln);
-        gemm(a.mat(&self.mlp0), &st.ln, w, 1, Some(&self.mlp0_b), &mut st.hid, 2 * w);
-        gelu_erf(&mut st.hid);
-        gemm(a.mat(&self.mlp2), &st.hid, 2 * w, 1, Some(&self.mlp2_b), &mut st.t, w);
-        for (a, b) in h.iter_mut().zip(&st.t) {
+        for (x, o) in h[..nw].chunks_exact(w).zip(st.ln.chunks_exact_mut(w)) {
+            layer_norm(x, &self.norm2.0, &self.norm2.1, LN_EPS, o);
+        }
+        gemm(a.mat(&self.mlp0), &st.ln, w, n, Some(&self.mlp0_b), &mut st.hid, 2 * w);
+        gelu_erf(&mut st.hid[..2 * nw]);
+        gemm(a.mat(&self.mlp2), &st.hid, 2 * w, n, Some(&self.mlp2_b), &mut st.t, w);
+        for (a, b) in h[..nw].iter_mut().zip(&st.t) {
             *a += b;
         }
     }

@@ -11,6 +11,12 @@
 //! 4 positions of 8-lane accumulators); other targets a portable loop over
 //! [`kernels::dot`]/[`kernels::dot_i8`]. Results equal the naive product up to fp32
 //! rounding (summation order), which is all the parity tolerance asks.
+//!
+//! Every output is summed in the same order whatever `npos` and the block shape are (one
+//! position goes through the same tiles, not a separate GEMV, and every tile reduces its
+//! lanes with the same tree), so a position's result does not depend on how many are
+//! computed with it: the decoder gives the same bits decoding tokens one at a time or
+//! several at once (`NativeDecoder::decode_with`).
 use super::kernels::{self, Isa, MatRef};
 #[cfg(test)]
 use super::weights::Matrix;
@@ -27,11 +33,6 @@ pub(crate) fn gemm(m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Optio
     assert!(ys >= rows && y.len() >= (npos - 1) * ys + rows, "gemm: y too short");
     if let Some(b) = bias {
         assert_eq!(b.len(), rows, "gemm: bias length");
-    }
-    if npos == 1 && xs >= cols {
-        // one position: the GEMV kernels (rows share each load of x)
-        kernels::gemv_rows(m, &x[..cols], bias, 0..rows, &mut y[..rows]);
-        return;
     }
     #[cfg(target_arch = "x86_64")]
     {
@@ -235,15 +236,12 @@ mod x86 {
                 }
                 let mut out = [[0.0f32; P]; R];
                 for i in 0..R {
-                    if P == 8 {
-                        // one reduction tree for the 8 positions' sums
-                        let s = hsum8(&acc[i][..]);
-                        out[i][..P].copy_from_slice(&s[..P]);
-                    } else {
-                        for p in 0..P {
-                            out[i][p] = _mm512_reduce_add_ps(acc[i][p]);
-                        }
-                    }
+                    // one reduction tree for up to 8 positions' sums, the same tree
+                    // whatever P is (npos-invariant results)
+                    let mut v = [_mm512_setzero_ps(); 8];
+                    v[..P].copy_from_slice(&acc[i]);
+                    let s = hsum8(&v);
+                    out[i][..P].copy_from_slice(&s[..P]);
                     for p in 0..P {
                         let mut s = out[i][p];
                         for cc in n16..cols {
@@ -395,6 +393,36 @@ mod tests {
                         }
                         assert_eq!(&y[p * ys + rows..p * ys + ys], &[-9.0, -9.0]);
                     }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod invariance {
+    use super::*;
+
+    /// Each position's result is the same bits whatever else is computed with it.
+    #[test]
+    fn results_do_not_depend_on_the_number_of_positions() {
+        let (rows, cols, xs) = (11, 70, 35);
+        let q: Vec<i8> = (0..rows * cols).map(|i| ((i * 53 % 251) as i32 - 125) as i8).collect();
+        let scale: Vec<f32> = (0..rows).map(|r| 0.003 * (r + 1) as f32).collect();
+        let w: Vec<f32> = (0..rows * cols).map(|i| (i as f32 * 0.71).cos()).collect();
+        let bias: Vec<f32> = (0..rows).map(|r| r as f32 * 0.25 - 1.0).collect();
+        let npos = 19; // every tile shape: 8, 4, 2 and 1 positions
+        let x: Vec<f32> = (0..(npos - 1) * xs + cols).map(|c| (c as f32 * 0.37).sin() * 3.0).collect();
+        for m in [Matrix::F32 { rows, cols, w }, Matrix::I8 { rows, cols, q, scale }] {
+            let mut all = vec![0.0; npos * rows];
+            gemm((&m).into(), &x, xs, npos, Some(&bias), &mut all, rows);
+            for start in 0..npos {
+                for n in 1..=(npos - start).min(9) {
+                    let mut part = vec![0.0; n * rows];
+                    gemm((&m).into(), &x[start * xs..], xs, n, Some(&bias), &mut part, rows);
+                    let want = &all[start * rows..(start + n) * rows];
+                    assert!(part.iter().zip(want).all(|(a, b)| a.to_bits() == b.to_bits()),
+                            "positions {start}..{}: computed {n} at once differ from {npos} at once", start + n);
                 }
             }
         }

@@ -1,0 +1,48 @@
+//! How many tokens a stream decodes at once after its first chunk.
+//!
+//! A decode of one token reads all of the decoder's weights for very few positions (1 at
+//! the token rate, 2 and 4 at the first frame rates), so those layers are memory-bound:
+//! the default bundle's decoder reads 19 MB of int8 weights per token. The decoder is
+//! causal and the native one computes only new positions, so it can take G consecutive
+//! tokens in one pass (`DecoderModel::decode_group`): every layer then has G times the
+//! positions and each weight is read once per G tokens, with the same bits as G decodes.
+//! The cost is latency the host never sees: token k's frames wait for steps k+1..k+G-1
+//! (a fraction of a millisecond each against the 0.53 s of motion a chunk holds); the
+//! first chunk is always decoded alone, so the time to first frame does not change.
+//!
+//! Default: 4 when the decoder is native and the step reads no more weights per token
+//! than the decoder (the default bundle: 10 MB against 19 MB); measured on the 2-core
+//! machine, interleaved under a neighbour's load, the stream's median real-time factor
+//! went 201x (1) -> 249x (2) -> 288x (4) -> 319x (8) (README, Performance). Otherwise 1:
+//! tract's graph decodes one token per run (nothing to gain), and a step much bigger than
+//! the decoder (the paper model's 1.8 GB) dominates each token, so grouping would gain
+//! little while a call (which a cancel waits for) would take G steps. `COMGRASP_DECODE_GROUP=1..8`
+//! overrides.
+use super::{DecoderModel, StepModel, MAX_DECODE_GROUP};
+use crate::error::{Error, Result};
+
+/// Environment variable: tokens per decode after the first chunk, `1` to
+/// [`MAX_DECODE_GROUP`] (read once per engine).
+pub const DECODE_GROUP_ENV: &str = "COMGRASP_DECODE_GROUP";
+
+/// The default group when it pays (module doc).
+const DEFAULT_GROUP: usize = 4;
+
+/// Tokens per decode for these models (`COMGRASP_DECODE_GROUP`, else the module doc's
+/// rule).
+pub fn tokens_per_decode(step: &StepModel, decoder: &DecoderModel) -> Result<usize> {
+    match std::env::var(DECODE_GROUP_ENV).as_deref() {
+        Ok("") | Err(std::env::VarError::NotPresent) => {
+            let pays = match (step.native_weight_bytes(), decoder.native_threads_and_bytes()) {
+                (Some(step_bytes), Some((_, decoder_bytes))) => step_bytes <= decoder_bytes,
+                _ => false,
+            };
+            Ok(if pays { DEFAULT_GROUP } else { 1 })
+        }
+        Ok(v) => match v.parse::<usize>() {
+            Ok(g) if (1..=MAX_DECODE_GROUP).contains(&g) => Ok(g),
+            _ => Err(Error::InvalidArgument(format!("{DECODE_GROUP_ENV}={v:?}: expected 1 to {MAX_DECODE_GROUP}"))),
+        },
+        Err(e) => Err(Error::InvalidArgument(format!("{DECODE_GROUP_ENV}: {e}"))),
+    }
+}
