@@ -190,7 +190,7 @@ public:
         return cg_stream_wait(h_, clamp_ms(timeout), &out);
     }
 
-    /// Stops generation within one generator call (a few ms); any thread, also while another
+    /// Stops generation within one generator call (~8 ms, default bundle); any thread, also while another
     /// thread polls this stream. Idempotent.
     void cancel() const { detail::check("cg_cancel", cg_cancel(h_)); }
 

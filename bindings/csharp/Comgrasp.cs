@@ -650,7 +650,7 @@ namespace ComGrasp
                 return ComGraspNative.cg_poll_frame(Handle, p);
         }
 
-        /// <summary>Stops generation within one generator call (a few ms); Poll then returns Cancelled.
+        /// <summary>Stops generation within one generator call (~8 ms, default bundle); Poll then returns Cancelled.
         /// Any thread, also while another thread is in Poll/Wait. Idempotent.</summary>
         public void Cancel()
         {

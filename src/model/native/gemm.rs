@@ -197,7 +197,7 @@ mod x86 {
     /// of 8 separate reductions).
     #[target_feature(enable = "avx512f")]
     #[inline]
-    unsafe fn hsum8(a: &[__m512]) -> [f32; 8] {
+    unsafe fn hsum8(a: [__m512; 8]) -> [f32; 8] {
         let h01 = _mm256_hadd_ps(half(a[0]), half(a[1]));
         let h23 = _mm256_hadd_ps(half(a[2]), half(a[3]));
         let h45 = _mm256_hadd_ps(half(a[4]), half(a[5]));
@@ -238,9 +238,8 @@ mod x86 {
                 for i in 0..R {
                     // one reduction tree for up to 8 positions' sums, the same tree
                     // whatever P is (npos-invariant results)
-                    let mut v = [_mm512_setzero_ps(); 8];
-                    v[..P].copy_from_slice(&acc[i]);
-                    let s = hsum8(&v);
+                    let v: [__m512; 8] = std::array::from_fn(|p| if p < P { acc[i][p] } else { _mm512_setzero_ps() });
+                    let s = hsum8(v);
                     out[i][..P].copy_from_slice(&s[..P]);
                     for p in 0..P {
                         let mut s = out[i][p];
@@ -441,7 +440,7 @@ mod speed {
         let (rows, cols) = (512, 1024);
         let q: Vec<i8> = (0..rows * cols).map(|i| ((i * 37 % 255) as i32 - 127) as i8).collect();
         let m = Matrix::I8 { rows, cols, q, scale: vec![0.01; rows] };
-        for npos in [1, 2, 4, 8, 16] {
+        for npos in [1, 2, 4, 8, 16, 32, 64] {
             let x: Vec<f32> = (0..(npos + 1) * 512).map(|c| (c as f32 * 0.37).sin()).collect();
             let mut y = vec![0.0; npos * rows];
             let reps = 2000 / npos;

@@ -91,7 +91,7 @@ void UComGraspComponent::CancelStream()
 	if (Stream)
 	{
 		cg_cancel(Stream);
-		cg_stream_destroy(Stream);  // joins the worker: at most one generator call (a few ms)
+		cg_stream_destroy(Stream);  // joins the worker: at most one generator call (~8 ms, default bundle)
 		Stream = nullptr;
 	}
 }
