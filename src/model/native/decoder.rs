@@ -11,7 +11,9 @@
 //! input (k - 1 positions of a causal conv, the last `window` keys/values of the
 //! attention). That history is the stream's state; a new sequence starts from zero
 //! histories (`F.pad`'s zeros at the very start) and feeds the manifest's initial state
-//! (K-1 pad ids) first, which is done once at load and copied on `reset`.
+//! (K-1 pad ids) first, which is done once at load and copied on `reset`. G consecutive
+//! tokens decoded in one call add G times those positions, and each layer takes them at
+//! once: its weights are read once per call (`model::decode_group`).
 //!
 //! The architecture is read from the tensor names and shapes (`parts.<component>.decoder.
 //! layers.<i>.*`, the layer list of `models.vqvae.Decoder`: Conv, ReLU, [AttentionBlock],
