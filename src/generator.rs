@@ -10,7 +10,8 @@
 //!    (unless the previous call already ran step k, see *overlap*);
 //! 3. if any stream sampled its End id, the sequence has `k` codes: stop;
 //! 4. *decode group*: after the first call, steps k+1 .. k+G-1 run too (stopping at End or
-//!    the step limit), G = [`decode_group::tokens_per_decode`] (4 on the default bundle);
+//!    the step limit; with overlap they already ran during the previous call's decode),
+//!    G = [`decode_group::tokens_per_decode`] (4 on the default bundle);
 //! 5. decode those codes in one call (G chunks of F = 16 normalized frames, the same bits
 //!    as one decode per token) → `FrameAssembler::assemble`.
 //!
@@ -18,12 +19,11 @@
 //! a group.
 //!
 //! **Overlap.** When [`overlap::overlaps`](crate::model::overlap::overlaps) says so (both
-//! models native, the step no bigger than the decoder: the default bundle), the step after
-//! the group runs *with* its decode on the decoder's two threads
-//! ([`overlap::decode_and_step`](crate::model::overlap::decode_and_step)) and is sampled
-//! right after; the next call starts from those codes. Same tokens and frames; on the
-//! 2-core test machine a stream's median real-time factor went from 187x to 199x (README,
-//! Performance).
+//! models native, the step no bigger than the decoder: the default bundle), the steps of
+//! the *next* group (one after the first chunk, then G) run, each sampled, on one thread
+//! while the decoder's jobs decode this group on both
+//! ([`overlap::decode_and_steps`](crate::model::overlap::decode_and_steps)); the next call
+//! decodes those codes. Same tokens and frames (README, Performance, for the speed).
 //!
 //! **`is_last`.** Whether a call's last chunk is the sequence's last is decided at the
 //! *next* step (End sampled there). With overlap that step has run by the time the chunks
@@ -155,8 +155,11 @@ pub struct Generator {
     prev: [i64; N_STREAMS],
     /// The final frame of the previous chunk, waiting for the next step's verdict.
     held: Option<Frame>,
-    /// Codes of step k, sampled by the previous call (overlap).
-    ahead: Option<[i64; N_STREAMS]>,
+    /// Codes of steps k, k+1, ..., sampled during the previous call's decode (overlap):
+    /// `ahead[..ahead_n]`; `ahead_end`: the sequence ends after them.
+    ahead: [[i64; N_STREAMS]; MAX_DECODE_GROUP],
+    ahead_n: usize,
+    ahead_end: bool,
     next_frame: u64,
     done: bool,
 }
@@ -191,7 +194,9 @@ impl Generator {
             k: 0,
             prev: pipe.pad_ids,
             held: None,
-            ahead: None,
+            ahead: [[0; N_STREAMS]; MAX_DECODE_GROUP],
+            ahead_n: 0,
+            ahead_end: false,
             next_frame: 0,
             done: false,
             sampler,
@@ -242,69 +247,75 @@ impl ChunkSource for Generator {
         if self.done {
             return Ok(false);
         }
-        let first = match self.ahead.take() {
-            Some(codes) => codes,
-            None => {
-                let codes = if self.k >= self.max_len { None } else { self.sample(self.k, self.prev)? };
-                let Some(codes) = codes else {
-                    // The previous chunk was the last one: release its held frame, marked.
-                    self.done = true;
-                    if let Some(mut f) = self.held.take() {
-                        f.is_last = 1;
-                        out.push(f);
-                    }
-                    return Ok(false);
-                };
-                if let Some(f) = self.held.take() {
+        // The tokens of this decode: those sampled during the previous call's decode
+        // (overlap), else step k's, sampled now.
+        let mut group = [[0i64; N_STREAMS]; MAX_DECODE_GROUP];
+        let mut g = self.ahead_n;
+        // whether the sequence ends after the group's codes
+        let mut ended = self.ahead_end;
+        if g > 0 {
+            group[..g].copy_from_slice(&self.ahead[..g]);
+            self.ahead_n = 0;
+        } else {
+            let codes = if self.k >= self.max_len { None } else { self.sample(self.k, self.prev)? };
+            let Some(codes) = codes else {
+                // The previous chunk was the last one: release its held frame, marked.
+                self.done = true;
+                if let Some(mut f) = self.held.take() {
+                    f.is_last = 1;
                     out.push(f);
                 }
-                codes
+                return Ok(false);
+            };
+            if let Some(f) = self.held.take() {
+                out.push(f);
             }
-        };
-        // The tokens of this decode: step k's, then (after the first chunk, which goes out
-        // alone for the time to first frame) the next steps' up to the group size.
-        let mut group = [[0i64; N_STREAMS]; MAX_DECODE_GROUP];
-        group[0] = first;
-        let mut g = 1;
+            group[0] = codes;
+            g = 1;
+        }
+        // After the first chunk (which goes out alone, for the time to first frame), the
+        // group is topped up to its size with the next steps, run now.
         let want = if self.k == 0 { 1 } else { self.pipe.group };
-        // Whether the group's last chunk ends the sequence: known when a step in the group
-        // samples End or the step limit forces it, or once the next step ran with the
-        // decode (overlap); otherwise the next call decides.
-        let mut last = None;
-        while g < want && self.k + g < self.max_len {
+        while !ended && g < want && self.k + g < self.max_len {
             match self.sample(self.k + g, group[g - 1])? {
                 Some(codes) => {
                     group[g] = codes;
                     g += 1;
                 }
-                None => {
-                    last = Some(true);
-                    break;
-                }
+                None => ended = true,
             }
         }
         let next = self.k + g;
-        if next >= self.max_len {
-            last = Some(true);
-        }
+        ended |= next >= self.max_len;
         let b = &self.pipe.bundle;
         let state = self.state.get_or_insert_with(|| State::new(b));
         let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
-        if last.is_some() {
+        // Whether the group's last chunk ends the sequence: known now if End was sampled or
+        // the step limit forces it, or once the steps after the group ran with the decode
+        // (overlap); otherwise the next call decides.
+        let last = if ended {
             b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
+            Some(true)
         } else if self.pipe.overlap {
+            // the next group's steps (one after the first chunk, as the first group is one
+            // token) run on one thread while the decoder's jobs run on both
+            let steps = (if self.k == 0 { 1 } else { self.pipe.group }).min(self.max_len - next);
             let emb = self.text_emb.as_deref().unwrap_or_default();
-            let logits = overlap::decode_and_step(&b.decoder, &mut state.decoder, &group[..g], normalized,
-                                                  &b.step, &mut state.step, next, emb, true)?;
-            let codes = self.sampler.sample_step(next, logits)?;
-            let end = self.pipe.ends(&codes);
-            if !end {
-                self.ahead = Some(codes.map(|c| c as i64));
-            }
-            last = Some(end);
+            let (sampler, pipe) = (&mut self.sampler, &self.pipe);
+            let sample = |pos: usize, logits: [&[f32]; N_STREAMS]| -> Result<Option<[i64; N_STREAMS]>> {
+                let codes = sampler.sample_step(pos, logits)?;
+                Ok(if pipe.ends(&codes) { None } else { Some(codes.map(|c| c as i64)) })
+            };
+            let (n, end) = overlap::decode_and_steps(&b.decoder, &mut state.decoder, &group[..g], normalized,
+                                                     &b.step, &mut state.step, next, emb,
+                                                     &mut self.ahead[..steps], sample, true)?;
+            self.ahead_n = n;
+            self.ahead_end = end || next + n >= self.max_len;
+            Some(n == 0)
         } else {
             b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
-        }
+            None
+        };
         let width = crate::bundle::manifest::FRAME_DIM;
         let n = normalized.len() / width;
         for (i, feats) in normalized.chunks_exact(width).enumerate() {

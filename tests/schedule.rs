@@ -17,7 +17,7 @@ use std::time::Duration;
 use comgrasp::bundle::{Bundle, N_STREAMS};
 use comgrasp::engine::{SourceFactory, StreamConfig, StreamRequest};
 use comgrasp::generator::{ChunkSource, Generator, Pipeline};
-use comgrasp::model::overlap::decode_and_step;
+use comgrasp::model::overlap::{decode_and_step, decode_and_steps};
 use comgrasp::model::{DecoderBackend, DecoderModel, MAX_DECODE_GROUP};
 use comgrasp::{Engine, EngineConfig, Error, Frame, PollResult};
 
@@ -87,11 +87,17 @@ fn bad_input_changes_neither_state() {
         ("NaN embedding", good, 1, vec![f32::NAN; emb.len()], f.len()),
         ("short frame buffer", good, 1, emb.clone(), f.len() - 1),
     ];
+    let mut ahead = [[0i64; N_STREAMS]; 3];
     for (what, c, pos, e, len) in cases {
         for overlap in [true, false] {
             let err = decode_and_step(&b.decoder, &mut ds, &[c], &mut f[..len], &b.step, &mut ss, pos, &e, overlap);
             assert!(err.is_err(), "{what} (overlap {overlap}) was accepted");
             assert_eq!((ds.decoded(), ss.filled()), (0, 1), "{what} (overlap {overlap}) changed a state");
+            let sample = |_: usize, _: [&[f32]; N_STREAMS]| Ok(Some(good));
+            let err = decode_and_steps(&b.decoder, &mut ds, &[c], &mut f[..len], &b.step, &mut ss, pos, &e,
+                                       &mut ahead, sample, overlap);
+            assert!(err.is_err(), "{what} (overlap {overlap}, next group's steps) was accepted");
+            assert_eq!((ds.decoded(), ss.filled()), (0, 1), "{what} (overlap {overlap}, steps) changed a state");
         }
     }
     // and the states still work
