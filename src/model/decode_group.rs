@@ -13,13 +13,14 @@
 //! Default: 4 when the decoder is native and the step reads no more weights per token
 //! than the decoder (the default bundle: 10 MB against 19 MB). Measured on the 2-core
 //! machine (five interleaved rounds of `comgrasp bench --bundle models/default`), the
-//! stream's median real-time factor went 203x (1) -> 269x (4) -> 306x (8). 4, not 8,
-//! because a cancel or `cg_stream_destroy` waits for the call in progress: G steps and a
-//! G-token decode: ~8 ms at 4 and ~14 ms at 8 here (G x the median time per token), up
-//! to a whole frame of a 60 Hz game at 8. Otherwise 1:
-//! tract's graph decodes one token per run (nothing to gain), and a step much bigger than
-//! the decoder (the paper model's 1.8 GB) dominates each token, so grouping would gain
-//! little while a call would take G of those steps. `COMGRASP_DECODE_GROUP=1..8` overrides.
+//! stream's median real-time factor went 203x (1) -> 269x (4) -> 306x (8) (README,
+//! Performance, has the final binary's numbers). 4, not 8, because a cancel or
+//! `cg_stream_destroy` waits for the call in progress (a G-token decode and G steps): ~8 ms
+//! at 4 and ~14 ms at 8 here (G x the median time per token), up to a whole frame of a
+//! 60 Hz game at 8. Otherwise 1: tract's graph decodes one token per run (nothing to
+//! gain), and a step much bigger than the decoder (the paper model's 1.8 GB) dominates each
+//! token, so grouping would gain little while a call would take G of those steps.
+//! `COMGRASP_DECODE_GROUP=1..8` overrides.
 use super::{DecoderModel, StepModel, MAX_DECODE_GROUP};
 use crate::error::{Error, Result};
 
