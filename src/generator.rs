@@ -297,8 +297,8 @@ impl ChunkSource for Generator {
             b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
             Some(true)
         } else if self.pipe.overlap {
-            // the next group's steps (one after the first chunk, as the first group is one
-            // token) run on one thread while the decoder's jobs run on both
+            // the next group's steps run on one thread while the decoder's jobs run on both
+            // (only one step with the first chunk, so the first frame waits for no more)
             let steps = (if self.k == 0 { 1 } else { self.pipe.group }).min(self.max_len - next);
             let emb = self.text_emb.as_deref().unwrap_or_default();
             let (sampler, pipe) = (&mut self.sampler, &self.pipe);
