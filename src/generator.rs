@@ -273,9 +273,8 @@ impl ChunkSource for Generator {
             group[0] = codes;
             g = 1;
         }
-        // After the first chunk (which goes out alone, for the time to first frame), the
-        // group is topped up to its size with the next steps, run now.
-        let want = if self.k == 0 { 1 } else { self.pipe.group };
+        // The group is topped up to its size with the next steps, run now.
+        let want = decode_group::tokens_at(self.k, self.pipe.group);
         while !ended && g < want && self.k + g < self.max_len {
             match self.sample(self.k + g, group[g - 1])? {
                 Some(codes) => {
@@ -297,9 +296,10 @@ impl ChunkSource for Generator {
             b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
             Some(true)
         } else if self.pipe.overlap {
-            // the next group's steps run on one thread while the decoder's jobs run on both
-            // (only one step with the first chunk, so the first frame waits for no more)
-            let steps = (if self.k == 0 { 1 } else { self.pipe.group }).min(self.max_len - next);
+            // the next group's steps run on one thread while the decoder's jobs run on both:
+            // as many as this group has tokens (one with the first chunk, so the first
+            // frame waits for no more)
+            let steps = want.min(self.max_len - next);
             let emb = self.text_emb.as_deref().unwrap_or_default();
             let (sampler, pipe) = (&mut self.sampler, &self.pipe);
             let sample = |pos: usize, logits: [&[f32]; N_STREAMS]| -> Result<Option<[i64; N_STREAMS]>> {

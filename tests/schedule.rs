@@ -18,7 +18,7 @@ use comgrasp::bundle::{Bundle, N_STREAMS};
 use comgrasp::engine::{SourceFactory, StreamConfig, StreamRequest};
 use comgrasp::generator::{ChunkSource, Generator, Pipeline};
 use comgrasp::model::overlap::{decode_and_step, decode_and_steps};
-use comgrasp::model::{DecoderBackend, DecoderModel, MAX_DECODE_GROUP};
+use comgrasp::model::{decode_group, DecoderBackend, DecoderModel, MAX_DECODE_GROUP};
 use comgrasp::{Engine, EngineConfig, Error, Frame, PollResult};
 
 fn tiny_dir() -> PathBuf {
@@ -186,7 +186,7 @@ fn decode_in_groups(d: &DecoderModel, tokens: &[[i64; N_STREAMS]], group: usize)
     let mut out = vec![0.0; tokens.len() * n];
     let mut k = 0;
     while k < tokens.len() {
-        let g = if k == 0 { 1 } else { group.min(tokens.len() - k) };
+        let g = decode_group::tokens_at(k, group).min(tokens.len() - k);
         d.decode_group(&mut st, &tokens[k..k + g], &mut out[k * n..(k + g) * n]).unwrap();
         k += g;
     }

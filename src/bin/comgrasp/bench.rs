@@ -520,7 +520,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     let mut group_same = true;
     let mut k = 0;
     while k < tokens.len() {
-        let g = if k == 0 { 1 } else { group.min(tokens.len() - k) };
+        let g = decode_group::tokens_at(k, group).min(tokens.len() - k);
         let mut ids = [[0i64; N_STREAMS]; MAX_DECODE_GROUP];
         for (d, t) in ids.iter_mut().zip(&tokens[k..k + g]) {
             *d = t.map(|c| c as i64);
