@@ -100,15 +100,63 @@ def test_quantizer_init_ema_and_reset():
     assert torch.cdist(q.codebook, x).min(1).values.max() < 1.0
     # When the data moves away, codes no vector picks any more decay below the count
     # threshold and are reset onto encoder outputs of the current batch.
-    for _ in range(60):
+    for _ in range(400):  # a busy code's EMA count takes ~ln(count / threshold) / 0.01 steps to decay
         far = torch.randn(64, 4) + 100.0
         q(far)
     assert torch.cdist(q.codebook, far).min(1).values.max() < 3.0
-    assert (q.ema_count >= q.reset_threshold).all()
+    assert (q.ema_count >= q.dead_threshold(torch.tensor(64.0))).all()
     # eval mode never touches the state
     before = {k: v.clone() for k, v in q.state_dict().items()}
     q.eval()(torch.randn(16, 4))
     assert all(torch.equal(before[k], v) for k, v in q.state_dict().items())
+
+
+def _clustered_quantizer_mse(mode: str, threshold: float, per_step: int, steps: int) -> tuple[float, int]:
+    """Issue 15's reproduction: 200 clusters in 64-D (noise 0.02, MSE floor 4e-4), K=256
+    codes, ``per_step`` vectors per training step. Returns (held-out MSE, distinct codes)."""
+    g = torch.Generator().manual_seed(0)
+    centres = torch.randn(200, 64, generator=g)
+
+    def draw(n):
+        return centres[torch.randint(0, 200, (n,), generator=g)] + 0.02 * torch.randn(n, 64, generator=g)
+
+    torch.manual_seed(0)
+    q = EMAResetQuantizer(256, 64, 0.99, threshold, mode).train()
+    for _ in range(steps):
+        q(draw(per_step))
+    x = draw(4096)
+    codes = q.eval()(x).codes
+    return float(((q.dequantize(codes) - x) ** 2).mean()), int(codes.unique().numel())
+
+
+def test_relative_dead_code_threshold_settles_with_few_vectors_per_step():
+    """With 128 vectors per step for 256 codes the absolute threshold (1 hit per step)
+    re-randomises codes in use and never reaches the floor; the relative one does."""
+    mse, used = _clustered_quantizer_mse("relative", 0.1, 128, 1000)
+    assert mse < 1e-2 and used >= 190, (mse, used)
+    mse_abs, _ = _clustered_quantizer_mse("absolute", 1.0, 128, 1000)
+    assert mse_abs > 0.1 and mse_abs > 20 * mse, (mse_abs, mse)
+
+
+def test_quantizer_reports_resets_and_usage():
+    q = EMAResetQuantizer(16, 4, reset_threshold=0.1).train()
+    first = q(torch.randn(64, 4))
+    assert 0 < float(first.used) <= 16
+    # Every vector moves far away: codes nobody picks decay and get reset, and say so.
+    resets = sum(float(q(torch.randn(64, 4) + 50.0).resets) for _ in range(400))
+    assert resets >= 15
+    assert float(q.eval()(torch.randn(8, 4)).resets) == 0.0
+    with pytest.raises(ValueError, match="reset_mode"):
+        EMAResetQuantizer(4, 2, reset_mode="sometimes")
+
+
+def test_legacy_config_keeps_absolute_reset():
+    d = make_config("tiny").to_dict()
+    del d["model"]["reset_mode"]
+    d["model"]["reset_threshold"] = 1.0
+    cfg = VQConfig.from_dict(d)
+    assert cfg.model.reset_mode == "absolute"
+    assert make_config("tiny").model.reset_mode == "relative"
 
 
 def test_quantizer_state_survives_save_load_and_resume():

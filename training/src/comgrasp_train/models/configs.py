@@ -74,7 +74,10 @@ class ModelConfig:
     dec_attn_window: int = 4  # causal local attention over this many tokens; 0 = none
     # Quantizer
     ema_decay: float = 0.99
-    reset_threshold: float = 1.0  # codes whose EMA count falls below this are reset
+    # Dead codes are reset; "relative": EMA hits per step < reset_threshold x N/K (N vectors
+    # per step, K codes); "absolute" (T2M-GPT, checkpoints saved before the switch): < reset_threshold.
+    reset_threshold: float = 0.1
+    reset_mode: str = "relative"
 
     def __post_init__(self):
         if self.down_t < 1:
@@ -133,6 +136,7 @@ class VQConfig:
     def from_dict(d: dict) -> "VQConfig":
         m = dict(d["model"])
         m["components"] = tuple(ComponentConfig(**c) for c in m["components"])
+        m.setdefault("reset_mode", "absolute")  # configs saved before the mode existed
         t = dict(d.get("train", {}))
         if "betas" in t:
             t["betas"] = tuple(t["betas"])

@@ -9,10 +9,19 @@ Training-mode forward, per batch of encoder outputs ``x`` (N, d):
 2. nearest-code assignment;
 3. EMA update of per-code sums and counts (decay 0.99); under ``torch.distributed`` the
    batch statistics are all-reduced so every rank applies the same update;
-4. codes whose EMA count fell below ``reset_threshold`` are reset to random encoder
+4. codes whose EMA count fell below the dead-code threshold are reset to random encoder
    outputs of the current batch (drawn on rank 0 and broadcast). Unlike T2M-GPT, the reset
    also restarts that code's EMA sum and count, so the next update averages from the new
    vector instead of the stale one.
+
+The threshold is relative by default (``reset_mode="relative"``): a code is dead when its
+EMA count of hits per step is below ``reset_threshold`` x the uniform share N/K of the
+step's N vectors over K codes. T2M-GPT's absolute threshold (``"absolute"``: below
+``reset_threshold`` hits per step) means "below 1/8 of a uniform share" at its 4,096
+vectors per step and 512 codes, but "below twice a uniform share" at 128 vectors and 256
+codes, where it re-randomises codes in use every step and the codebook never settles
+(measured in the tests). Each training step reports how many codes it reset and how many
+distinct codes it used, for the training log.
 The quantized output uses the updated codebook with a straight-through gradient; the
 commitment term is ``mse(x, sg[q])`` (weighted by beta in the loss).
 """
@@ -33,17 +42,25 @@ class Quantized(NamedTuple):
     codes: torch.Tensor  # (N,) int64
     commit: torch.Tensor  # scalar, mse(x, sg[q])
     perplexity: torch.Tensor  # scalar, exp(entropy) of this batch's code histogram
+    resets: torch.Tensor  # scalar, codes reset by this (training) step; 0 in eval mode
+    used: torch.Tensor  # scalar, distinct codes this batch picked (code usage)
 
 
 def _distributed() -> bool:
     return dist.is_available() and dist.is_initialized()
 
 
+RESET_MODES = ("relative", "absolute")
+
+
 class EMAResetQuantizer(nn.Module):
-    def __init__(self, codebook_size: int, code_dim: int, decay: float = 0.99, reset_threshold: float = 1.0):
+    def __init__(self, codebook_size: int, code_dim: int, decay: float = 0.99, reset_threshold: float = 0.1,
+                 reset_mode: str = "relative"):
         super().__init__()
+        if reset_mode not in RESET_MODES:
+            raise ValueError(f"reset_mode must be one of {RESET_MODES}, got {reset_mode!r}")
         self.codebook_size, self.code_dim = codebook_size, code_dim
-        self.decay, self.reset_threshold = decay, reset_threshold
+        self.decay, self.reset_threshold, self.reset_mode = decay, reset_threshold, reset_mode
         self.register_buffer("codebook", torch.zeros(codebook_size, code_dim))
         self.register_buffer("ema_sum", torch.zeros(codebook_size, code_dim))
         self.register_buffer("ema_count", torch.zeros(codebook_size))
@@ -65,13 +82,21 @@ class EMAResetQuantizer(nn.Module):
             self._initialise(xd)
         codes = self.nearest(xd)
         counts = torch.bincount(codes, minlength=self.codebook_size).float()
+        resets = torch.zeros((), device=x.device)
         if self.training:
-            counts = self._ema_update(xd, codes, counts)
+            counts, resets = self._ema_update(xd, codes, counts)
         q = self.dequantize(codes).to(x.dtype)
         commit = F.mse_loss(x, q.detach())
         p = counts / counts.sum().clamp_min(1.0)
         perplexity = torch.exp(-(p * torch.log(p.clamp_min(1e-10))).sum())
-        return Quantized(x + (q - x).detach(), codes, commit, perplexity)
+        return Quantized(x + (q - x).detach(), codes, commit, perplexity, resets, (counts > 0).sum().float())
+
+    def dead_threshold(self, n_vectors: torch.Tensor) -> torch.Tensor:
+        """EMA hits per step below which a code is reset, for steps of ``n_vectors`` vectors
+        (a 0-d tensor, so nothing waits for the device)."""
+        if self.reset_mode == "absolute":
+            return torch.full_like(n_vectors, self.reset_threshold)
+        return self.reset_threshold * n_vectors / self.codebook_size
 
     @torch.no_grad()
     def _initialise(self, x: torch.Tensor) -> None:
@@ -82,21 +107,24 @@ class EMAResetQuantizer(nn.Module):
         self.initialised.fill_(True)
 
     @torch.no_grad()
-    def _ema_update(self, x: torch.Tensor, codes: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
-        """Returns the (all-reduced) batch code counts."""
+    def _ema_update(self, x: torch.Tensor, codes: torch.Tensor, counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Returns the (all-reduced) batch code counts and the number of codes reset."""
         sums = torch.zeros_like(self.ema_sum).index_add_(0, codes, x)
         if _distributed():
             dist.all_reduce(sums)
             dist.all_reduce(counts)
         self.ema_sum.mul_(self.decay).add_(sums, alpha=1.0 - self.decay)
         self.ema_count.mul_(self.decay).add_(counts, alpha=1.0 - self.decay)
-        dead = self.ema_count < self.reset_threshold
+        threshold = self.dead_threshold(counts.sum())
+        dead = self.ema_count < threshold
         fresh = self._broadcast(self._sample_rows(x, self.codebook_size))
-        restart = max(self.reset_threshold, 1e-3)
+        # A restarted code starts just above the threshold, so it has a few steps to win
+        # vectors before it can be declared dead again.
+        restart = (2.0 * threshold).clamp_min(1e-3)
         self.ema_sum.copy_(torch.where(dead[:, None], fresh * restart, self.ema_sum))
-        self.ema_count.copy_(torch.where(dead, torch.full_like(self.ema_count, restart), self.ema_count))
+        self.ema_count.copy_(torch.where(dead, restart.expand_as(self.ema_count), self.ema_count))
         self.codebook.copy_(self.ema_sum / self.ema_count[:, None])
-        return counts
+        return counts, dead.sum().float()
 
     @staticmethod
     def _sample_rows(x: torch.Tensor, n: int) -> torch.Tensor:

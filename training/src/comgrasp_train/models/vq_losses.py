@@ -72,10 +72,11 @@ def compute_loss(
     loss = per.sum()
     metrics = {"loss": loss.detach()}
     for key, v in (("param", l_param), ("joint", l_joint), ("vel", l_vel), ("cont", l_cont),
-                   ("commit", out.commit), ("perplexity", out.perplexity), ("loss", per)):
+                   ("commit", out.commit), ("perplexity", out.perplexity), ("resets", out.resets),
+                   ("used", out.used), ("loss", per)):
         v = v.detach()
         if key != "loss":
-            metrics[key] = v.sum() if key != "perplexity" else v.mean()
+            metrics[key] = v.mean() if key in ("perplexity", "used") else v.sum()
         for name, val in zip(vq.names, v):
             metrics[f"{key}/{name}"] = val
     return loss, metrics

@@ -129,7 +129,8 @@ class ComponentVQVAE(nn.Module):
         super().__init__()
         self.comp, self.cfg = comp, cfg
         self.encoder = Encoder(comp, cfg)
-        self.quantizer = EMAResetQuantizer(comp.codebook_size, comp.code_dim, cfg.ema_decay, cfg.reset_threshold)
+        self.quantizer = EMAResetQuantizer(comp.codebook_size, comp.code_dim, cfg.ema_decay, cfg.reset_threshold,
+                                           cfg.reset_mode)
         self.decoder = Decoder(comp, cfg)
         self.context_tokens = self.decoder.context_tokens
         # The learned "before the start" embedding; its token id in a step window is codebook_size.
@@ -191,6 +192,8 @@ class VQOutput(NamedTuple):
     commit: torch.Tensor  # (P,) commitment per component
     perplexity: torch.Tensor  # (P,)
     codes: torch.Tensor  # (B, P, N)
+    resets: torch.Tensor  # (P,) codes reset by this training step
+    used: torch.Tensor  # (P,) distinct codes picked in this batch
 
 
 class ComponentVQ(nn.Module):
@@ -233,6 +236,8 @@ class ComponentVQ(nn.Module):
             torch.stack([q.commit for q in qs]),
             torch.stack([q.perplexity for q in qs]),
             torch.stack([q.codes.reshape(b, -1) for q in qs], 1),
+            torch.stack([q.resets for q in qs]),
+            torch.stack([q.used for q in qs]),
         )
 
     @torch.no_grad()
