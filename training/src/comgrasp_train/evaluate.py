@@ -46,8 +46,10 @@ def _pair_metrics(pred: np.ndarray, gt: np.ndarray, meta: dict, rest: np.ndarray
 
 @torch.no_grad()
 def evaluate_reconstruction(vq, norm: Normalizer, fs: FeatureSet, body=None, cfg=MetricConfig(),
-                            device="cpu", limit: int | None = None) -> list[dict]:
+                            limit: int | None = None) -> list[dict]:
+    """Runs on the model's own device (the inputs follow the weights)."""
     body = body or make_body_model(BodyModelConfig())
+    device = next(vq.parameters()).device
     rows = []
     for i, gt in enumerate(fs.features[:limit]):
         x = torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None].to(device)

@@ -28,6 +28,7 @@ class MotionModel:
     normalizer: Normalizer
     fps: float
     device: torch.device
+    checkpoints: tuple[dict, dict] = ({}, {})  # which file and step of the VQ and GPT runs
 
     @staticmethod
     def load(vq_dir: Path, gpt_dir: Path, device: str = "cpu") -> "MotionModel":
@@ -37,7 +38,8 @@ class MotionModel:
         enc = load_text_encoder(text["backend"], checkpoint=text.get("checkpoint"), max_tokens=text.get("max_tokens"),
                                 weights=text.get("weights", "fp32"))
         norm = Normalizer.load(Path(vq_dir) / "stats.npz")
-        return MotionModel(vq, gpt, enc, norm, float(vq_conf["fps"]), torch.device(device))
+        return MotionModel(vq, gpt, enc, norm, float(vq_conf["fps"]), torch.device(device),
+                           (vq_conf["checkpoint"], gpt_conf["checkpoint"]))
 
     @torch.no_grad()
     def decode(self, tokens: torch.Tensor, length: int) -> np.ndarray:

@@ -19,6 +19,13 @@ from dataclasses import replace
 from pathlib import Path
 
 
+def _device(args) -> str:
+    """--device, else the first CUDA device when there is one, else the CPU (as training)."""
+    import torch
+
+    return args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+
+
 def _sampling(args):
     from ..models.sampling import SamplingParams
 
@@ -69,7 +76,7 @@ def cmd_generate(args) -> int:
     from ..representation import features_to_params
     from ..skeleton import DEFAULT_REST_JOINTS
 
-    model = MotionModel.load(Path(args.vq), Path(args.gpt), args.device or "cpu")
+    model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
     frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -90,7 +97,7 @@ def cmd_evaluate(args) -> int:
     from ..train.vq_trainer import load_prepared, load_vq
 
     fs, _ = load_prepared(Path(args.data), args.part)
-    vq, _, _ = load_vq(Path(args.vq), args.device or "cpu")
+    vq, _, _ = load_vq(Path(args.vq), _device(args))
     if args.int8_weights:
         from ..export.bundle import fake_quantize_bundle_int8
 
@@ -99,7 +106,7 @@ def cmd_evaluate(args) -> int:
     rows = {"VQ reconstruction": evaluate_reconstruction(vq, norm, fs, limit=args.limit)}
     results = {"VQ reconstruction": summarize(rows["VQ reconstruction"])}
     if args.gpt:
-        model = MotionModel.load(Path(args.vq), Path(args.gpt), args.device or "cpu")
+        model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
         if args.int8_weights:
             fake_quantize_bundle_int8(model.vq, model.gpt)
         reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,

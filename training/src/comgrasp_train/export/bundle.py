@@ -413,6 +413,7 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
         "commands": [" ".join(sys.argv)], "runs": {"vq": str(vq_dir), "gpt": str(gpt_dir)}, "run_configs": runs,
         "data": {k: r.get("data") for k, r in runs.items()}, "git": git_info(Path(__file__).parent),
         "training_metrics": {"vq": _last_metrics(vq_dir), "gpt": _last_metrics(gpt_dir)},
+        "checkpoints": {"vq": model.checkpoints[0], "gpt": model.checkpoints[1]},
     }
     rest = training_rest_skeleton(vq_dir, runs["vq"].get("data"))
     # Round the step and decoder weights to int8 per row in PyTorch too, so the parity

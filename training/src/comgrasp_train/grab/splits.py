@@ -3,7 +3,9 @@
 ``diffgrasp``/``imos``: test s10 (DiffGrasp validates on s9, IMoS on s1); ``saga``: test s9,
 s10; ``paper``: the ComGrasp paper's "8 train / 2 test" subjects (which two is not stated;
 we take s9 and s10, SAGA's choice). DiffGrasp's exclusion of five objects is available as
-``diffgrasp_unseen`` (those objects are dropped from every part).
+``diffgrasp_unseen`` (those objects are dropped from every part). ``synthgrasp`` (ours, the
+default model's): the paper's test subjects plus s8 as the validation subject, so training
+can select checkpoints and stop early without looking at the test subjects.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ SPLITS: dict[str, SplitConfig] = {
     "imos": SplitConfig("imos", test=("s10",), val=("s1",)),
     "saga": SplitConfig("saga", test=("s9", "s10")),
     "paper": SplitConfig("paper", test=("s9", "s10")),
+    "synthgrasp": SplitConfig("synthgrasp", test=("s9", "s10"), val=("s8",)),
     "diffgrasp_unseen": SplitConfig(
         "diffgrasp_unseen", test=("s10",), val=("s9",),
         exclude_objects=("apple", "toothbrush", "train", "cubelarge", "phone"),

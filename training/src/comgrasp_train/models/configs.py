@@ -120,6 +120,10 @@ class TrainConfig:
     warmup_iters: int = 1000
     total_iters: int = 200_000
     grad_clip: float = 1.0  # 0 = off
+    # Validation on the prepared ``val`` part (when there is one): every val_every steps,
+    # the loss over a fixed draw of val_windows windows; the best weights go to best.pt.
+    val_every: int = 250
+    val_windows: int = 256
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,10 @@
 The text encoder runs once over every unique description (they repeat across sequences),
 then training samples (text embedding, codes) batches. Writes ``<out>/ckpt.pt``
 (resumable) + ``config.json`` (transformer, training, VQ run, text encoder) and a log.
+When the prepared data has a ``val`` part, its mean NLL per token (every sequence from its
+start, first description) is logged as ``val_loss`` beside the training ``loss`` every
+``val_every`` steps, and the weights with the lowest one are kept in ``best.pt`` (early
+stopping by selection; ``load_gpt`` reads it by default).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from ..models.gpt_configs import TransformerConfig
 from ..models.transformer import ComGraspTransformer, stream_nll
 from ..models.vq_losses import make_scheduler
 from ..text_encoder import load_text_encoder
-from .runtime import load_checkpoint, restore, run_training, seed_everything, setup_runtime
+from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .tokens import TokenBatcher, encode_feature_set
 from .vq_trainer import load_prepared, load_vq
 
@@ -30,6 +34,7 @@ class GPTTrainConfig:
     warmup_iters: int = 500
     total_iters: int = 100_000
     grad_clip: float = 1.0
+    val_every: int = 250  # validation NLL on the prepared val part, when there is one (0 = off)
 
     @staticmethod
     def from_dict(d: dict) -> "GPTTrainConfig":
@@ -78,6 +83,11 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
     if encoder.dim != cfg.d_text:
         raise ValueError(f"transformer d_text {cfg.d_text} != text encoder dim {encoder.dim}")
     tokens = encode_feature_set(vq, fs, norm, rt.device)
+    val_batcher = None
+    if (Path(data_dir) / "features_val.npz").is_file() and train.val_every > 0:
+        val_fs, _ = load_prepared(data_dir, "val")
+        val_tokens = encode_feature_set(vq, val_fs, norm, rt.device)
+        val_batcher = TokenBatcher(val_tokens, cfg, embed_texts(encoder, [t[:1] for t in val_tokens.texts]))
     del vq
     batcher = TokenBatcher(tokens, cfg, embed_texts(encoder, tokens.texts))
 
@@ -86,13 +96,14 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
     sched = make_scheduler(opt, train)
     gen = torch.Generator().manual_seed(seed + 1000 * rt.rank)
     ckpt_path = out_dir / "ckpt.pt"
-    step = 0
+    step, best_val = 0, float("inf")
     if resume and ckpt_path.is_file():
         ckpt = load_checkpoint(ckpt_path, rt.device)
         if TransformerConfig.from_dict(ckpt["config"]["transformer"]) != cfg:
             raise ValueError(f"{ckpt_path} was trained with a different transformer config; use a new --out")
         step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
         gen.set_state(ckpt["extra"]["sampler_rng"])
+        best_val = ckpt["extra"].get("best_val", best_val)
     net = model
     if rt.distributed:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[rt.local_rank] if rt.device.type == "cuda" else None)
@@ -114,16 +125,36 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         sched.step()
         return {"loss": loss.detach(), **{f"nll/{n}": v.detach() for n, v in zip(("global", "body", "lhand", "rhand"), per)}}
 
+    names = ("global", "body", "lhand", "rhand")
+
+    @torch.no_grad()
+    def validate():
+        model.eval()
+        n = len(val_batcher.ts.codes)
+        tot, per_tot, count = 0.0, torch.zeros(4), 0
+        for a in range(0, n, train.batch_size):
+            idx = list(range(a, min(n, a + train.batch_size)))
+            emb, codes = val_batcher.fixed(idx)
+            codes = codes.to(rt.device)
+            loss, per = stream_nll(model(emb.to(rt.device), codes[:, :-1]), codes, cfg.pad_ids)
+            tot += float(loss) * len(idx)
+            per_tot += torch.stack(per).float().cpu() * len(idx)
+            count += len(idx)
+        model.train()
+        return {"val_loss": tot / count, **{f"val_nll/{k}": float(v) / count for k, v in zip(names, per_tot)}}
+
     return run_training(
         rt, step=step, end=min(train.total_iters, stop_after or train.total_iters), total=train.total_iters,
         desc="train-gpt", step_fn=one_step, out_dir=out_dir, model=model, optimizer=opt, scheduler=sched,
-        config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every, progress=progress)
+        config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every, progress=progress,
+        validate=validate if val_batcher is not None else None, val_every=train.val_every, best_val=best_val)
 
 
-def load_gpt(run_dir: Path, device="cpu"):
-    """(model in eval mode, TransformerConfig, checkpoint config dict) from a GPT run directory."""
-    ckpt = load_checkpoint(Path(run_dir) / "ckpt.pt", device)
+def load_gpt(run_dir: Path, device="cpu", which: str = "best"):
+    """(model in eval mode, TransformerConfig, checkpoint config dict) from a GPT run directory;
+    ``which``: ``best`` (``best.pt`` when the run validated, else the last) or ``last``."""
+    ckpt = load_weights(Path(run_dir), which, device)
     cfg = TransformerConfig.from_dict(ckpt["config"]["transformer"])
     model = ComGraspTransformer(cfg).to(device)
     model.load_state_dict(ckpt["model"])
-    return model.eval(), cfg, ckpt["config"]
+    return model.eval(), cfg, {**ckpt["config"], "checkpoint": {"file": ckpt["which"], "step": ckpt["step"]}}

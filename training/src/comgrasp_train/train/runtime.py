@@ -89,6 +89,30 @@ def save_checkpoint(path: Path, *, model: torch.nn.Module, optimizer, scheduler,
     (path.parent / "config.json").write_text(json.dumps(config, indent=2))
 
 
+BEST = "best.pt"  # weights of the step with the lowest validation loss (no optimizer state)
+
+
+def save_weights(path: Path, *, model: torch.nn.Module, step: int, config: dict, metrics: dict) -> None:
+    """Atomic write of the model's weights alone (a fraction of a resumable checkpoint)."""
+    module = model.module if hasattr(model, "module") else model
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": module.state_dict(), "step": step, "config": config, "metrics": metrics}, tmp)
+    os.replace(tmp, path)
+
+
+def load_weights(run_dir: Path, which: str = "best", map_location="cpu") -> dict:
+    """The checkpoint to use a trained run with: ``best`` is ``best.pt`` (the lowest
+    validation loss) when the run validated, else the last ``ckpt.pt``; ``last`` is ``ckpt.pt``.
+    Either way the dict has ``model``, ``config`` and ``step``; ``which`` says what was read."""
+    if which not in ("best", "last"):
+        raise ValueError(f"which must be 'best' or 'last', got {which!r}")
+    run_dir = Path(run_dir)
+    path = run_dir / BEST if which == "best" and (run_dir / BEST).is_file() else run_dir / "ckpt.pt"
+    ckpt = load_checkpoint(path, map_location)
+    ckpt["which"] = path.name
+    return ckpt
+
+
 def load_checkpoint(path: Path, map_location="cpu") -> dict:
     if not Path(path).is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
@@ -109,11 +133,16 @@ def restore(ckpt: dict, *, model: torch.nn.Module, optimizer=None, scheduler=Non
 
 def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, step_fn, out_dir: Path,
                  model, optimizer, scheduler, config: dict, gen: torch.Generator, log_every: int,
-                 ckpt_every: int, progress: bool, postfix=None) -> dict:
+                 ckpt_every: int, progress: bool, postfix=None, validate=None, val_every: int = 0,
+                 best_val: float = float("inf")) -> dict:
     """The loop both trainers share: ``step_fn()`` runs one optimisation step and returns its
     metrics (floats or 0-d tensors); every ``log_every`` steps they go to ``log.jsonl`` and the
     progress bar, every ``ckpt_every`` steps and at ``end`` a resumable checkpoint is written
-    (with the batch sampler's RNG). Returns the last logged metrics."""
+    (with the batch sampler's RNG). With ``validate`` (returns metrics including ``val_loss``;
+    must not touch the training RNGs), every ``val_every`` steps and at ``end`` its metrics are
+    logged with the step's and the weights go to ``best.pt`` when ``val_loss`` is the lowest
+    so far (``best_val``, carried in the checkpoint across resumes). Returns the last logged
+    metrics."""
     import time
 
     log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
@@ -130,8 +159,15 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
             step += 1
             if bar is not None:
                 bar.update(1)
-            if log is not None and (step % log_every == 0 or step == end):
-                metrics = {k: float(v) for k, v in m.items()}
+            val = {}
+            if validate is not None and rt.is_main and val_every > 0 and (step % val_every == 0 or step == end):
+                val = {k: float(v) for k, v in validate().items()}
+                if val["val_loss"] < best_val:
+                    best_val = val["val_loss"]
+                    save_weights(out_dir / BEST, model=model, step=step, config=config, metrics=val)
+                val["best_val_loss"] = best_val
+            if log is not None and (step % log_every == 0 or step == end or val):
+                metrics = {k: float(v) for k, v in m.items()} | val
                 metrics.update(step=step, lr=scheduler.get_last_lr()[0], seconds=time.time() - t0)
                 log.write(json.dumps(metrics) + "\n")
                 log.flush()
@@ -139,7 +175,7 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
                     bar.set_postfix(postfix(metrics) if postfix else {"loss": f"{metrics['loss']:.3f}"})
             if rt.is_main and (step % ckpt_every == 0 or step == end):
                 save_checkpoint(out_dir / "ckpt.pt", model=model, optimizer=optimizer, scheduler=scheduler,
-                                step=step, config=config, extra={"sampler_rng": gen.get_state()})
+                                step=step, config=config, extra={"sampler_rng": gen.get_state(), "best_val": best_val})
     finally:
         if bar is not None:
             bar.close()

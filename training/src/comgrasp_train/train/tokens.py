@@ -50,20 +50,28 @@ class TokenBatcher:
         """(B, d_text) text embeddings and (B, T, 4) targets (codes, End, Pad)."""
         idx = torch.randint(0, len(self.ts.codes), (batch_size,), generator=gen).tolist()
         l_max = self.cfg.l_max
-        rows, texts = [], []
+        starts, texts = [], []
         for i in idx:
-            c = torch.from_numpy(self.ts.codes[i])
-            if len(c) > l_max:
-                start = int(torch.randint(0, len(c) - l_max + 1, (1,), generator=gen))
-                c = c[start:start + l_max]
-                ended = start + l_max == len(self.ts.codes[i])
-            else:
-                ended = True
-            rows.append(torch.cat([c, self.end[None]]) if ended else c)
+            n = len(self.ts.codes[i])
+            starts.append(int(torch.randint(0, n - l_max + 1, (1,), generator=gen)) if n > l_max else 0)
             variants = self.ts.texts[i]
             texts.append(variants[int(torch.randint(0, len(variants), (1,), generator=gen))])
+        return self._assemble(idx, starts, texts)
+
+    def fixed(self, idx: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The same, without randomness (validation): each sequence from its start, with its
+        first description."""
+        return self._assemble(idx, [0] * len(idx), [self.ts.texts[i][0] for i in idx])
+
+    def _assemble(self, idx: list[int], starts: list[int], texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+        l_max = self.cfg.l_max
+        rows = []
+        for i, start in zip(idx, starts):
+            c = torch.from_numpy(self.ts.codes[i])[start:start + l_max]
+            ended = start + len(c) == len(self.ts.codes[i])
+            rows.append(torch.cat([c, self.end[None]]) if ended else c)
         T = max(len(r) for r in rows)
-        out = self.pad.expand(batch_size, T, 4).clone()
+        out = self.pad.expand(len(rows), T, 4).clone()
         for b, r in enumerate(rows):
             out[b, :len(r)] = r
         return torch.stack([self.embed[t] for t in texts]), out

@@ -3,6 +3,9 @@
 Reads ``<data>/features_train.npz`` + ``<data>/stats.npz`` (from ``comgrasp-data prepare``),
 writes ``<out>/ckpt.pt`` (resumable, every ``ckpt_every`` steps and at the end) with
 ``config.json`` beside it, and ``<out>/log.jsonl`` (one line of metrics per log step).
+When the prepared data has a ``val`` part, the loss on a fixed set of its windows is logged
+(``val_loss``, ``val_joint_mm``, per component ``val_joint_mm/<name>``) and the best weights
+are kept in ``<out>/best.pt``, which ``load_vq`` reads by default.
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ import torch
 
 from ..dataset import FeatureSet
 from ..models.configs import VQConfig
-from ..models.vq_losses import make_optimizer, make_scheduler, vq_training_step
+from ..models.vq_losses import compute_loss, make_optimizer, make_scheduler, vq_training_step
 from ..models.vqvae import build_vq
 from ..normalization import Normalizer
 from ..representation import features_to_joints
-from .runtime import load_checkpoint, restore, run_training, seed_everything, setup_runtime
+from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .windows import WindowSampler
 
 
@@ -54,7 +57,7 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
     opt = make_optimizer(model, cfg)
     sched = make_scheduler(opt, cfg)
     gen = torch.Generator().manual_seed(seed + 1000 * rt.rank)
-    step = 0
+    step, best_val = 0, float("inf")
     if resume and ckpt_path.is_file():
         ckpt = load_checkpoint(ckpt_path, rt.device)
         saved = VQConfig.from_dict(ckpt["config"]["vq"])
@@ -63,6 +66,7 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         cfg = replace(cfg, model=saved.model)
         step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
         gen.set_state(ckpt["extra"]["sampler_rng"])
+        best_val = ckpt["extra"].get("best_val", best_val)
     if rt.distributed:
         model = torch.nn.parallel.DistributedDataParallel(model, device_ids=[rt.local_rank] if rt.device.type == "cuda" else None)
 
@@ -84,18 +88,42 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         return vq_training_step(model, opt, x, lambda f: features_to_joints(f, rest_b), cfg, denorm, sched)
 
     n_comp = len(cfg.model.components)
+    validate = None
+    if (Path(data_dir) / "features_val.npz").is_file() and cfg.train.val_every > 0:
+        val_fs, _ = load_prepared(data_dir, "val")
+        # One fixed draw (its own generator), so every validation sees the same windows.
+        val_x, val_rest = WindowSampler(val_fs, norm, cfg.train.window_frames).batch(
+            cfg.train.val_windows, torch.Generator().manual_seed(12345))
+        core = model.module if rt.distributed else model
+
+        @torch.no_grad()
+        def validate():
+            core.eval()
+            metrics = {}
+            for a in range(0, len(val_x), cfg.train.batch_size):
+                x = val_x[a:a + cfg.train.batch_size].to(rt.device)
+                rb = val_rest[a:a + cfg.train.batch_size, None].to(rt.device)
+                _, m = compute_loss(core, x, lambda f: features_to_joints(f, rb), cfg, denorm)
+                for k, v in m.items():
+                    metrics[k] = metrics.get(k, 0.0) + float(v) * len(x) / len(val_x)
+            core.train()
+            out = {"val_loss": metrics["loss"], "val_joint_mm": 1000 * metrics["joint"] / n_comp}
+            out.update({f"val_joint_mm/{c.name}": 1000 * metrics[f"joint/{c.name}"] for c in cfg.model.components})
+            return out
+
     return run_training(
         rt, step=step, end=min(cfg.train.total_iters, stop_after or cfg.train.total_iters),
         total=cfg.train.total_iters, desc="train-vq", step_fn=one_step, out_dir=out_dir, model=model,
         optimizer=opt, scheduler=sched, config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every,
-        progress=progress,
+        progress=progress, validate=validate, val_every=cfg.train.val_every, best_val=best_val,
         postfix=lambda m: {"loss": f"{m['loss']:.3f}", "joint_mm": f"{1000 * m['joint'] / n_comp:.1f}"})
 
 
-def load_vq(run_dir: Path, device: str | torch.device = "cpu"):
-    """(model in eval mode, VQConfig, checkpoint config dict) from a VQ run directory."""
-    ckpt = load_checkpoint(Path(run_dir) / "ckpt.pt", device)
+def load_vq(run_dir: Path, device: str | torch.device = "cpu", which: str = "best"):
+    """(model in eval mode, VQConfig, checkpoint config dict) from a VQ run directory;
+    ``which``: ``best`` (``best.pt`` when the run validated, else the last) or ``last``."""
+    ckpt = load_weights(Path(run_dir), which, device)
     cfg = VQConfig.from_dict(ckpt["config"]["vq"])
     model = build_vq(cfg.model, device)
     model.load_state_dict(ckpt["model"])
-    return model.eval(), cfg, ckpt["config"]
+    return model.eval(), cfg, {**ckpt["config"], "checkpoint": {"file": ckpt["which"], "step": ckpt["step"]}}
