@@ -8,16 +8,23 @@ sequence's rest joints (for the FK joint loss) and its descriptions.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from .body_model import BodyModelConfig, make_body_model
-from .grab.reader import LoadSummary, load_dataset
+from .grab.reader import GrabFormatError, LoadSummary, load_sequence, split_files
+from .parallel import parallel_map
 from .grab.splits import SplitConfig
+from .grab.paraphrase import Meaning
+from .grab.paraphrase import paraphrases as paraphrase
 from .grab.text import describe, hands_from_contact
 from .representation import build_features, resample_sequence
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -54,20 +61,56 @@ class FeatureSet:
 def prepare_features(
     root: str | Path, split: SplitConfig | None, part: str, fps: float = 30.0,
     body: BodyModelConfig | None = None, mention_hands: bool = False, limit: int | None = None,
-    progress: bool = False,
+    progress: bool = False, workers: int = 1, paraphrases: int = 0,
 ) -> tuple[FeatureSet, LoadSummary]:
-    """Read a split of a GRAB-layout dataset and build its feature set."""
-    model = make_body_model(body)
-    seqs, summary = load_dataset(root, split, part, limit=limit, progress=progress)
-    out = FeatureSet(fps)
-    for seq in seqs:
-        subject = model.subject(seq.gender, seq.vtemp)
-        s = resample_sequence(seq, fps)
-        out.features.append(build_features(s, subject.rest_joints))
-        out.rest_joints.append(subject.rest_joints.numpy().astype(np.float32))
-        out.texts.append(describe(s.gender, s.intent, s.obj_name, s.contact, mention_hands))
-        out.meta.append({
-            "name": seq.name, "subject": seq.sbj_id, "gender": seq.gender, "object": seq.obj_name,
-            "intent": seq.intent, "object_mesh": seq.object_mesh, "vtemp": seq.vtemp, **hands_from_contact(s.contact),
-        })
+    """Read a split of a GRAB-layout dataset and build its feature set, one file per job in
+    ``workers`` processes (the result does not depend on their number). Bad files are
+    skipped with a logged message and counted, as ``load_dataset`` does.
+
+    Each sequence's texts are the paper's template variants (the first is the canonical
+    one, which ``grab.text_parse`` reads back), then ``paraphrases`` training wordings of
+    ``grab.paraphrase`` (seeded by the sequence name)."""
+    files = split_files(root, split, part, limit)
+    job = partial(_prepare_one, root=str(root), fps=fps, body=body, mention_hands=mention_hands,
+                  paraphrases=paraphrases)
+    out, summary = FeatureSet(fps), LoadSummary()
+    for f, r in zip(files, parallel_map(job, files, workers, progress=progress, desc=f"preparing {part}", unit="seq")):
+        if isinstance(r, str):
+            summary.skipped += 1
+            summary.problems.append(r)
+            log.warning("skipping %s", r)
+            continue
+        summary.loaded += 1
+        for key, value in zip(("features", "rest_joints", "texts", "meta"), r):
+            getattr(out, key).append(value)
     return out, summary
+
+
+_BODY_MODELS: dict[str, object] = {}  # per process: a worker builds its body model once
+
+
+def _body_model(body: BodyModelConfig | None):
+    key = repr(body)
+    if key not in _BODY_MODELS:
+        _BODY_MODELS[key] = make_body_model(body)
+    return _BODY_MODELS[key]
+
+
+def _prepare_one(file: Path, root: str, fps: float, body: BodyModelConfig | None, mention_hands: bool,
+                 paraphrases: int):
+    """(features, rest joints, texts, meta) of one file, or the problem as a string."""
+    try:
+        seq = load_sequence(file, root)
+    except GrabFormatError as e:
+        return str(e)
+    subject = _body_model(body).subject(seq.gender, seq.vtemp)
+    s = resample_sequence(seq, fps)
+    meta = {
+        "name": seq.name, "subject": seq.sbj_id, "gender": seq.gender, "object": seq.obj_name,
+        "intent": seq.intent, "object_mesh": seq.object_mesh, "vtemp": seq.vtemp, **hands_from_contact(s.contact),
+    }
+    texts = describe(s.gender, s.intent, s.obj_name, s.contact, mention_hands)
+    if paraphrases:
+        meaning = Meaning.of(meta if mention_hands else {**meta, "hands": None, "first": None, "last": None})
+        texts += [t for t in paraphrase(meaning, paraphrases, seq.name) if t not in texts]
+    return (build_features(s, subject.rest_joints), subject.rest_joints.numpy().astype(np.float32), texts, meta)

@@ -69,7 +69,8 @@ def cmd_prepare(args) -> int:
         if not split.subjects(part):
             continue
         fs, summary = prepare_features(args.root, split, part, fps=args.fps, body=_body_cfg(args),
-                                       mention_hands=args.hands, progress=not args.quiet)
+                                       mention_hands=args.hands, progress=not args.quiet, workers=args.workers,
+                                       paraphrases=args.paraphrases)
         print(f"[{part}] {summary}")
         if part == "train":
             stats = Normalizer.fit(fs.features)
@@ -180,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--split", default="diffgrasp")
     s.add_argument("--fps", type=float, default=30.0)
     s.add_argument("--hands", action="store_true", help="name the hand(s) in the texts (SynthGrasp)")
+    s.add_argument("--workers", type=int, default=2, help="processes reading and converting files")
+    s.add_argument("--paraphrases", type=int, default=16,
+                   help="training wordings per sequence beyond the paper's templates (grab.paraphrase); 0: templates only")
     body_args(s)
     s.set_defaults(fn=cmd_prepare)
 

@@ -211,18 +211,23 @@ def list_sequence_files(root: str | Path, subjects: list[str] | None = None) -> 
     return [f for d in dirs for f in sorted(d.glob("*.npz"))]
 
 
+def split_files(root: str | Path, split: SplitConfig | None = None, part: str = "train",
+                limit: int | None = None) -> list[Path]:
+    """The sequence files of one split part, in a fixed order."""
+    subjects = None if split is None or part == "all" else split.subjects(part)
+    files = list_sequence_files(root, subjects)
+    if split is not None and part != "all":
+        files = [f for f in files if split.keeps(f.parent.name, f.stem)]
+    return files if limit is None else files[:limit]
+
+
 def load_dataset(
     root: str | Path, split: SplitConfig | None = None, part: str = "train", limit: int | None = None,
     progress: bool = False, keep_vertex_contact: bool = False,
 ) -> tuple[list[GrabSequence], LoadSummary]:
     """Load the files of one split part ('train'|'val'|'test'|'all'); bad files are skipped
     with a logged message and counted, never raised."""
-    subjects = None if split is None or part == "all" else split.subjects(part)
-    files = list_sequence_files(root, subjects)
-    if split is not None and part != "all":
-        files = [f for f in files if split.keeps(f.parent.name, f.stem)]
-    if limit is not None:
-        files = files[:limit]
+    files = split_files(root, split, part, limit)
     summary = LoadSummary()
     seqs: list[GrabSequence] = []
     it = files

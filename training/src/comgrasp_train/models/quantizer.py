@@ -98,12 +98,22 @@ class EMAResetQuantizer(nn.Module):
             return torch.full_like(n_vectors, self.reset_threshold)
         return self.reset_threshold * n_vectors / self.codebook_size
 
+    def _restart_count(self, threshold: torch.Tensor) -> torch.Tensor:
+        """EMA count a new or reset code starts from. Relative mode: twice the threshold, so
+        a code nobody picks is found dead after ln 2 / (1 - decay) steps (69 at 0.99) rather
+        than after hundreds; absolute mode: T2M-GPT's (1 at init, the threshold at a reset)."""
+        return (2.0 * threshold).clamp_min(1e-3) if self.reset_mode == "relative" else threshold.clamp_min(1e-3)
+
     @torch.no_grad()
     def _initialise(self, x: torch.Tensor) -> None:
         rows = self._broadcast(self._sample_rows(x, self.codebook_size))
+        n = torch.tensor(float(x.shape[0]), device=x.device)
+        if _distributed():
+            dist.all_reduce(n)
+        count = self._restart_count(self.dead_threshold(n)) if self.reset_mode == "relative" else torch.ones_like(n)
         self.codebook.copy_(rows)
-        self.ema_sum.copy_(rows)
-        self.ema_count.fill_(1.0)
+        self.ema_sum.copy_(rows * count)
+        self.ema_count.fill_(float(count))
         self.initialised.fill_(True)
 
     @torch.no_grad()
@@ -118,9 +128,7 @@ class EMAResetQuantizer(nn.Module):
         threshold = self.dead_threshold(counts.sum())
         dead = self.ema_count < threshold
         fresh = self._broadcast(self._sample_rows(x, self.codebook_size))
-        # A restarted code starts just above the threshold, so it has a few steps to win
-        # vectors before it can be declared dead again.
-        restart = (2.0 * threshold).clamp_min(1e-3)
+        restart = self._restart_count(threshold)
         self.ema_sum.copy_(torch.where(dead[:, None], fresh * restart, self.ema_sum))
         self.ema_count.copy_(torch.where(dead, restart.expand_as(self.ema_count), self.ema_count))
         self.codebook.copy_(self.ema_sum / self.ema_count[:, None])

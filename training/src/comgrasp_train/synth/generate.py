@@ -16,7 +16,6 @@ and position and the 15 finger joints' local axis-angles.
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass
@@ -24,13 +23,12 @@ from functools import lru_cache, partial
 from pathlib import Path
 
 import numpy as np
-import torch
 import trimesh
-from tqdm import tqdm
 
 from .. import skeleton as sk
 from ..grab.format import write_grab_npz
 from ..objects.catalogue import CATALOGUE, ObjectSpec, write_object_meshes
+from ..parallel import parallel_map
 from .ik import matrix_to_rotvec
 from .intents import make_plan
 from .motion import synthesize
@@ -156,10 +154,6 @@ def generate_sequence(spec: SequenceSpec, root: str | Path, seed: int) -> dict:
             "attempts": attempt + 1}
 
 
-def _init_worker() -> None:
-    torch.set_num_threads(1)  # one process per core; the tensors are small, threads only contend
-
-
 def generate_dataset(out_dir: Path, n_sequences: int, seed: int, workers: int = 2, progress: bool = True) -> dict:
     """Write a SynthGrasp dataset of ``n_sequences`` under ``out_dir`` with ``workers``
     processes (1: in this process). Existing files of the same names are overwritten,
@@ -176,23 +170,7 @@ def generate_dataset(out_dir: Path, n_sequences: int, seed: int, workers: int = 
     write_subject_files(out_dir)
     specs = plan_dataset(n_sequences, seed)
     job = partial(generate_sequence, root=str(out_dir), seed=seed)
-    rows = []
-    with tqdm(total=len(specs), disable=not progress, unit="seq", desc="SynthGrasp") as bar:
-        if workers <= 1:
-            threads = torch.get_num_threads()
-            _init_worker()
-            try:
-                for spec in specs:
-                    rows.append(job(spec))
-                    bar.update()
-            finally:
-                torch.set_num_threads(threads)
-        else:
-            with mp.get_context("spawn").Pool(workers, initializer=_init_worker) as pool:
-                for row in pool.imap_unordered(job, specs):
-                    rows.append(row)
-                    bar.update()
-    rows.sort(key=lambda r: r["index"])
+    rows = list(parallel_map(job, specs, workers, progress=progress, desc="SynthGrasp", unit="seq"))
     counts = {key: dict(sorted(Counter(r[field] for r in rows).items()))
               for key, field in (("intent", "intent"), ("object", "obj_name"), ("hands", "mode"),
                                  ("subject", "sbj_id"), ("gender", "gender"))}
