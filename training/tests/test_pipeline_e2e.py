@@ -33,6 +33,15 @@ def test_train_generate_evaluate(prepared, tmp_path):
                        "--text-weights", "int8"]) == 0
     log = [json.loads(line) for line in (gpt / "log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 6 and np.isfinite(log[-1]["loss"])
+    # The split has a val subject (s9): both runs validate at their end and keep best.pt,
+    # the GPT's validation NLL per stream beside the training NLL.
+    assert np.isfinite(log[-1]["val_loss"]) and {f"val_nll/{n}" for n in ("global", "body", "lhand", "rhand")} <= set(log[-1])
+    vq_log = [json.loads(line) for line in (vq / "log.jsonl").read_text().splitlines()]
+    assert np.isfinite(vq_log[-1]["val_loss"]) and vq_log[-1]["val_joint_mm/body"] >= 0
+    assert {"used/body", "resets/body", "perplexity/body"} <= set(vq_log[-1])
+    for run in (vq, gpt):
+        best = torch.load(run / "best.pt", weights_only=False)
+        assert "optimizer" not in best and best["step"] == 6 and best["metrics"]["val_loss"] == best["metrics"]["val_loss"]
     motion = tmp_path / "m.npz"
     assert train_main(["generate", "--vq", str(vq), "--gpt", str(gpt), "--text", "A man lifts the mug.",
                        "--out", str(motion), "--max-len", "3", "--min-len", "1", "--seed", "3"]) == 0
@@ -41,9 +50,11 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert m["fullpose"].shape == (len(m["features"]), 165)
     table = tmp_path / "eval" / "table.md"
     assert train_main(["evaluate", "--data", str(prepared), "--vq", str(vq), "--gpt", str(gpt), "--out", str(table),
-                       "--repeats", "2", "--max-len", "3", "--min-len", "1"]) == 0
+                       "--repeats", "2", "--max-len", "3", "--min-len", "1", "--prompts", "template,held_out"]) == 0
     res = json.loads(table.with_suffix(".json").read_text())
-    assert set(res) == {"VQ reconstruction", "generation (2 repeats)", "ground truth (prompt checks)"}
+    assert set(res) == {"VQ reconstruction", "generation (2 repeats)", "generation, held-out prompts (2 repeats)",
+                        "ground truth (prompt checks)"}
+    assert res["generation, held-out prompts (2 repeats)"]["intent_grasp"]["n"] == 2
     assert res["VQ reconstruction"]["mpjpe_mm"]["n"] == 2 and res["generation (2 repeats)"]["mpjpe_mm"]["n"] == 2
     for row in ("generation (2 repeats)", "ground truth (prompt checks)"):
         assert 0 <= res[row]["intent_ok"]["mean"] <= 1 and "intent_grasp" in res[row]
@@ -56,6 +67,7 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert train_main(["export", "--vq", str(vq), "--gpt", str(gpt), "--out", str(bundle),
                        "--max-len", "3", "--min-len", "1"]) == 0
     man = json.loads((bundle / "manifest.json").read_text())
+    assert man["provenance"]["checkpoints"] == {"vq": {"file": "best.pt", "step": 6}, "gpt": {"file": "best.pt", "step": 6}}
     assert man["provenance"]["text_encoder_weights"]["tensors"] > 0
     assert man["provenance"]["run_configs"]["gpt"]["text"]["weights"] == "int8"
     rest = np.load(prepared / "features_train.npz")["rest_joints"].mean(axis=0)

@@ -21,7 +21,8 @@ import torch
 
 from .body_model import BodyModelConfig, make_body_model
 from .dataset import FeatureSet
-from .intent_check import check_feature_set, check_features
+from .grab.paraphrase import Meaning, paraphrases
+from .intent_check import check_feature_set, check_features, intent_of
 from .metrics import METRIC_KEYS, MetricConfig, compute_metrics, sample_from_pose, summarize, summarize_repeats
 from .models.sampling import SamplingParams
 from .models.vqvae import fit_to_tokens
@@ -61,19 +62,36 @@ def evaluate_reconstruction(vq, norm: Normalizer, fs: FeatureSet, body=None, cfg
     return rows
 
 
+PROMPTS = ("template", "held_out")
+
+
+def prompt_for(fs: FeatureSet, i: int, prompts: str = "template") -> str:
+    """The prompt a test sequence is generated from: its canonical template text, or one
+    wording of ``grab.paraphrase``'s held-out set (phrasings no training text uses)."""
+    if prompts == "template":
+        return fs.texts[i][0]
+    if prompts == "held_out":
+        return paraphrases(Meaning.of(fs.meta[i]), 1, fs.meta[i].get("name", i), held_out=True)[0]
+    raise ValueError(f"prompts must be one of {PROMPTS}, got {prompts!r}")
+
+
 def evaluate_generation(model, fs: FeatureSet, repeats: int = 3, params: SamplingParams = SamplingParams(),
                         seed: int = 0, body=None, cfg=MetricConfig(), limit: int | None = None,
-                        batch: int = 32) -> list[list[dict]]:
+                        batch: int = 32, prompts: str = "template") -> list[list[dict]]:
+    """Generation from each test sequence's prompt (``prompt_for``), ``repeats`` seeds; the
+    prompt checks read the sequence's own intent, hand(s) and object (``intent_of``)."""
     body = body or make_body_model(BodyModelConfig())
     n = len(fs.features[:limit])
+    texts = [prompt_for(fs, i, prompts) for i in range(n)]
     out = []
     for r in range(repeats):
         rows = []
         for a in range(0, n, batch):
             idx = range(a, min(n, a + batch))
-            preds = model.generate([fs.texts[i][0] for i in idx], params, seed=seed + 100_003 * r + a)
+            preds = model.generate([texts[i] for i in idx], params, seed=seed + 100_003 * r + a)
             rows += [{**_pair_metrics(p, fs.features[i], fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg),
-                      **check_features(p, fs.texts[i][0], fs.meta[i], fs.rest_joints[i], fs.fps).row()}
+                      **check_features(p, texts[i], fs.meta[i], fs.rest_joints[i], fs.fps,
+                                       intent=intent_of(fs.meta[i])).row()}
                      for p, i in zip(preds, idx)]
         out.append(rows)
     return out
@@ -84,7 +102,8 @@ def evaluate_ground_truth_intent(fs: FeatureSet, limit: int | None = None) -> li
     return [r.row() for r in check_feature_set(fs, limit)]
 
 
-def write_report(results: dict[str, dict], path_md: Path, extra_keys=("contact_accuracy", "intent_ok")) -> None:
+def write_report(results: dict[str, dict], path_md: Path,
+                 extra_keys=("contact_accuracy", "intent_ok", "intent_grasp", "foot_sliding_gt_mm")) -> None:
     """results: setting -> {key: Summary}. Writes Markdown and the JSON beside it."""
     keys = list(METRIC_KEYS) + [k for k in extra_keys if any(k in r for r in results.values())]
     lines = ["| setting | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]

@@ -50,7 +50,7 @@ _ARMS = ((16, 18, sk.LEFT_WRIST), (17, 19, sk.RIGHT_WRIST))  # shoulder, elbow, 
 _HIPS = (1, 2)  # left, right
 
 __all__ = ["CheckConfig", "CheckResult", "Intent", "MotionTrack", "UNKNOWN", "check_feature_set", "check_features",
-           "check_motion", "intent_rates", "parse_prompt", "track_from_features"]
+           "check_motion", "intent_of", "intent_rates", "parse_prompt", "track_from_features"]
 
 
 @dataclass
@@ -270,10 +270,20 @@ def track_from_features(x: np.ndarray, rest_joints: np.ndarray, fps: float,
     return MotionTrack(joints, p["object_rotmat"], p["object_transl"], p["contact"], float(fps), object_sdf)
 
 
+def intent_of(meta: dict) -> Intent:
+    """What a prepared sequence's prompts ask for, from its meta rather than its wording (for
+    paraphrases the parser does not read): its intent, object and hand(s) (a pass: giver>taker)."""
+    hands = meta.get("hands")
+    if meta.get("intent") == "pass" and meta.get("first") and meta.get("last") and meta["first"] != meta["last"]:
+        hands = f"{meta['first']}>{meta['last']}"
+    return Intent(meta.get("intent"), hands, meta.get("object"))
+
+
 def check_features(x: np.ndarray, text: str, meta: dict, rest_joints: np.ndarray, fps: float,
-                   cfg: CheckConfig = CheckConfig()) -> CheckResult:
-    """Check one (T, 335) feature sequence against its prompt."""
-    return check_motion(track_from_features(x, rest_joints, fps, object_sdf_for(meta)), parse_prompt(text), cfg)
+                   cfg: CheckConfig = CheckConfig(), intent: Intent | None = None) -> CheckResult:
+    """Check one (T, 335) feature sequence against its prompt (or ``intent``, when given)."""
+    return check_motion(track_from_features(x, rest_joints, fps, object_sdf_for(meta)),
+                        parse_prompt(text) if intent is None else intent, cfg)
 
 
 def intent_rates(results: list[CheckResult]) -> dict[str, float]:

@@ -42,6 +42,8 @@ def cmd_train_vq(args) -> int:
     t = replace(t, total_iters=args.iters or t.total_iters, batch_size=args.batch or t.batch_size,
                 warmup_iters=min(t.warmup_iters, max(1, (args.iters or t.total_iters) // 10)),
                 lr=args.lr or t.lr, window_frames=args.window or t.window_frames)
+    if args.lambda_joint is not None:
+        cfg = replace(cfg, loss=replace(cfg.loss, lambda_joint=args.lambda_joint))
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
                  ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after)
@@ -109,10 +111,12 @@ def cmd_evaluate(args) -> int:
         model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
         if args.int8_weights:
             fake_quantize_bundle_int8(model.vq, model.gpt)
-        reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
-                                   limit=args.limit)
-        rows["generation"] = reps
-        results[f"generation ({args.repeats} repeats)"] = summarize_repeats(reps)
+        for prompts in args.prompts.split(","):
+            reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
+                                       limit=args.limit, prompts=prompts)
+            name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
+            rows[name] = reps
+            results[f"{name} ({args.repeats} repeats)"] = summarize_repeats(reps)
         results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs, args.limit))
     write_report(results, Path(args.out))
     if args.rows:
@@ -164,6 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iters", type=int, default=None)
     s.add_argument("--batch", type=int, default=None)
     s.add_argument("--lr", type=float, default=None)
+    s.add_argument("--lambda-joint", type=float, default=None,
+                   help="weight of the FK joint L1 (metres) against the normalized parameter L1 (default 1.0)")
     pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_vq)
@@ -204,6 +210,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--int8-weights", action="store_true",
                    help="round the Transformer's and decoders' weights to int8 per row first, exactly as "
                         "`export --int8-weights` stores them (the model of the int8 bundle)")
+    s.add_argument("--prompts", default="template",
+                   help="comma list: template (each test sequence's canonical text) and/or held_out "
+                        "(a wording from grab.paraphrase's held-out set)")
     s.add_argument("--rows", action="store_true",
                    help="also write every sequence's metrics to OUT's stem + .rows.json (same order, same seeds)")
     s.add_argument("--out", required=True)
