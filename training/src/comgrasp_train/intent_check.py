@@ -50,7 +50,7 @@ _ARMS = ((16, 18, sk.LEFT_WRIST), (17, 19, sk.RIGHT_WRIST))  # shoulder, elbow, 
 _HIPS = (1, 2)  # left, right
 
 __all__ = ["CheckConfig", "CheckResult", "Intent", "MotionTrack", "UNKNOWN", "check_feature_set", "check_features",
-           "check_motion", "intent_of", "intent_rates", "parse_prompt", "track_from_features"]
+           "check_motion", "intent_of", "intent_rates", "parse_prompt", "track_from_engine", "track_from_features"]
 
 
 @dataclass
@@ -268,6 +268,20 @@ def track_from_features(x: np.ndarray, rest_joints: np.ndarray, fps: float,
     joints = features_to_joints(torch.as_tensor(np.asarray(x), dtype=torch.float64), rest).numpy()
     p = features_to_params(x, rest)
     return MotionTrack(joints, p["object_rotmat"], p["object_transl"], p["contact"], float(fps), object_sdf)
+
+
+def track_from_engine(frames: dict, object_sdf: Callable[[np.ndarray], np.ndarray]) -> MotionTrack:
+    """A track from the engine's own frames: ``comgrasp generate --fk --out motion.npz`` in
+    the native coordinate system (z up, metres; quaternions x, y, z, w)."""
+    from .rotations import quaternion_to_matrix
+
+    if "joint_positions" not in frames:
+        raise ValueError("the engine's frames have no joint_positions: generate them with --fk")
+    q = torch.as_tensor(np.asarray(frames["object_rotation"], np.float64))
+    rot = quaternion_to_matrix(q[..., [3, 0, 1, 2]]).numpy()
+    return MotionTrack(np.asarray(frames["joint_positions"], np.float64), rot,
+                       np.asarray(frames["object_translation"], np.float64),
+                       np.asarray(frames["contact"]).astype(bool), float(frames["fps"]), object_sdf)
 
 
 def intent_of(meta: dict) -> Intent:

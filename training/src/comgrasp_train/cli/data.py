@@ -130,6 +130,33 @@ def cmd_check_intent(args) -> int:
     return 0
 
 
+def cmd_check_engine(args) -> int:
+    """The prompt checks on the engine's own frames (``comgrasp generate --fk --out F.npz``)."""
+    import numpy as np
+
+    from ..intent_check import check_motion, object_sdf_for, parse_prompt, track_from_engine
+
+    results = []
+    for f in args.files:
+        prompt = args.prompt or str(np.load(f).get("text", ""))
+        intent = parse_prompt(prompt)
+        if not intent.known or intent.object is None:
+            print(f"comgrasp-data check-engine: error: {prompt!r} is not a prompt the checker reads "
+                  "(use a template form, e.g. 'The woman lifts the mug with her left hand.')", file=sys.stderr)
+            return 2
+        with np.load(f) as frames:
+            r = check_motion(track_from_engine(dict(frames), object_sdf_for({"object": intent.object})), intent)
+        results.append({"file": f, "prompt": prompt, "ok": r.ok, "reason": r.reason, **r.row(),
+                        **{k: float(v) for k, v in r.values.items()}})
+        print(f"{'ok  ' if r.ok else 'FAIL'} {f}: {prompt!r}" + (f": {r.reason}" if r.reason else ""))
+    keys = sorted({k for x in results for k in x if k.startswith("intent_")})
+    rates = {k: float(np.mean([x[k] for x in results if k in x])) for k in keys}
+    print("rates: " + ", ".join(f"{k} {v:.3f}" for k, v in rates.items()))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rates": rates, "n": len(results), "results": results}, indent=1))
+    return 0
+
+
 def cmd_render(args) -> int:
     from ..body_model import make_body_model
     from ..grab.reader import load_sequence
@@ -213,6 +240,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--strip", action="store_true", help="one PNG of key frames instead of a GIF")
     body_args(s)
     s.set_defaults(fn=cmd_render)
+
+    s = sub.add_parser("check-engine", help="prompt checks on the engine's frames (comgrasp generate --fk --out F.npz)")
+    s.add_argument("files", nargs="+")
+    s.add_argument("--prompt", default=None, help="the prompt the files were generated from (default: their 'text')")
+    s.add_argument("--json", default=None)
+    s.set_defaults(fn=cmd_check_engine)
 
     s = sub.add_parser("text", help="print the text descriptions of a sequence")
     s.add_argument("file")

@@ -1,0 +1,103 @@
+"""Helpers of scripts/quality_report.sh.
+
+    python scripts/quality_report.py prompts N       N canonical prompts covering every SynthGrasp
+                                                     intent and hand mode (tab: prompt, then meaning)
+    python scripts/quality_report.py bars OUT        OUT/bars.md from OUT/table.json and OUT/engine.json
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from comgrasp_train.grab.text import describe
+from comgrasp_train.synth.generate import combinations
+
+# Issue 15's bars: (label, table row prefix, key, comparison, bound)
+BARS = (
+    ("VQ reconstruction MPJPE (mm)", "VQ reconstruction", "mpjpe_mm", "<=", 15.0),
+    ("VQ reconstruction H-MPJPE (mm)", "VQ reconstruction", "h_mpjpe_mm", "<=", 20.0),
+    ("VQ reconstruction contact accuracy", "VQ reconstruction", "contact_accuracy", ">=", 0.98),
+    ("generation intent_ok, template prompts", "generation (", "intent_ok", ">=", 0.90),
+    ("generation intent_ok, held-out prompts", "generation, held-out prompts", "intent_ok", ">=", 0.80),
+    ("generation: the named hand grasps", "generation (", "intent_grasp", ">=", 0.95),
+    ("generation contact F1", "generation (", "contact_f1", ">=", 0.80),
+)
+
+
+def prompts(n: int) -> list[tuple[str, str]]:
+    """Round-robin over intents, then over each intent's (object, hand mode) combinations."""
+    combos = combinations()
+    out, k = [], 0
+    while len(out) < n and k < 1000:
+        for intent, pairs in combos.items():
+            if len(out) == n or not pairs:
+                continue
+            obj, mode = pairs[(k * 7) % len(pairs)]
+            first, last = (mode.split(">") + [None])[:2] if ">" in mode else (mode, mode)
+            contact = _contact(mode)
+            gender = ("female", "male")[len(out) % 2]
+            out.append((describe(gender, intent, obj, contact, True)[1], f"{intent} {obj} {mode}"))
+        k += 1
+    return out
+
+
+def _contact(mode: str):
+    """(T, 2) contact labels that make ``describe`` name the hand mode."""
+    import numpy as np
+
+    c = np.zeros((4, 2), bool)
+    if mode == "both":
+        c[1:3] = True
+    elif ">" in mode:
+        giver, taker = (0 if s == "left" else 1 for s in mode.split(">"))
+        c[0:2, giver] = True
+        c[1:4, taker] = True
+    else:
+        c[1:3, 0 if mode == "left" else 1] = True
+    return c
+
+
+def bars(out: Path) -> str:
+    table = json.loads((out / "table.json").read_text())
+    lines = ["| bar | measured | target | met |", "|---|---|---|---|"]
+    for label, row, key, op, bound in BARS:
+        rows = [r for name, r in table.items() if name.startswith(row)]
+        if not rows or key not in rows[0]:
+            lines.append(f"| {label} | not measured | {op} {bound} | – |")
+            continue
+        v = rows[0][key]["mean"]
+        met = v <= bound if op == "<=" else v >= bound
+        lines.append(f"| {label} | {v:.3f} ± {rows[0][key]['ci95']:.3f} | {op} {bound} | {'yes' if met else 'no'} |")
+    gen = next((r for name, r in table.items() if name.startswith("generation (")), None)
+    if gen and "foot_sliding_mm" in gen and "foot_sliding_gt_mm" in gen:
+        v, gt = gen["foot_sliding_mm"]["mean"], gen["foot_sliding_gt_mm"]["mean"]
+        bound = 1.5 * gt + 1.0
+        lines.append(f"| generation foot sliding (mm/frame) | {v:.3f} | <= 1.5 x GT ({gt:.3f}) + 1 = {bound:.3f} | "
+                     f"{'yes' if v <= bound else 'no'} |")
+    engine = out / "engine.json"
+    if engine.is_file():
+        e = json.loads(engine.read_text())
+        for k in ("intent_ok", "intent_grasp", "intent_unheld_still"):
+            if k in e["rates"]:
+                lines.append(f"| engine frames: {k} ({e['n']} samples) | {e['rates'][k]:.3f} | – | – |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) == 3 and argv[1] == "prompts":
+        for text, meaning in prompts(int(argv[2])):
+            print(f"{text}\t{meaning}")
+        return 0
+    if len(argv) == 3 and argv[1] == "bars":
+        text = bars(Path(argv[2]))
+        (Path(argv[2]) / "bars.md").write_text(text)
+        print(text)
+        return 0
+    print(__doc__, file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# The default model's quality against issue 15's bars, on PyTorch's output and on the
+# engine's own frames, in one command:
+#   1. `comgrasp-train evaluate` on the held-out SynthGrasp test subjects: VQ reconstruction,
+#      generation from the template prompts and from held-out wordings (grab.paraphrase),
+#      REPEATS seeds each -> $OUT/table.md (+ .json);
+#   2. the release engine (`comgrasp generate --fk`) on ENGINE_PROMPTS prompts covering every
+#      intent and hand mode, SEEDS seeds each, checked by `comgrasp-data check-engine`
+#      -> $OUT/engine.json;
+#   3. $OUT/bars.md: each bar, the measured value and whether it is met.
+# Knobs: RUN (runs/default: vq/ and gpt/), DATA (data/sg3000_prep), BUNDLE (models/default),
+# LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+P=.venv/bin
+RUN=${RUN:-runs/default}
+DATA=${DATA:-data/sg3000_prep}
+BUNDLE=${BUNDLE:-models/default}
+LIMIT=${LIMIT:-100}
+REPEATS=${REPEATS:-2}
+ENGINE_PROMPTS=${ENGINE_PROMPTS:-24}
+SEEDS=${SEEDS:-2}
+OUT=${OUT:-out/quality}
+mkdir -p "$OUT/engine"
+[ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
+if [ ! -f "$OUT/table.json" ]; then
+  $P/comgrasp-train -q evaluate --data "$DATA" --vq "$RUN/vq" --gpt "$RUN/gpt" --out "$OUT/table.md" \
+    --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out
+fi
+[ -x target/release/comgrasp ] || cargo build --release --locked
+results=()
+k=0
+while IFS=$'\t' read -r prompt _meaning; do
+  k=$((k + 1))
+  for s in $(seq "$SEEDS"); do
+    f="$OUT/engine/p${k}_s${s}.npz"
+    target/release/comgrasp generate --bundle "$BUNDLE" --text "$prompt" --seed "$s" --fk --out "$f" >/dev/null
+    $P/comgrasp-data check-engine "$f" --prompt "$prompt" --json "$f.json" >/dev/null
+    results+=("$f.json")
+  done
+done < <($P/python scripts/quality_report.py prompts "$ENGINE_PROMPTS")
+$P/python - "$OUT/engine.json" "${results[@]}" <<'PY'
+import json, sys
+rows = [r for f in sys.argv[2:] for r in json.load(open(f))["results"]]
+keys = sorted({k for r in rows for k in r if k.startswith("intent_")})
+rates = {k: sum(r[k] for r in rows if k in r) / max(1, sum(k in r for r in rows)) for k in keys}
+json.dump({"rates": rates, "n": len(rows), "results": rows}, open(sys.argv[1], "w"), indent=1)
+PY
+$P/python scripts/quality_report.py bars "$OUT"
