@@ -2,25 +2,41 @@
 # Retrain the embedded default model (models/default) from scratch on SynthGrasp.
 # Every stage is skipped when its output exists and every training run resumes from its
 # checkpoint, so an interrupted run continues where it stopped when this is run again.
-# Sizes are environment variables; the values below are the ones models/default was made
-# with (its manifest records the exact configs under provenance).
+# Sizes are environment variables; the defaults are the recipe of issue 15 (the bundle's
+# manifest records the exact configs and commands under provenance):
+#   SEQS=3000        SynthGrasp sequences (seed 1; split synthgrasp: test s9+s10, val s8)
+#   PARAPHRASES=16   training wordings per sequence beyond the templates (grab.paraphrase)
+#   VQ_ITERS=2400    VQ steps (batch 64 x 64 frames = 256 latents per component per step)
+#   VQ_STOP=         pause the VQ at this step (checkpointed; rerun without it to continue)
+#   GPT_ITERS=3000   Transformer steps (batch 64); the lowest validation NLL is kept (best.pt)
+#   GPT_STOP=        pause the GPT at this step
+#   WIDTH=0.5        VQ conv widths x this (0.5: global 128, body 256, hands 192)
+#   WORKERS=2        processes for synth and prepare
 #   bash scripts/train_default.sh            # CPU or the first CUDA device
 set -euo pipefail
 cd "$(dirname "$0")/.."
 P=.venv/bin
-SEQS=${SEQS:-1000}
-VQ_ITERS=${VQ_ITERS:-450}
-GPT_ITERS=${GPT_ITERS:-2000}
-DATA=data/sg$SEQS
+SEQS=${SEQS:-3000}
+PARAPHRASES=${PARAPHRASES:-16}
+VQ_ITERS=${VQ_ITERS:-2400}
+GPT_ITERS=${GPT_ITERS:-3000}
+WIDTH=${WIDTH:-0.5}
+WORKERS=${WORKERS:-2}
+DATA=${DATA:-data/sg$SEQS}
 RUN=${RUN:-runs/default}
 OUT=${OUT:-models/default}
 [ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
 mkdir -p "$RUN"
-[ -f $DATA/synthgrasp_index.json ] || $P/comgrasp-data -q synth --out $DATA --sequences "$SEQS" --seed 1 --workers 2
-[ -f ${DATA}_prep/stats.npz ] || $P/comgrasp-data -q prepare $DATA --out ${DATA}_prep --split paper --hands
-$P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small \
-  --window 64 --batch 32 --iters "$VQ_ITERS" --lr 4e-4 --ckpt-every 50
+[ -f $DATA/synthgrasp_index.json ] || $P/comgrasp-data -q synth --out $DATA --sequences "$SEQS" --seed 1 --workers "$WORKERS"
+[ -f ${DATA}_prep/stats.npz ] || $P/comgrasp-data -q prepare $DATA --out ${DATA}_prep --split synthgrasp --hands \
+  --paraphrases "$PARAPHRASES" --workers "$WORKERS"
+$P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small --width-scale "$WIDTH" \
+  --window 64 --batch 64 --iters "$VQ_ITERS" --lr 1e-3 --lambda-joint 10 --ckpt-every 100 \
+  ${VQ_STOP:+--stop-after "$VQ_STOP"}
+[ -z "${VQ_STOP:-}" ] || exit 0
 $P/comgrasp-train -q train-gpt --data ${DATA}_prep --vq $RUN/vq --out $RUN/gpt --preset small \
-  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8
-$P/comgrasp-train evaluate --data ${DATA}_prep --vq $RUN/vq --gpt $RUN/gpt --out $RUN/eval/table.md --limit 60
+  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8 \
+  ${GPT_STOP:+--stop-after "$GPT_STOP"}
+[ -z "${GPT_STOP:-}" ] || exit 0
 $P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights
+RUN=$RUN DATA=${DATA}_prep BUNDLE=$OUT OUT=$RUN/eval bash scripts/quality_report.sh
