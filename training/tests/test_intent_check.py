@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -246,3 +248,43 @@ def test_a_flickering_flag_is_not_a_release_and_short_touches_are_not_grasps():
     held, gripped = hold_masks(track)
     assert (held == contact).all()
     assert np.array_equal(np.nonzero(gripped[:, 0])[0], np.arange(10, 40)) and not gripped[:, 1].any()
+
+
+def _engine_frames(fs, i) -> dict:
+    """What `comgrasp generate --fk --out F.npz` writes for a motion (native coordinates,
+    quaternions x, y, z, w), built from a prepared sequence."""
+    from comgrasp_train.representation import features_to_joints, features_to_params
+    from comgrasp_train.rotations import matrix_to_quaternion
+
+    x, rest = fs.features[i], torch.as_tensor(fs.rest_joints[i], dtype=torch.float64)
+    p = features_to_params(x, rest)
+    q = matrix_to_quaternion(torch.as_tensor(p["object_rotmat"])).numpy()[:, [1, 2, 3, 0]]  # (w,x,y,z) -> xyzw
+    return {"joint_positions": features_to_joints(torch.as_tensor(x, dtype=torch.float64), rest).numpy(),
+            "object_rotation": q, "object_translation": p["object_transl"], "contact": p["contact"].astype(np.uint8),
+            "fps": np.array(fs.fps)}
+
+
+def test_engine_frames_check_like_the_features(synth, tmp_path):
+    from comgrasp_train.cli.data import main as data_main
+    from comgrasp_train.intent_check import intent_of, track_from_engine
+
+    _, fs = synth
+    for i in range(len(fs.features)):
+        sdf = object_sdf_for(fs.meta[i])
+        want = _check(fs, i)
+        track = track_from_engine(_engine_frames(fs, i), sdf)
+        ref = track_from_features(fs.features[i], fs.rest_joints[i], fs.fps, sdf)
+        np.testing.assert_allclose(track.object_rot, ref.object_rot, atol=1e-6)  # x, y, z, w read right
+        got = check_motion(track, want.intent)
+        assert got.rules == want.rules and got.ok, (fs.texts[i][0], got.reason)
+        assert intent_of(fs.meta[i]) == want.intent
+    # The CLI: a passing file; frames without --fk or an unreadable prompt are clear errors.
+    frames = _engine_frames(fs, 0)
+    good, nofk = tmp_path / "good.npz", tmp_path / "nofk.npz"
+    np.savez(good, **frames)
+    np.savez(nofk, **{k: v for k, v in frames.items() if k != "joint_positions"})
+    report = tmp_path / "r.json"
+    assert data_main(["-q", "check-engine", str(good), "--prompt", fs.texts[0][0], "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["rates"]["intent_ok"] == 1.0
+    assert data_main(["-q", "check-engine", str(nofk), "--prompt", fs.texts[0][0]]) == 2
+    assert data_main(["-q", "check-engine", str(good), "--prompt", "dance a little"]) == 2
