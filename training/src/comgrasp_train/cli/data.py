@@ -136,14 +136,13 @@ def cmd_check_engine(args) -> int:
 
     from ..intent_check import check_motion, object_sdf_for, parse_prompt, track_from_engine
 
+    prompt, intent = args.prompt, parse_prompt(args.prompt)
+    if not intent.known or intent.object is None:
+        print(f"comgrasp-data check-engine: error: {prompt!r} is not a prompt the checker reads "
+              "(use a template form, e.g. 'The woman lifts the mug with her left hand.')", file=sys.stderr)
+        return 2
     results = []
     for f in args.files:
-        prompt = args.prompt or str(np.load(f).get("text", ""))
-        intent = parse_prompt(prompt)
-        if not intent.known or intent.object is None:
-            print(f"comgrasp-data check-engine: error: {prompt!r} is not a prompt the checker reads "
-                  "(use a template form, e.g. 'The woman lifts the mug with her left hand.')", file=sys.stderr)
-            return 2
         with np.load(f) as frames:
             r = check_motion(track_from_engine(dict(frames), object_sdf_for({"object": intent.object})), intent)
         results.append({"file": f, "prompt": prompt, "ok": r.ok, "reason": r.reason, **r.row(),
@@ -243,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("check-engine", help="prompt checks on the engine's frames (comgrasp generate --fk --out F.npz)")
     s.add_argument("files", nargs="+")
-    s.add_argument("--prompt", default=None, help="the prompt the files were generated from (default: their 'text')")
+    s.add_argument("--prompt", required=True, help="the prompt the files were generated from")
     s.add_argument("--json", default=None)
     s.set_defaults(fn=cmd_check_engine)
 

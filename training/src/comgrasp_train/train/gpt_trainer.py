@@ -111,6 +111,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
     config = {"transformer": cfg.to_dict(), "train": asdict(train), "text": asdict(text), "vq_dir": str(vq_dir),
               "data": str(data_dir), "seed": seed, "fps": fs.fps}
 
+    names = ("global", "body", "lhand", "rhand")
+
     def one_step():
         emb, codes = batcher.batch(train.batch_size, gen)
         net.train()
@@ -123,9 +125,7 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
             torch.nn.utils.clip_grad_norm_(net.parameters(), train.grad_clip)
         opt.step()
         sched.step()
-        return {"loss": loss.detach(), **{f"nll/{n}": v.detach() for n, v in zip(("global", "body", "lhand", "rhand"), per)}}
-
-    names = ("global", "body", "lhand", "rhand")
+        return {"loss": loss.detach(), **{f"nll/{n}": v.detach() for n, v in zip(names, per)}}
 
     @torch.no_grad()
     def validate():
