@@ -30,8 +30,8 @@ pub fn generate(crate_dir: &Path, out_dir: &Path) {
             manifest.display()
         )),
     };
-    let value: serde_json::Value = serde_json::from_str(&text)
-        .unwrap_or_else(|e| fail(&format!("{} is not valid JSON: {e}", manifest.display())));
+    let value: serde_json::Value =
+        serde_json::from_str(&text).unwrap_or_else(|e| fail(&format!("{} is not valid JSON: {e}", manifest.display())));
     let Some(files) = value.get("files").and_then(|f| f.as_object()) else {
         fail(&format!("{} has no `files` table", manifest.display()));
     };

@@ -35,7 +35,11 @@ fn native_static_libs(os: &str, target_env: &str) -> Option<&'static [&'static s
 /// kernels carry no `.note.GNU-stack`, so without `-z noexecstack` the program would get an
 /// executable stack (and a linker warning); the shared library is linked with it by rustc.
 fn static_link_options(os: &str) -> &'static [&'static str] {
-    if os == "linux" { &["-z", "noexecstack"] } else { &[] }
+    if os == "linux" {
+        &["-z", "noexecstack"]
+    } else {
+        &[]
+    }
 }
 
 pub fn generate(crate_dir: &Path, out_dir: &Path) {
@@ -74,7 +78,8 @@ fn profile_dir(out_dir: &Path) -> Option<PathBuf> {
 /// `CG_ABI_VERSION` from src/ffi (the header is generated from it after this runs).
 fn abi_version(crate_dir: &Path) -> u32 {
     let dir = crate_dir.join("src").join("ffi");
-    let mut files: Vec<PathBuf> = fs::read_dir(&dir).map(|d| d.flatten().map(|e| e.path()).collect()).unwrap_or_default();
+    let mut files: Vec<PathBuf> =
+        fs::read_dir(&dir).map(|d| d.flatten().map(|e| e.path()).collect()).unwrap_or_default();
     files.sort();
     for f in files {
         let Ok(text) = fs::read_to_string(&f) else { continue };

@@ -17,10 +17,13 @@ fn main() {
     let with_tract = !args.iter().any(|a| a == "--native-only");
     let b = Bundle::load(std::path::Path::new(dir)).expect("bundle");
     let books = b.manifest.codebook_sizes();
-    let tokens = |i: usize| -> [i64; N_STREAMS] { std::array::from_fn(|s| ((i * 7919 + s * 104_729) % books[s]) as i64) };
-    let mut models = vec![("native", DecoderModel::load_backend(b.origin(), &b.manifest, Some(DecoderBackend::Native)).unwrap())];
+    let tokens =
+        |i: usize| -> [i64; N_STREAMS] { std::array::from_fn(|s| ((i * 7919 + s * 104_729) % books[s]) as i64) };
+    let mut models =
+        vec![("native", DecoderModel::load_backend(b.origin(), &b.manifest, Some(DecoderBackend::Native)).unwrap())];
     if with_tract {
-        models.push(("tract", DecoderModel::load_backend(b.origin(), &b.manifest, Some(DecoderBackend::Tract)).unwrap()));
+        models
+            .push(("tract", DecoderModel::load_backend(b.origin(), &b.manifest, Some(DecoderBackend::Tract)).unwrap()));
     }
     let mut states: Vec<_> = models.iter().map(|(_, m)| m.new_state()).collect();
     let mut out = vec![0f32; models[0].1.chunk_len()];

@@ -48,7 +48,8 @@ struct Args {
 }
 
 fn parse_args() -> Args {
-    let mut a = Args { streams: 8, minutes: 10.0, bundle: None, report_every: 10.0, ring: 256, max_rss_growth_mib: 64.0 };
+    let mut a =
+        Args { streams: 8, minutes: 10.0, bundle: None, report_every: 10.0, ring: 256, max_rss_growth_mib: 64.0 };
     let mut it = std::env::args().skip(1);
     while let Some(k) = it.next() {
         let mut v = || it.next().unwrap_or_else(|| usage(&format!("{k} needs a value")));
@@ -58,7 +59,9 @@ fn parse_args() -> Args {
             "--bundle" => a.bundle = Some(v()),
             "--report-every" => a.report_every = v().parse().unwrap_or_else(|_| usage("--report-every S")),
             "--ring" => a.ring = v().parse().unwrap_or_else(|_| usage("--ring FRAMES")),
-            "--max-rss-growth-mib" => a.max_rss_growth_mib = v().parse().unwrap_or_else(|_| usage("--max-rss-growth-mib X")),
+            "--max-rss-growth-mib" => {
+                a.max_rss_growth_mib = v().parse().unwrap_or_else(|_| usage("--max-rss-growth-mib X"))
+            }
             "-h" | "--help" => usage(""),
             other => usage(&format!("unknown argument {other}")),
         }
@@ -193,7 +196,11 @@ fn main() {
         args.ring,
         std::thread::available_parallelism().map_or(0, |n| n.get())
     );
-    println!("engine loaded in {load_s:.2} s; VmRSS {:.1} MiB before, {:.1} MiB after loading", mib(rss_process_start), mib(rss_start));
+    println!(
+        "engine loaded in {load_s:.2} s; VmRSS {:.1} MiB before, {:.1} MiB after loading",
+        mib(rss_process_start),
+        mib(rss_start)
+    );
 
     let slots: Arc<Vec<Slot>> = Arc::new((0..args.streams).map(|_| Slot::default()).collect());
     let t0 = Instant::now();
@@ -220,7 +227,11 @@ fn main() {
         let min_motion_s = slots.iter().map(|s| s.motion_us.load(Ordering::Relaxed)).min().unwrap_or(0) as f64 / 1e6;
         if rss_warm.is_none() && min_motion_s >= 0.2 * target_s {
             rss_warm = Some(rss);
-            println!("[{:7.1} s] warm-up mark (every stream has a fifth of its motion): VmRSS {:.1} MiB", t0.elapsed().as_secs_f64(), mib(rss));
+            println!(
+                "[{:7.1} s] warm-up mark (every stream has a fifth of its motion): VmRSS {:.1} MiB",
+                t0.elapsed().as_secs_f64(),
+                mib(rss)
+            );
         }
         if last_report.elapsed().as_secs_f64() >= args.report_every || all_done {
             let frames: u64 = slots.iter().map(|s| s.frames.load(Ordering::Relaxed)).sum();

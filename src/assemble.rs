@@ -36,12 +36,9 @@
 //!   `S Sᵀ = I`. [`FrameAssembler::rest_joints`] returns `J'`.
 
 use crate::error::{Error, Result};
-use crate::frame::{
-    cg_coordinate_system, CoordinateSystem, Frame, CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS,
-};
+use crate::frame::{cg_coordinate_system, CoordinateSystem, Frame, CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
 use crate::skeleton::{
-    mat_mul, mat_vec, matrix_to_quaternion, rot6d_to_matrix, transpose, Mat3, Skeleton, Vec3,
-    IDENTITY,
+    mat_mul, mat_vec, matrix_to_quaternion, rot6d_to_matrix, transpose, Mat3, Skeleton, Vec3, IDENTITY,
 };
 
 /// Width of one frame's feature vector.
@@ -83,17 +80,11 @@ impl cg_coordinate_system {
         match self {
             cg_coordinate_system::CG_COORDS_NATIVE => (IDENTITY, 1.0),
             // (x, y, z) -> (x, z, -y)
-            cg_coordinate_system::CG_COORDS_GLTF => {
-                ([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], 1.0)
-            }
+            cg_coordinate_system::CG_COORDS_GLTF => ([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], 1.0),
             // (x, y, z) -> (-x, z, -y)
-            cg_coordinate_system::CG_COORDS_UNITY => {
-                ([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], 1.0)
-            }
+            cg_coordinate_system::CG_COORDS_UNITY => ([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], 1.0),
             // (x, y, z) -> 100 (x, -y, z)
-            cg_coordinate_system::CG_COORDS_UNREAL => {
-                ([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]], 100.0)
-            }
+            cg_coordinate_system::CG_COORDS_UNREAL => ([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]], 100.0),
         }
     }
 }
@@ -109,20 +100,12 @@ struct Basis {
 impl Basis {
     fn new(coords: CoordinateSystem) -> Self {
         let (s, scale) = coords.basis();
-        Basis {
-            s,
-            st: transpose(&s),
-            scale,
-        }
+        Basis { s, st: transpose(&s), scale }
     }
 
     fn point(&self, p: &Vec3) -> [f32; 3] {
         let q = mat_vec(&self.s, p);
-        [
-            (q[0] * self.scale) as f32,
-            (q[1] * self.scale) as f32,
-            (q[2] * self.scale) as f32,
-        ]
+        [(q[0] * self.scale) as f32, (q[1] * self.scale) as f32, (q[2] * self.scale) as f32]
     }
 
     fn rotation(&self, r: &Mat3) -> [f32; 4] {
@@ -194,9 +177,7 @@ impl FrameAssembler {
             )));
         }
         if !(fps.is_finite() && fps > 0.0) {
-            return Err(Error::InvalidArgument(format!(
-                "fps must be finite and > 0, got {fps}"
-            )));
+            return Err(Error::InvalidArgument(format!("fps must be finite and > 0, got {fps}")));
         }
         let skeleton = Skeleton::new(parents, rest_joints)?;
         let mut a = FrameAssembler {
@@ -239,11 +220,7 @@ impl FrameAssembler {
     /// De-normalizes one frame: `x * std + mean` in `f32` (two roundings, as numpy),
     /// contact channels clamped to [0, 1] instead.
     pub fn denormalize(&self, normalized: &[f32], out: &mut [f32; FRAME_DIM]) {
-        assert_eq!(
-            normalized.len(),
-            FRAME_DIM,
-            "a frame has {FRAME_DIM} features"
-        );
+        assert_eq!(normalized.len(), FRAME_DIM, "a frame has {FRAME_DIM} features");
         for i in 0..FRAME_DIM {
             out[i] = normalized[i] * self.std[i] + self.mean[i];
         }
@@ -257,14 +234,7 @@ impl FrameAssembler {
     ///
     /// Panics if `normalized.len() != 335` (a caller bug: the decoder's frame width is
     /// checked when the bundle is loaded).
-    pub fn assemble(
-        &self,
-        normalized: &[f32],
-        stream_id: u64,
-        frame_index: u64,
-        is_last: bool,
-        out: &mut Frame,
-    ) {
+    pub fn assemble(&self, normalized: &[f32], stream_id: u64, frame_index: u64, is_last: bool, out: &mut Frame) {
         let mut f = [0.0f32; FRAME_DIM];
         self.denormalize(normalized, &mut f);
         let b = &self.basis;
@@ -334,11 +304,7 @@ mod tests {
         (0..55)
             .map(|j| {
                 let t = j as f32;
-                [
-                    0.03 * (t * 1.3).sin(),
-                    -0.35 + 0.02 * (t * 0.7).cos() + 0.01 * t,
-                    0.01 * (t * 2.1).sin(),
-                ]
+                [0.03 * (t * 1.3).sin(), -0.35 + 0.02 * (t * 0.7).cos() + 0.01 * t, 0.01 * (t * 2.1).sin()]
             })
             .collect()
     }
@@ -358,26 +324,10 @@ mod tests {
         }
         x[CONTACT_CHANNELS[0]] = 0.2;
         x[CONTACT_CHANNELS[1]] = 0.9;
-        let mean: [f32; FRAME_DIM] = std::array::from_fn(|i| {
-            if CONTACT_CHANNELS.contains(&i) {
-                0.0
-            } else {
-                0.25
-            }
-        });
-        let std: [f32; FRAME_DIM] = std::array::from_fn(|i| {
-            if CONTACT_CHANNELS.contains(&i) {
-                1.0
-            } else {
-                0.5
-            }
-        });
+        let mean: [f32; FRAME_DIM] = std::array::from_fn(|i| if CONTACT_CHANNELS.contains(&i) { 0.0 } else { 0.25 });
+        let std: [f32; FRAME_DIM] = std::array::from_fn(|i| if CONTACT_CHANNELS.contains(&i) { 1.0 } else { 0.5 });
         // normalized such that normalized * std + mean is x (up to f32 rounding).
-        let norm = x
-            .iter()
-            .enumerate()
-            .map(|(i, &v)| (v - mean[i]) / std[i])
-            .collect();
+        let norm = x.iter().enumerate().map(|(i, &v)| (v - mean[i]) / std[i]).collect();
         (norm, mean, std)
     }
 
@@ -391,33 +341,14 @@ mod tests {
 
     #[test]
     fn bases_are_what_the_docs_say() {
-        let (p, q) = (
-            [1.0, 2.0, 3.0],
-            ALL.map(|c| Basis::new(c).point(&[1.0, 2.0, 3.0])),
-        );
+        let (p, q) = ([1.0, 2.0, 3.0], ALL.map(|c| Basis::new(c).point(&[1.0, 2.0, 3.0])));
         let _ = p;
-        assert_eq!(
-            q,
-            [
-                [1.0, 2.0, 3.0],
-                [1.0, 3.0, -2.0],
-                [-1.0, 3.0, -2.0],
-                [100.0, -200.0, 300.0]
-            ]
-        );
+        assert_eq!(q, [[1.0, 2.0, 3.0], [1.0, 3.0, -2.0], [-1.0, 3.0, -2.0], [100.0, -200.0, 300.0]]);
         let dets = ALL.map(|c| det(&c.basis().0));
         assert_eq!(dets, [1.0, 1.0, -1.0, -1.0]); // right-, right-, left-, left-handed
                                                   // Up axis: native +z becomes +y in glTF/Unity, stays +z (cm) in Unreal.
         let up = ALL.map(|c| Basis::new(c).point(&[0.0, 0.0, 1.0]));
-        assert_eq!(
-            up,
-            [
-                [0.0, 0.0, 1.0],
-                [0.0, 1.0, 0.0],
-                [0.0, 1.0, 0.0],
-                [0.0, 0.0, 100.0]
-            ]
-        );
+        assert_eq!(up, [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 100.0]]);
     }
 
     #[test]
@@ -425,29 +356,18 @@ mod tests {
         let mut r = SplitMix64::new(5);
         let rest = rest();
         let (norm, mean, std) = random_frame(&mut r);
-        let native = FrameAssembler::new(
-            &mean,
-            &std,
-            &SMPLX_PARENTS,
-            &rest,
-            cg_coordinate_system::CG_COORDS_NATIVE,
-            true,
-            30.0,
-        )
-        .unwrap();
+        let native =
+            FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, cg_coordinate_system::CG_COORDS_NATIVE, true, 30.0)
+                .unwrap();
         let mut f0 = Frame::default();
         native.assemble(&norm, 9, 45, true, &mut f0);
-        assert_eq!(
-            (f0.stream_id, f0.frame_index, f0.time_s, f0.is_last),
-            (9, 45, 1.5, 1)
-        );
+        assert_eq!((f0.stream_id, f0.frame_index, f0.time_s, f0.is_last), (9, 45, 1.5, 1));
         assert_eq!((f0.contact_probability, f0.contact), ([0.2, 0.9], [0, 1]));
         // Native FK pelvis is the root translation.
         assert_eq!(f0.joint_positions[0], f0.root_translation);
 
         for coords in ALL {
-            let a = FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, coords, true, 30.0)
-                .unwrap();
+            let a = FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, coords, true, 30.0).unwrap();
             let mut f = Frame::default();
             a.assemble(&norm, 9, 45, false, &mut f);
             let b = Basis::new(coords);
@@ -455,28 +375,13 @@ mod tests {
             let pt = |p: &[f32; 3]| b.point(&p.map(f64::from));
             // Positions and vectors transformed.
             assert!(close3(&f.root_translation, &pt(&f0.root_translation), tol));
-            assert!(close3(
-                &f.object_translation,
-                &pt(&f0.object_translation),
-                tol
-            ));
+            assert!(close3(&f.object_translation, &pt(&f0.object_translation), tol));
             assert!(close3(&f.object_centre, &pt(&f0.object_centre), tol));
-            assert!(close3(
-                &f.left_wrist_to_object,
-                &pt(&f0.left_wrist_to_object),
-                tol
-            ));
-            assert!(close3(
-                &f.right_wrist_to_object,
-                &pt(&f0.right_wrist_to_object),
-                tol
-            ));
+            assert!(close3(&f.left_wrist_to_object, &pt(&f0.left_wrist_to_object), tol));
+            assert!(close3(&f.right_wrist_to_object, &pt(&f0.right_wrist_to_object), tol));
             // FK positions = transformed native FK positions.
             for j in 0..55 {
-                assert!(
-                    close3(&f.joint_positions[j], &pt(&f0.joint_positions[j]), tol),
-                    "{coords:?} joint {j}"
-                );
+                assert!(close3(&f.joint_positions[j], &pt(&f0.joint_positions[j]), tol), "{coords:?} joint {j}");
             }
             // Unit quaternions, w >= 0, proper rotations equal to S R S^T.
             let rots = |fr: &Frame| -> Vec<[f32; 4]> {
@@ -515,10 +420,7 @@ mod tests {
             host.forward(&local, f.root_translation.map(f64::from), &mut g, &mut pos);
             for (j, p) in pos.iter().enumerate() {
                 let p = p.map(|v| v as f32);
-                assert!(
-                    close3(&p, &f.joint_positions[j], 2e-5 * b.scale as f32),
-                    "{coords:?} host FK joint {j}"
-                );
+                assert!(close3(&p, &f.joint_positions[j], 2e-5 * b.scale as f32), "{coords:?} host FK joint {j}");
             }
         }
     }
@@ -528,26 +430,15 @@ mod tests {
         let mut r = SplitMix64::new(8);
         let rest = rest();
         let (norm, mean, std) = random_frame(&mut r);
-        let mk =
-            |c| FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, c, true, 30.0).unwrap();
+        let mk = |c| FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, c, true, 30.0).unwrap();
         let (mut a, mut b) = (Frame::default(), Frame::default());
         mk(cg_coordinate_system::CG_COORDS_NATIVE).assemble(&norm, 0, 0, false, &mut a);
         mk(cg_coordinate_system::CG_COORDS_UNREAL).assemble(&norm, 0, 0, false, &mut b);
-        let want = [
-            a.root_translation[0] * 100.0,
-            -a.root_translation[1] * 100.0,
-            a.root_translation[2] * 100.0,
-        ];
+        let want = [a.root_translation[0] * 100.0, -a.root_translation[1] * 100.0, a.root_translation[2] * 100.0];
         assert!(close3(&b.root_translation, &want, 1e-4));
         let (la, lb) = (
-            (0..3)
-                .map(|i| (a.joint_positions[20][i] - a.joint_positions[18][i]).powi(2))
-                .sum::<f32>()
-                .sqrt(),
-            (0..3)
-                .map(|i| (b.joint_positions[20][i] - b.joint_positions[18][i]).powi(2))
-                .sum::<f32>()
-                .sqrt(),
+            (0..3).map(|i| (a.joint_positions[20][i] - a.joint_positions[18][i]).powi(2)).sum::<f32>().sqrt(),
+            (0..3).map(|i| (b.joint_positions[20][i] - b.joint_positions[18][i]).powi(2)).sum::<f32>().sqrt(),
         );
         assert!((lb / la - 100.0).abs() < 1e-3); // forearm length in cm
     }
@@ -559,16 +450,9 @@ mod tests {
         let (mut norm, mean, std) = random_frame(&mut r);
         norm[CONTACT_CHANNELS[0]] = 1.7;
         norm[CONTACT_CHANNELS[1]] = f32::NAN;
-        let a = FrameAssembler::new(
-            &mean,
-            &std,
-            &SMPLX_PARENTS,
-            &rest,
-            cg_coordinate_system::CG_COORDS_GLTF,
-            false,
-            30.0,
-        )
-        .unwrap();
+        let a =
+            FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, cg_coordinate_system::CG_COORDS_GLTF, false, 30.0)
+                .unwrap();
         let mut f = Frame::default();
         f.joint_positions[3] = [1.0; 3];
         a.assemble(&norm, 1, 2, false, &mut f);
@@ -605,41 +489,22 @@ mod tests {
     fn jaw_and_eyes_are_identity_and_columns_tile_the_layout() {
         let cols: Vec<usize> = (0..55).filter_map(rot6d_column).collect();
         assert_eq!(cols.len(), 52);
+        assert_eq!([rot6d_column(22), rot6d_column(23), rot6d_column(24)], [None, None, None]);
         assert_eq!(
-            [rot6d_column(22), rot6d_column(23), rot6d_column(24)],
-            [None, None, None]
-        );
-        assert_eq!(
-            (
-                rot6d_column(21),
-                rot6d_column(25),
-                rot6d_column(39),
-                rot6d_column(40),
-                rot6d_column(54)
-            ),
+            (rot6d_column(21), rot6d_column(25), rot6d_column(39), rot6d_column(40), rot6d_column(54)),
             (Some(141), Some(147), Some(231), Some(241), Some(325))
         );
         // With FK on the identity pose of jaw/eyes, their world position follows the head.
         let mut r = SplitMix64::new(3);
         let rest = rest();
         let (norm, mean, std) = random_frame(&mut r);
-        let a = FrameAssembler::new(
-            &mean,
-            &std,
-            &SMPLX_PARENTS,
-            &rest,
-            cg_coordinate_system::CG_COORDS_NATIVE,
-            true,
-            30.0,
-        )
-        .unwrap();
+        let a =
+            FrameAssembler::new(&mean, &std, &SMPLX_PARENTS, &rest, cg_coordinate_system::CG_COORDS_NATIVE, true, 30.0)
+                .unwrap();
         let mut f = Frame::default();
         a.assemble(&norm, 0, 0, false, &mut f);
         // Distance jaw-head equals the rest distance (rigid child of the head).
-        let d =
-            |p: [f32; 3], q: [f32; 3]| (0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f32>().sqrt();
-        assert!(
-            (d(f.joint_positions[22], f.joint_positions[15]) - d(rest[22], rest[15])).abs() < 1e-5
-        );
+        let d = |p: [f32; 3], q: [f32; 3]| (0..3).map(|i| (p[i] - q[i]).powi(2)).sum::<f32>().sqrt();
+        assert!((d(f.joint_positions[22], f.joint_positions[15]) - d(rest[22], rest[15])).abs() < 1e-5);
     }
 }

@@ -171,10 +171,7 @@ pub type SourceFactory = Box<dyn Fn(&StreamRequest<'_>) -> Result<Box<dyn ChunkS
 /// Checks a prompt: non-empty, not only whitespace, at most [`MAX_TEXT_BYTES`] bytes.
 pub fn validate_text(text: &str) -> Result<()> {
     if text.len() > MAX_TEXT_BYTES {
-        return Err(Error::InvalidArgument(format!(
-            "text is {} bytes, the limit is {MAX_TEXT_BYTES}",
-            text.len()
-        )));
+        return Err(Error::InvalidArgument(format!("text is {} bytes, the limit is {MAX_TEXT_BYTES}", text.len())));
     }
     if text.trim().is_empty() {
         return Err(Error::InvalidArgument("text is empty or only whitespace".into()));

@@ -45,5 +45,9 @@ impl Error {
 
 /// ` <path>`, or nothing for an empty path (so the message does not read "bundle : ...").
 fn at(path: &Path) -> String {
-    if path.as_os_str().is_empty() { String::new() } else { format!(" {}", path.display()) }
+    if path.as_os_str().is_empty() {
+        String::new()
+    } else {
+        format!(" {}", path.display())
+    }
 }

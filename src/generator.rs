@@ -306,9 +306,19 @@ impl ChunkSource for Generator {
                 let codes = sampler.sample_step(pos, logits)?;
                 Ok(if pipe.ends(&codes) { None } else { Some(codes.map(|c| c as i64)) })
             };
-            let (n, end) = overlap::decode_and_steps(&b.decoder, &mut state.decoder, &group[..g], normalized,
-                                                     &b.step, &mut state.step, next, emb,
-                                                     &mut self.ahead[..steps], sample, true)?;
+            let (n, end) = overlap::decode_and_steps(
+                &b.decoder,
+                &mut state.decoder,
+                &group[..g],
+                normalized,
+                &b.step,
+                &mut state.step,
+                next,
+                emb,
+                &mut self.ahead[..steps],
+                sample,
+                true,
+            )?;
             self.ahead_n = n;
             self.ahead_end = end || next + n >= self.max_len;
             Some(n == 0)

@@ -128,19 +128,8 @@ pub struct SamplingParams {
 impl SamplingParams {
     /// Validated parameters: `temperature` finite and 0 or ≥ 1e-4, `min_len <= max_len
     /// <= l_max`; anything else is [`Error::InvalidArgument`].
-    pub fn new(
-        temperature: f64,
-        top_k: u32,
-        min_len: u32,
-        max_len: u32,
-        l_max: u32,
-    ) -> Result<Self> {
-        let p = SamplingParams {
-            temperature,
-            top_k,
-            min_len,
-            max_len,
-        };
+    pub fn new(temperature: f64, top_k: u32, min_len: u32, max_len: u32, l_max: u32) -> Result<Self> {
+        let p = SamplingParams { temperature, top_k, min_len, max_len };
         p.validate(l_max)?;
         Ok(p)
     }
@@ -155,10 +144,7 @@ impl SamplingParams {
             )));
         }
         if self.min_len > self.max_len {
-            return Err(Error::InvalidArgument(format!(
-                "min_len {} exceeds max_len {}",
-                self.min_len, self.max_len
-            )));
+            return Err(Error::InvalidArgument(format!("min_len {} exceeds max_len {}", self.min_len, self.max_len)));
         }
         Ok(())
     }
@@ -201,19 +187,8 @@ impl TokenSampler {
     /// `params` should come from [`SamplingParams::new`]; an invalid temperature is
     /// reported by [`TokenSampler::sample_step`]. `end_ids` / `pad_ids` per stream in the
     /// order global, body, lhand, rhand.
-    pub fn new(
-        seed: u64,
-        params: SamplingParams,
-        end_ids: [usize; 4],
-        pad_ids: [usize; 4],
-    ) -> Self {
-        let cap = end_ids
-            .iter()
-            .chain(pad_ids.iter())
-            .copied()
-            .max()
-            .unwrap_or(0)
-            + 1;
+    pub fn new(seed: u64, params: SamplingParams, end_ids: [usize; 4], pad_ids: [usize; 4]) -> Self {
+        let cap = end_ids.iter().chain(pad_ids.iter()).copied().max().unwrap_or(0) + 1;
         TokenSampler {
             rng: SplitMix64::new(seed),
             params,
@@ -306,13 +281,10 @@ impl TokenSampler {
         let top_k = self.params.top_k as usize;
         let threshold = if top_k > 0 && top_k < n_allowed {
             self.order.clear();
-            self.order
-                .extend((0..v as u32).filter(|&i| allowed(i as usize)));
+            self.order.extend((0..v as u32).filter(|&i| allowed(i as usize)));
             let cmp = |a: &u32, b: &u32| -> Ordering {
                 let (za, zb) = (z(*a as usize), z(*b as usize));
-                zb.partial_cmp(&za)
-                    .unwrap_or(Ordering::Equal)
-                    .then(a.cmp(b))
+                zb.partial_cmp(&za).unwrap_or(Ordering::Equal).then(a.cmp(b))
             };
             let (_, nth, _) = self.order.select_nth_unstable_by(top_k - 1, cmp);
             let id = *nth as usize;
@@ -380,25 +352,11 @@ mod tests {
         let got: Vec<u64> = (0..5).map(|_| r.next_u64()).collect();
         assert_eq!(
             got,
-            [
-                6457827717110365317,
-                3203168211198807973,
-                9817491932198370423,
-                4593380528125082431,
-                16408922859458223821
-            ]
+            [6457827717110365317, 3203168211198807973, 9817491932198370423, 4593380528125082431, 16408922859458223821]
         );
         let mut r = SplitMix64::new(42);
         let got: Vec<u64> = (0..4).map(|_| r.next_u64()).collect();
-        assert_eq!(
-            got,
-            [
-                13679457532755275413,
-                2949826092126892291,
-                5139283748462763858,
-                6349198060258255764
-            ]
-        );
+        assert_eq!(got, [13679457532755275413, 2949826092126892291, 5139283748462763858, 6349198060258255764]);
         // Seed 7: models/tiny/parity/rng/u64.npy.
         let mut r = SplitMix64::new(7);
         let got: Vec<u64> = (0..8).map(|_| r.next_u64()).collect();
@@ -487,9 +445,7 @@ mod tests {
     /// `_integer_logits` of test_sampling.py for one batch element `b`.
     fn integer_logits(k: usize, b: usize) -> [Vec<f32>; 4] {
         std::array::from_fn(|s| {
-            (0..TINY_VOCAB[s])
-                .map(|i| ((i * 37 + k * 11 + s * 5 + b * 3) % 17) as f32 / 4.0 - 2.0)
-                .collect()
+            (0..TINY_VOCAB[s]).map(|i| ((i * 37 + k * 11 + s * 5 + b * 3) % 17) as f32 / 4.0 - 2.0).collect()
         })
     }
 
@@ -574,28 +530,17 @@ mod tests {
     }
 
     fn p(t: f64, top_k: u32, min_len: u32, max_len: u32) -> SamplingParams {
-        SamplingParams {
-            temperature: t,
-            top_k,
-            min_len,
-            max_len,
-        }
+        SamplingParams { temperature: t, top_k, min_len, max_len }
     }
 
     #[test]
     fn inverse_cdf_boundaries() {
         // Ids 0..2 allowed (weights 1, 1, 1, total 3), id 3 plays Pad, End = 2.
         let x = [0.0f32; 4];
-        let got: Vec<usize> = [
-            0.0,
-            1.0 / 3.0 - 1e-12,
-            1.0 / 3.0,
-            2.0 / 3.0,
-            1.0 - 2f64.powi(-53),
-        ]
-        .iter()
-        .map(|&u| pick(&x, u, 2, 3, 0, p(1.0, 0, 0, 10)))
-        .collect();
+        let got: Vec<usize> = [0.0, 1.0 / 3.0 - 1e-12, 1.0 / 3.0, 2.0 / 3.0, 1.0 - 2f64.powi(-53)]
+            .iter()
+            .map(|&u| pick(&x, u, 2, 3, 0, p(1.0, 0, 0, 10)))
+            .collect();
         assert_eq!(got, [0, 0, 1, 2, 2]);
     }
 
@@ -664,10 +609,7 @@ mod tests {
             f
         };
         let base = freq(p(1.0, 0, 1, 10));
-        let ez: Vec<f64> = [0.0f64, 1.0, 2.0, 0.5]
-            .iter()
-            .map(|v| (v - 2.0).exp())
-            .collect();
+        let ez: Vec<f64> = [0.0f64, 1.0, 2.0, 0.5].iter().map(|v| (v - 2.0).exp()).collect();
         let sum: f64 = ez.iter().sum();
         for i in 0..4 {
             assert!((base[i] - ez[i] / sum).abs() < 0.015);
@@ -689,10 +631,7 @@ mod tests {
         let r = s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]);
         assert!(matches!(r, Err(Error::Inference(_))), "{r:?}");
         lg[2][5] = f32::INFINITY;
-        assert!(matches!(
-            s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]),
-            Err(Error::Inference(_))
-        ));
+        assert!(matches!(s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]), Err(Error::Inference(_))));
         // The four uniforms were still drawn at each call: the stream stays aligned.
         let mut r = SplitMix64::new(3);
         for _ in 0..8 {
@@ -706,16 +645,10 @@ mod tests {
         // Vocabulary too small for the ids.
         let lg = integer_logits(0, 0);
         let mut s = TokenSampler::new(3, p(1.0, 0, 0, 18), TINY_END, [17, 33, 17, 26]);
-        assert!(matches!(
-            s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]),
-            Err(Error::InvalidArgument(_))
-        ));
+        assert!(matches!(s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]), Err(Error::InvalidArgument(_))));
         // Unvalidated bad temperature.
         let mut s = TokenSampler::new(3, p(1e-9, 0, 0, 18), TINY_END, TINY_PAD);
-        assert!(matches!(
-            s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]),
-            Err(Error::InvalidArgument(_))
-        ));
+        assert!(matches!(s.sample_step(0, [&lg[0], &lg[1], &lg[2], &lg[3]]), Err(Error::InvalidArgument(_))));
     }
 
     #[test]
@@ -724,22 +657,10 @@ mod tests {
         assert!(SamplingParams::new(0.0, 0, 0, 0, 18).is_ok());
         assert!(SamplingParams::new(1e-4, 0, 0, 0, 18).is_ok());
         for t in [1e-9, -1.0, f64::NAN, f64::INFINITY, -0.5e-4] {
-            assert!(
-                matches!(
-                    SamplingParams::new(t, 0, 0, 10, 18),
-                    Err(Error::InvalidArgument(_))
-                ),
-                "{t}"
-            );
+            assert!(matches!(SamplingParams::new(t, 0, 0, 10, 18), Err(Error::InvalidArgument(_))), "{t}");
         }
-        assert!(matches!(
-            SamplingParams::new(1.0, 0, 0, 19, 18),
-            Err(Error::InvalidArgument(_))
-        ));
-        assert!(matches!(
-            SamplingParams::new(1.0, 0, 10, 5, 18),
-            Err(Error::InvalidArgument(_))
-        ));
+        assert!(matches!(SamplingParams::new(1.0, 0, 0, 19, 18), Err(Error::InvalidArgument(_))));
+        assert!(matches!(SamplingParams::new(1.0, 0, 10, 5, 18), Err(Error::InvalidArgument(_))));
     }
 
     #[test]

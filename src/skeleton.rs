@@ -22,9 +22,8 @@ pub const IDENTITY: Mat3 = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
 
 /// The SMPL-X kinematic tree (parent of each joint, -1 for the pelvis).
 pub const SMPLX_PARENTS: [i32; CG_NUM_JOINTS] = [
-    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15, 20, 25,
-    26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38, 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49,
-    50, 21, 52, 53,
+    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15, 20, 25, 26, 20, 28, 29, 20,
+    31, 32, 20, 34, 35, 20, 37, 38, 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53,
 ];
 pub const LEFT_WRIST: usize = 20;
 pub const RIGHT_WRIST: usize = 21;
@@ -48,16 +47,11 @@ pub fn mat_vec(a: &Mat3, v: &Vec3) -> Vec3 {
 }
 
 pub fn transpose(a: &Mat3) -> Mat3 {
-    [
-        [a[0][0], a[1][0], a[2][0]],
-        [a[0][1], a[1][1], a[2][1]],
-        [a[0][2], a[1][2], a[2][2]],
-    ]
+    [[a[0][0], a[1][0], a[2][0]], [a[0][1], a[1][1], a[2][1]], [a[0][2], a[1][2], a[2][2]]]
 }
 
 pub fn det(a: &Mat3) -> f64 {
-    a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
-        - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+    a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
         + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
 }
 
@@ -66,11 +60,7 @@ fn dot(a: &Vec3, b: &Vec3) -> f64 {
 }
 
 fn cross(a: &Vec3, b: &Vec3) -> Vec3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 /// Below this norm a 6D column is degenerate (torch `F.normalize`'s eps).
@@ -89,16 +79,8 @@ pub fn rot6d_to_matrix(d: &[f64; 6]) -> Mat3 {
     let a1 = [d[0], d[1], d[2]];
     let a2 = [d[3], d[4], d[5]];
     let n1 = dot(&a1, &a1).sqrt();
-    let b1 = if n1 > NORM_EPS && n1.is_finite() {
-        [a1[0] / n1, a1[1] / n1, a1[2] / n1]
-    } else {
-        [1.0, 0.0, 0.0]
-    };
-    let a2 = if a2.iter().all(|v| v.is_finite()) {
-        a2
-    } else {
-        [0.0; 3]
-    };
+    let b1 = if n1 > NORM_EPS && n1.is_finite() { [a1[0] / n1, a1[1] / n1, a1[2] / n1] } else { [1.0, 0.0, 0.0] };
+    let a2 = if a2.iter().all(|v| v.is_finite()) { a2 } else { [0.0; 3] };
     let p = dot(&b1, &a2);
     let r = [a2[0] - p * b1[0], a2[1] - p * b1[1], a2[2] - p * b1[2]];
     let n2 = dot(&r, &r).sqrt();
@@ -106,9 +88,7 @@ pub fn rot6d_to_matrix(d: &[f64; 6]) -> Mat3 {
         [r[0] / n2, r[1] / n2, r[2] / n2]
     } else {
         // Any unit vector orthogonal to b1: cross with the axis b1 is least aligned with.
-        let i = (0..3)
-            .min_by(|&i, &j| b1[i].abs().total_cmp(&b1[j].abs()))
-            .unwrap_or(0);
+        let i = (0..3).min_by(|&i, &j| b1[i].abs().total_cmp(&b1[j].abs())).unwrap_or(0);
         let mut e = [0.0; 3];
         e[i] = 1.0;
         let c = cross(&b1, &e);
@@ -164,21 +144,9 @@ pub fn matrix_to_quaternion(m: &Mat3) -> [f64; 4] {
 pub fn quaternion_to_matrix(q: &[f64; 4]) -> Mat3 {
     let [x, y, z, w] = *q;
     [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - z * w),
-            2.0 * (x * z + y * w),
-        ],
-        [
-            2.0 * (x * y + z * w),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - x * w),
-        ],
-        [
-            2.0 * (x * z - y * w),
-            2.0 * (y * z + x * w),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
+        [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
+        [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
     ]
 }
 
@@ -218,13 +186,8 @@ impl Skeleton {
                 )));
             }
         }
-        if let Some(j) = rest_joints
-            .iter()
-            .position(|r| r.iter().any(|v| !v.is_finite()))
-        {
-            return Err(Error::InvalidArgument(format!(
-                "skeleton: rest joint {j} is not finite"
-            )));
+        if let Some(j) = rest_joints.iter().position(|r| r.iter().any(|v| !v.is_finite())) {
+            return Err(Error::InvalidArgument(format!("skeleton: rest joint {j} is not finite")));
         }
         let mut s = Skeleton {
             parents: [0; CG_NUM_JOINTS],
@@ -267,11 +230,7 @@ impl Skeleton {
         for j in 1..CG_NUM_JOINTS {
             let p = self.parents[j] as usize;
             let o = mat_vec(&global[p], &self.offsets[j]);
-            positions[j] = [
-                positions[p][0] + o[0],
-                positions[p][1] + o[1],
-                positions[p][2] + o[2],
-            ];
+            positions[j] = [positions[p][0] + o[0], positions[p][1] + o[1], positions[p][2] + o[2]];
             global[j] = mat_mul(&global[p], &local[j]);
         }
     }
@@ -336,18 +295,9 @@ pub(crate) mod tests {
     fn quaternion_edge_cases() {
         // 180° rotations about each axis and about a diagonal: the w ≈ 0 branch.
         let cases: [(Mat3, [f64; 4]); 3] = [
-            (
-                [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]],
-                [1.0, 0.0, 0.0, 0.0],
-            ),
-            (
-                [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]],
-                [0.0, 1.0, 0.0, 0.0],
-            ),
-            (
-                [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]],
-                [0.0, 0.0, 1.0, 0.0],
-            ),
+            ([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]], [1.0, 0.0, 0.0, 0.0]),
+            ([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]], [0.0, 1.0, 0.0, 0.0]),
+            ([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]], [0.0, 0.0, 1.0, 0.0]),
         ];
         for (m, q) in cases {
             assert_eq!(matrix_to_quaternion(&m), q);
@@ -365,39 +315,19 @@ pub(crate) mod tests {
         let cases: [([f64; 6], [f64; 4]); 4] = [
             (
                 [0.9, 0.1, -0.2, 0.05, 1.1, 0.3],
-                [
-                    0.9827216960899975,
-                    -0.139662262080605,
-                    -0.1151991683956569,
-                    -0.03849249518381755,
-                ],
+                [0.9827216960899975, -0.139662262080605, -0.1151991683956569, -0.03849249518381755],
             ),
             (
                 [-0.3, 0.8, 0.4, 0.9, 0.2, -0.1],
-                [
-                    0.18942376384884746,
-                    0.5523757377803465,
-                    0.8045875254196532,
-                    0.1078823245023622,
-                ],
+                [0.18942376384884746, 0.5523757377803465, 0.8045875254196532, 0.1078823245023622],
             ),
             (
                 [0.0, 0.0, 2.0, 1.0, 1.0, 0.0],
-                [
-                    0.6532814824381884,
-                    0.2705980500730985,
-                    0.6532814824381883,
-                    0.2705980500730985,
-                ],
+                [0.6532814824381884, 0.2705980500730985, 0.6532814824381883, 0.2705980500730985],
             ),
             (
                 [0.2, -0.9, 0.1, -0.6, -0.1, 0.7],
-                [
-                    0.3539194378504431,
-                    -0.6946753232374567,
-                    0.585969566881027,
-                    0.220922822464822,
-                ],
+                [0.3539194378504431, -0.6946753232374567, 0.585969566881027, 0.220922822464822],
             ),
         ];
         for (d, wxyz) in cases {
@@ -441,9 +371,8 @@ pub(crate) mod tests {
 
     #[test]
     fn fk_identity_pose_is_the_rest_pose_moved_to_the_pelvis() {
-        let rest: Vec<[f32; 3]> = (0..55)
-            .map(|j| [j as f32 * 0.01, (j % 7) as f32 * 0.1, -(j as f32) * 0.02])
-            .collect();
+        let rest: Vec<[f32; 3]> =
+            (0..55).map(|j| [j as f32 * 0.01, (j % 7) as f32 * 0.1, -(j as f32) * 0.02]).collect();
         let sk = Skeleton::new(&SMPLX_PARENTS, &rest).unwrap();
         let local = [IDENTITY; 55];
         let (mut g, mut p) = ([IDENTITY; 55], [[0.0; 3]; 55]);

@@ -45,7 +45,7 @@ use std::sync::Arc;
 use tokenizers::Tokenizer;
 use tract_onnx::pb;
 use tract_onnx::prelude::{
-    DatumType, Framework, InferenceFact, InferenceModelExt, IntoRunnable, Tensor, TDim, ToDim, TVec,
+    DatumType, Framework, InferenceFact, InferenceModelExt, IntoRunnable, TDim, TVec, Tensor, ToDim,
 };
 use tract_onnx::tract_hir::infer::Factoid;
 
@@ -119,9 +119,14 @@ pub struct TextEncoder {
 
 impl std::fmt::Debug for TextEncoder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("TextEncoder").field("max_tokens", &self.max_tokens).field("dim", &self.width)
-            .field("pooling", &self.pooling).field("normalize", &self.normalize)
-            .field("mode", &self.mode).field("fallback", &self.fallback).finish_non_exhaustive()
+        f.debug_struct("TextEncoder")
+            .field("max_tokens", &self.max_tokens)
+            .field("dim", &self.width)
+            .field("pooling", &self.pooling)
+            .field("normalize", &self.normalize)
+            .field("mode", &self.mode)
+            .field("fallback", &self.fallback)
+            .finish_non_exhaustive()
     }
 }
 
@@ -132,16 +137,24 @@ impl TextEncoder {
         let t = &m.text_encoder;
         let tok_path = src.path_of(&t.files.tokenizer);
         let tokenizer = load_tokenizer(&tok_path, &src.read_file(&t.files.tokenizer)?, t.max_tokens)?;
-        let roles = t.inputs.iter().map(|i| match i.name.as_str() {
-            "input_ids" => Ok(Role::Ids),
-            "attention_mask" => Ok(Role::Mask),
-            "token_type_ids" => Ok(Role::TypeIds),
-            "position_ids" => Ok(Role::Positions),
-            other => Err(Error::bundle(src.path_of(&t.files.onnx), format!("unknown text encoder input {other:?}"))),
-        }).collect::<Result<Vec<_>>>()?;
+        let roles = t
+            .inputs
+            .iter()
+            .map(|i| match i.name.as_str() {
+                "input_ids" => Ok(Role::Ids),
+                "attention_mask" => Ok(Role::Mask),
+                "token_type_ids" => Ok(Role::TypeIds),
+                "position_ids" => Ok(Role::Positions),
+                other => {
+                    Err(Error::bundle(src.path_of(&t.files.onnx), format!("unknown text encoder input {other:?}")))
+                }
+            })
+            .collect::<Result<Vec<_>>>()?;
         let pool_index = t.outputs.iter().position(|o| o.name == t.pool_output).ok_or_else(|| {
-            Error::bundle(src.path_of(crate::bundle::manifest::MANIFEST_FILE),
-                          format!("text_encoder pool_output {:?} is not an output", t.pool_output))
+            Error::bundle(
+                src.path_of(crate::bundle::manifest::MANIFEST_FILE),
+                format!("text_encoder pool_output {:?} is not an output", t.pool_output),
+            )
         })?;
         // The probe is checked (and its error reported) after the graph, as before; the
         // graph loader only uses it to validate the real-tokens form.
@@ -167,8 +180,10 @@ impl TextEncoder {
         // The Python verifier's check: a short prompt comes out exactly max_tokens long.
         let probe = probe.map_err(|e| Error::bundle(&tok_path, e.to_string()))?;
         if probe.input_ids.len() != t.max_tokens {
-            return Err(Error::bundle(&tok_path, format!(
-                "pads to {} tokens, manifest max_tokens is {}", probe.input_ids.len(), t.max_tokens)));
+            return Err(Error::bundle(
+                &tok_path,
+                format!("pads to {} tokens, manifest max_tokens is {}", probe.input_ids.len(), t.max_tokens),
+            ));
         }
         Ok(enc)
     }
@@ -293,7 +308,9 @@ fn tokenize_with(tokenizer: &Tokenizer, max_tokens: usize, text: &str) -> Result
     }
     if text.len() > MAX_TEXT_BYTES {
         return Err(Error::InvalidArgument(format!(
-            "text is {} bytes long, the limit is {MAX_TEXT_BYTES}", text.len())));
+            "text is {} bytes long, the limit is {MAX_TEXT_BYTES}",
+            text.len()
+        )));
     }
     let enc = match catch_unwind(AssertUnwindSafe(|| tokenizer.encode_fast(text, true))) {
         Ok(Ok(enc)) => enc,
@@ -303,7 +320,9 @@ fn tokenize_with(tokenizer: &Tokenizer, max_tokens: usize, text: &str) -> Result
     let ids = enc.get_ids();
     if ids.len() != max_tokens {
         return Err(Error::Inference(format!(
-            "tokenizer produced {} tokens, the encoder takes exactly {max_tokens}", ids.len())));
+            "tokenizer produced {} tokens, the encoder takes exactly {max_tokens}",
+            ids.len()
+        )));
     }
     let widen = |v: &[u32]| v.iter().map(|&x| i64::from(x)).collect::<Vec<i64>>();
     Ok(TokenizedText {
@@ -338,8 +357,8 @@ impl Feed<'_> {
         }
         let mut state = graph::spawn(plan, "text_encoder.onnx")?;
         let out = graph::run(&mut state, &inputs, "text_encoder.onnx")?;
-        let states = out.get(self.out)
-            .ok_or_else(|| Error::Inference("text_encoder.onnx returned too few outputs".into()))?;
+        let states =
+            out.get(self.out).ok_or_else(|| Error::Inference("text_encoder.onnx returned too few outputs".into()))?;
         Ok(graph::slice::<f32>(states, "text encoder states", len * self.width)?.to_vec())
     }
 }
@@ -347,8 +366,12 @@ impl Feed<'_> {
 /// The encoder graph in the fastest form that applies (module doc, "Speed"), how it is fed,
 /// and why a faster form was refused. Only the final fallback, [`graph::load`], reports
 /// errors: a graph it refuses is refused with its usual message.
-fn load_plan(src: &BundleSource, t: &TextEncoderSpec, feed: &Feed<'_>, probe: Option<&TokenizedText>)
-             -> Result<(Plan, SequenceMode, Option<String>)> {
+fn load_plan(
+    src: &BundleSource,
+    t: &TextEncoderSpec,
+    feed: &Feed<'_>,
+    probe: Option<&TokenizedText>,
+) -> Result<(Plan, SequenceMode, Option<String>)> {
     let mut why = Vec::new();
     match guarded(|| read_proto(src, &t.files.onnx)) {
         Ok(mut proto) => {
@@ -359,7 +382,8 @@ fn load_plan(src: &BundleSource, t: &TextEncoderSpec, feed: &Feed<'_>, probe: Op
             match probe {
                 None => why.push("real tokens only: no probe prompt".into()),
                 Some(probe) => match guarded(|| rewritten_plan(src, t, proto.clone(), true))
-                    .and_then(|plan| check_real_tokens(&plan, feed, probe).map(|()| plan)) {
+                    .and_then(|plan| check_real_tokens(&plan, feed, probe).map(|()| plan))
+                {
                     Ok(plan) => return Ok((plan, SequenceMode::RealTokens, None)),
                     Err(e) => why.push(format!("real tokens only: {e}")),
                 },
@@ -416,8 +440,8 @@ fn rewrite_dequant_gathers(proto: &mut pb::ModelProto) -> usize {
     let Some(g) = proto.graph.as_mut() else { return 0 };
     let inits: HashMap<&str, (i32, &[i64])> =
         g.initializer.iter().map(|t| (t.name.as_str(), (t.data_type, t.dims.as_slice()))).collect();
-    let producer: HashMap<&str, usize> = g.node.iter().enumerate()
-        .flat_map(|(i, n)| n.output.iter().map(move |o| (o.as_str(), i))).collect();
+    let producer: HashMap<&str, usize> =
+        g.node.iter().enumerate().flat_map(|(i, n)| n.output.iter().map(move |o| (o.as_str(), i))).collect();
     let node = |name: &str, op: &str| producer.get(name).map(|&i| &g.node[i]).filter(|n| n.op_type == op);
     let mut nodes = Vec::with_capacity(g.node.len() + 8);
     let mut bypassed: Vec<Vec<String>> = Vec::new();
@@ -425,17 +449,31 @@ fn rewrite_dequant_gathers(proto: &mut pb::ModelProto) -> usize {
     for n in &g.node {
         let axis0 = n.attribute.iter().all(|a| a.name != "axis" || a.i == 0);
         let found = (n.op_type == "Gather" && n.input.len() == 2 && n.output.len() == 1 && axis0)
-            .then(|| node(&n.input[0], "Mul")).flatten()
+            .then(|| node(&n.input[0], "Mul"))
+            .flatten()
             .filter(|m| m.input.len() == 2)
-            .and_then(|m| [(0, 1), (1, 0)].into_iter().find_map(|(x, s)| {
-                let cast = node(&m.input[x], "Cast")?;
-                let to_float = cast.attribute.iter().any(|a| a.name == "to" && a.i == i64::from(FLOAT));
-                let (qt, qdims) = *inits.get(cast.input.first()?.as_str())?;
-                let (st, sdims) = *inits.get(m.input[s].as_str())?;
-                (to_float && cast.input.len() == 1 && qt == INT8 && st == FLOAT && qdims.len() == 2
-                    && sdims == [qdims[0], 1]).then(|| (cast.input[0].clone(), m.input[s].clone(), cast.attribute.clone(),
-                                                        [m.output.clone(), cast.output.clone()]))
-            }));
+            .and_then(|m| {
+                [(0, 1), (1, 0)].into_iter().find_map(|(x, s)| {
+                    let cast = node(&m.input[x], "Cast")?;
+                    let to_float = cast.attribute.iter().any(|a| a.name == "to" && a.i == i64::from(FLOAT));
+                    let (qt, qdims) = *inits.get(cast.input.first()?.as_str())?;
+                    let (st, sdims) = *inits.get(m.input[s].as_str())?;
+                    (to_float
+                        && cast.input.len() == 1
+                        && qt == INT8
+                        && st == FLOAT
+                        && qdims.len() == 2
+                        && sdims == [qdims[0], 1])
+                    .then(|| {
+                        (
+                            cast.input[0].clone(),
+                            m.input[s].clone(),
+                            cast.attribute.clone(),
+                            [m.output.clone(), cast.output.clone()],
+                        )
+                    })
+                })
+            });
         let Some((q, scale, cast_attr, outputs)) = found else {
             nodes.push(n.clone());
             continue;
@@ -450,7 +488,8 @@ fn rewrite_dequant_gathers(proto: &mut pb::ModelProto) -> usize {
             attribute,
             ..Default::default()
         };
-        let (gq, gqf, gs) = (format!("{out}__gather_q"), format!("{out}__gather_q_f32"), format!("{out}__gather_scale"));
+        let (gq, gqf, gs) =
+            (format!("{out}__gather_q"), format!("{out}__gather_q_f32"), format!("{out}__gather_scale"));
         nodes.push(make("Gather", [&q, ids], gq.clone(), vec![]));
         nodes.push(make("Cast", [&gq, ""], gqf.clone(), cast_attr));
         nodes.push(make("Gather", [&scale, ids], gs.clone(), vec![]));
@@ -481,7 +520,9 @@ fn generalize_reshapes(proto: &mut pb::ModelProto, t: i64) -> std::result::Resul
             *uses.entry(i.clone()).or_default() += 1;
         }
     }
-    let reshapes: Vec<(String, String, bool)> = g.node.iter()
+    let reshapes: Vec<(String, String, bool)> = g
+        .node
+        .iter()
         .filter(|n| n.op_type == "Reshape" && n.input.len() == 2)
         .map(|n| (n.name.clone(), n.input[1].clone(), n.attribute.iter().any(|a| a.name == "allowzero" && a.i != 0)))
         .collect();
@@ -497,7 +538,9 @@ fn generalize_reshapes(proto: &mut pb::ModelProto, t: i64) -> std::result::Resul
     };
     let mut names = Vec::new();
     for (name, shape, allowzero) in reshapes {
-        let konst = g.node.iter_mut()
+        let konst = g
+            .node
+            .iter_mut()
             .find(|n| n.op_type == "Constant" && n.output.first() == Some(&shape))
             .and_then(|n| n.attribute.iter_mut().find(|a| a.name == "value"))
             .and_then(|a| a.t.as_mut());
@@ -525,8 +568,12 @@ fn generalize_reshapes(proto: &mut pb::ModelProto, t: i64) -> std::result::Resul
 
 /// The graph from `proto`, checked against the manifest like [`graph::load`] does; with
 /// `real_tokens`, with a symbolic sequence axis `S` (module doc).
-fn rewritten_plan(src: &BundleSource, t: &TextEncoderSpec, mut proto: pb::ModelProto, real_tokens: bool)
-                  -> std::result::Result<Plan, String> {
+fn rewritten_plan(
+    src: &BundleSource,
+    t: &TextEncoderSpec,
+    mut proto: pb::ModelProto,
+    real_tokens: bool,
+) -> std::result::Result<Plan, String> {
     let tract = |e: tract_onnx::prelude::TractError| format!("{e:#}");
     let max = t.max_tokens;
     let reshapes = if real_tokens { generalize_reshapes(&mut proto, max as i64)? } else { Vec::new() };
@@ -538,10 +585,14 @@ fn rewritten_plan(src: &BundleSource, t: &TextEncoderSpec, mut proto: pb::ModelP
     }
     let mut model = parsed.model;
     drop(proto);
-    let in_names: Vec<String> = model.input_outlets().map_err(tract)?
-        .iter().map(|o| model.node(o.node).name.clone()).collect();
-    let out_names: Vec<String> = model.output_outlets().map_err(tract)?
-        .iter().map(|o| model.outlet_label(*o).unwrap_or(model.node(o.node).name.as_str()).to_string()).collect();
+    let in_names: Vec<String> =
+        model.input_outlets().map_err(tract)?.iter().map(|o| model.node(o.node).name.clone()).collect();
+    let out_names: Vec<String> = model
+        .output_outlets()
+        .map_err(tract)?
+        .iter()
+        .map(|o| model.outlet_label(*o).unwrap_or(model.node(o.node).name.as_str()).to_string())
+        .collect();
     if in_names.iter().ne(t.inputs.iter().map(|s| &s.name)) || out_names.iter().ne(t.outputs.iter().map(|s| &s.name)) {
         return Err("inputs or outputs differ from the manifest".into());
     }
@@ -550,8 +601,11 @@ fn rewritten_plan(src: &BundleSource, t: &TextEncoderSpec, mut proto: pb::ModelP
     for (i, spec) in t.inputs.iter().enumerate() {
         let fact = model.input_fact(i).map_err(tract)?;
         let declared = fact.shape.as_concrete_finite().map_err(tract)?;
-        if spec.dtype != Dtype::Int64 || spec.shape != [1, max] || fact.datum_type.concretize() != Some(i64t)
-            || declared.as_deref() != Some(&[1, max][..]) {
+        if spec.dtype != Dtype::Int64
+            || spec.shape != [1, max]
+            || fact.datum_type.concretize() != Some(i64t)
+            || declared.as_deref() != Some(&[1, max][..])
+        {
             return Err(format!("input {} is not int64 [1, {max}]", spec.name));
         }
         if real_tokens {
@@ -573,10 +627,18 @@ fn rewritten_plan(src: &BundleSource, t: &TextEncoderSpec, mut proto: pb::ModelP
     let typed = model.into_typed().map_err(tract)?;
     for (i, spec) in t.outputs.iter().enumerate() {
         let fact = typed.output_fact(i).map_err(tract)?;
-        let want: TVec<TDim> = spec.shape.iter().enumerate()
-            .map(|(k, &d)| if real_tokens && k == 1 { s.to_dim() } else { d.to_dim() }).collect();
-        if spec.dtype != Dtype::Float32 || spec.shape.len() != 3 || spec.shape[1] != max
-            || fact.datum_type != DatumType::F32 || fact.shape.dims() != &*want {
+        let want: TVec<TDim> = spec
+            .shape
+            .iter()
+            .enumerate()
+            .map(|(k, &d)| if real_tokens && k == 1 { s.to_dim() } else { d.to_dim() })
+            .collect();
+        if spec.dtype != Dtype::Float32
+            || spec.shape.len() != 3
+            || spec.shape[1] != max
+            || fact.datum_type != DatumType::F32
+            || fact.shape.dims() != &*want
+        {
             return Err(format!("output {} is {fact:?}, expected float32 {want:?}", spec.name));
         }
     }
@@ -593,15 +655,24 @@ fn load_tokenizer(path: &Path, bytes: &[u8], max_tokens: usize) -> Result<Tokeni
     };
     use tokenizers::{PaddingDirection, PaddingStrategy, PostProcessor};
     match tok.get_padding() {
-        Some(p) if matches!(p.strategy, PaddingStrategy::Fixed(n) if n == max_tokens)
-            && matches!(p.direction, PaddingDirection::Right) => {}
-        other => return Err(Error::bundle(path, format!(
-            "padding must be Fixed({max_tokens}) to the right, the file has {other:?}"))),
+        Some(p)
+            if matches!(p.strategy, PaddingStrategy::Fixed(n) if n == max_tokens)
+                && matches!(p.direction, PaddingDirection::Right) => {}
+        other => {
+            return Err(Error::bundle(
+                path,
+                format!("padding must be Fixed({max_tokens}) to the right, the file has {other:?}"),
+            ))
+        }
     }
     match tok.get_truncation() {
         Some(t) if t.max_length == max_tokens => {}
-        other => return Err(Error::bundle(path, format!(
-            "truncation must be to max_length {max_tokens}, the file has {other:?}"))),
+        other => {
+            return Err(Error::bundle(
+                path,
+                format!("truncation must be to max_length {max_tokens}, the file has {other:?}"),
+            ))
+        }
     }
     // The tokenizers crate subtracts the special tokens from max_length (usize): make sure
     // that cannot underflow for any prompt.
@@ -635,7 +706,8 @@ mod tests {
     /// The committed bundles with a text encoder (models/default may be absent in a
     /// checkout without the large files).
     fn bundles() -> Vec<(BundleSource, Manifest)> {
-        ["models/tiny", "models/default"].iter()
+        ["models/tiny", "models/default"]
+            .iter()
             .map(|d| Path::new(env!("CARGO_MANIFEST_DIR")).join(d))
             .filter(|d| d.join("text_encoder.onnx").is_file())
             .map(|d| {
@@ -708,15 +780,23 @@ mod tests {
             }
             let plan = rewritten_plan(&src, t, proto, false).unwrap();
             let reference = graph::load(&src, &t.files.onnx, &t.inputs, &t.outputs).unwrap();
-            let tokenizer = load_tokenizer(&src.path_of(&t.files.tokenizer),
-                                           &src.read_file(&t.files.tokenizer).unwrap(), t.max_tokens).unwrap();
+            let tokenizer = load_tokenizer(
+                &src.path_of(&t.files.tokenizer),
+                &src.read_file(&t.files.tokenizer).unwrap(),
+                t.max_tokens,
+            )
+            .unwrap();
             let roles = [Role::Ids, Role::Mask, Role::TypeIds, Role::Positions];
             let feed = Feed { roles: &roles[..t.inputs.len()], out: 0, width: t.outputs[0].shape[2] };
             for prompt in PROMPTS {
                 let tok = tokenize_with(&tokenizer, t.max_tokens, prompt).unwrap();
                 let a = feed.run(&plan, &tok, t.max_tokens).unwrap();
                 let b = feed.run(&reference, &tok, t.max_tokens).unwrap();
-                assert!(a == b, "{prompt:?}: {rewritten} int8 gathers rewritten, states differ by {:e}", max_abs(&a, &b));
+                assert!(
+                    a == b,
+                    "{prompt:?}: {rewritten} int8 gathers rewritten, states differ by {:e}",
+                    max_abs(&a, &b)
+                );
             }
         }
     }
@@ -746,9 +826,17 @@ mod tests {
             graph: Some(GraphProto { node: nodes, ..Default::default() }),
             ..Default::default()
         };
-        let target = |p: &ModelProto, k: usize| p.graph.as_ref().unwrap().node[k].attribute[0].t.as_ref().unwrap().int64_data.clone();
-        let mut p = model(vec![konst("a", vec![1, 8, -1, 8]), konst("b", vec![1, 4, -1]), konst("c", vec![8, -1]),
-                               reshape("r1", "a", 0), reshape("r2", "b", 0), reshape("r3", "c", 0)]);
+        let target = |p: &ModelProto, k: usize| {
+            p.graph.as_ref().unwrap().node[k].attribute[0].t.as_ref().unwrap().int64_data.clone()
+        };
+        let mut p = model(vec![
+            konst("a", vec![1, 8, -1, 8]),
+            konst("b", vec![1, 4, -1]),
+            konst("c", vec![8, -1]),
+            reshape("r1", "a", 0),
+            reshape("r2", "b", 0),
+            reshape("r3", "c", 0),
+        ]);
         assert_eq!(generalize_reshapes(&mut p, 8).unwrap(), vec!["r1".to_string()]);
         assert_eq!(target(&p, 0), vec![1, 0, -1, 8]);
         assert_eq!(target(&p, 1), vec![1, 4, -1]);

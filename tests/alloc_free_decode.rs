@@ -15,7 +15,8 @@ fn native_decode_allocates_nothing_on_one_thread_or_two() {
     let dir = tiny_dir();
     let b = Bundle::load(&dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
     let books = b.manifest.codebook_sizes();
-    let tokens = |i: usize| -> [i64; N_STREAMS] { std::array::from_fn(|s| ((i * 7919 + s * 104_729) % books[s]) as i64) };
+    let tokens =
+        |i: usize| -> [i64; N_STREAMS] { std::array::from_fn(|s| ((i * 7919 + s * 104_729) % books[s]) as i64) };
     let chunks = 200;
     let mut frames = Vec::new();
     // The only test in this binary, so setting the variable races with nothing; it is read
@@ -38,7 +39,10 @@ fn native_decode_allocates_nothing_on_one_thread_or_two() {
             Ok::<(), comgrasp::Error>(())
         });
         res.unwrap();
-        assert_eq!(n, 0, "{n} allocations in {chunks} native decode calls ({threads} threads, first chunk included) and a reset");
+        assert_eq!(
+            n, 0,
+            "{n} allocations in {chunks} native decode calls ({threads} threads, first chunk included) and a reset"
+        );
         assert!(all.iter().all(|v| v.is_finite()));
         frames.push(all);
     }

@@ -22,8 +22,11 @@ fn switches_of(name: &str) -> Option<u64> {
             continue;
         }
         let status = std::fs::read_to_string(e.path().join("status")).ok()?;
-        let n: u64 = status.lines().filter(|l| l.contains("ctxt_switches"))
-            .filter_map(|l| l.split_whitespace().last()?.parse::<u64>().ok()).sum();
+        let n: u64 = status
+            .lines()
+            .filter(|l| l.contains("ctxt_switches"))
+            .filter_map(|l| l.split_whitespace().last()?.parse::<u64>().ok())
+            .sum();
         total = Some(total.unwrap_or(0) + n);
     }
     total
@@ -63,8 +66,13 @@ fn check(dir: &Path, threads: &str) {
         }
     });
     assert!(checksum.is_finite());
-    assert_eq!(n, 0, "{}, {threads} thread(s): native step allocated {n} times over {} steps", dir.display(),
-               3 * (slots + 7));
+    assert_eq!(
+        n,
+        0,
+        "{}, {threads} thread(s): native step allocated {n} times over {} steps",
+        dir.display(),
+        3 * (slots + 7)
+    );
     if threads == "2" && cfg!(target_os = "linux") {
         // The helper thread exists and woke up for the steps (it sleeps between them).
         let (before, after) = (helper_before.expect("no comgrasp-step thread"), switches_of("comgrasp-step").unwrap());

@@ -71,7 +71,8 @@ fn stream_allocates_nothing_after_the_first_token() {
         let expected = u64::from(l_max) * per_token;
         assert_eq!(f.frame_index + 1, expected, "the stream did not run its full length");
         assert!(frames + 2 >= expected - per_token, "only {frames} frames counted");
-        let what = format!("{allocs} allocations over {frames} frames (fk {fk}, {coords:?}, publishing {publish_name:?})");
+        let what =
+            format!("{allocs} allocations over {frames} frames (fk {fk}, {coords:?}, publishing {publish_name:?})");
         if publish_name.is_none() {
             assert_eq!(allocs, 0, "{what}");
         } else {

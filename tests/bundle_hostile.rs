@@ -37,8 +37,10 @@ fn load_within(dir: &Path, limit: Duration) -> Result<comgrasp::Result<()>, Stri
             println!("  ({} loaded or failed in {:?})", dir.display(), t0.elapsed());
             Ok(r)
         }
-        Ok(Err(p)) => Err(format!("Bundle::load panicked: {:?}", p.downcast_ref::<String>().map(String::as_str)
-            .or_else(|| p.downcast_ref::<&str>().copied()))),
+        Ok(Err(p)) => Err(format!(
+            "Bundle::load panicked: {:?}",
+            p.downcast_ref::<String>().map(String::as_str).or_else(|| p.downcast_ref::<&str>().copied())
+        )),
         Err(_) => Err(format!("Bundle::load did not finish within {limit:?} (hang)")),
     }
 }
@@ -136,8 +138,10 @@ fn bit_flipped_graphs() {
             Err(e) => panic!("flip at {at}: not a bundle error: {e:?}"),
         }
     }
-    println!("{rel}: {} bit flips with recomputed digests: {refused} refused, {accepted} loaded (weight bytes)",
-             positions.len());
+    println!(
+        "{rel}: {} bit flips with recomputed digests: {refused} refused, {accepted} loaded (weight bytes)",
+        positions.len()
+    );
     assert!(refused > 0, "no structural flip was refused");
 }
 
@@ -225,7 +229,8 @@ fn slices_and_shapes_that_do_not_match() {
         m["decoder"]["inputs"][0]["shape"][2] = k1.into();
         m["decoder"]["outputs"][1]["shape"][2] = k1.into();
         let books: Vec<serde_json::Value> = m["decoder"]["state_pad_ids"].as_array().unwrap().clone();
-        m["decoder"]["initial_state"] = serde_json::json!([books.iter().map(|j| vec![j.clone(); k1 as usize]).collect::<Vec<_>>()]);
+        m["decoder"]["initial_state"] =
+            serde_json::json!([books.iter().map(|j| vec![j.clone(); k1 as usize]).collect::<Vec<_>>()]);
     });
     expect_bundle_error(&b.dir, "decoder.onnx", &["state", "in the graph"]);
 
@@ -259,18 +264,30 @@ fn slices_and_shapes_that_do_not_match() {
 fn absurd_numbers_are_errors_not_overflows_or_huge_allocations() {
     let cases: [(&str, fn(&mut serde_json::Value), &[&str]); 6] = [
         ("l_max = u64::MAX", |m| m["l_max"] = u64::MAX.into(), &["l_max + 2"]),
-        ("codebook_size = u64::MAX", |m| m["components"][2]["codebook_size"] = u64::MAX.into(), &["codebook_size", "absurd"]),
-        ("n_heads * head_dim overflows", |m| {
-            m["transformer"]["n_heads"] = (1u64 << 62).into();
-            m["transformer"]["head_dims"][0] = 8.into();
-        }, &["width"]),
+        (
+            "codebook_size = u64::MAX",
+            |m| m["components"][2]["codebook_size"] = u64::MAX.into(),
+            &["codebook_size", "absurd"],
+        ),
+        (
+            "n_heads * head_dim overflows",
+            |m| {
+                m["transformer"]["n_heads"] = (1u64 << 62).into();
+                m["transformer"]["head_dims"][0] = 8.into();
+            },
+            &["width"],
+        ),
         ("state_tokens = u64::MAX", |m| m["decoder"]["state_tokens"] = u64::MAX.into(), &["state_tokens"]),
-        ("state_tokens = 2^40 (consistent context)", |m| {
-            m["decoder"]["state_tokens"] = (1u64 << 40).into();
-            m["decoder"]["context_tokens"] = ((1u64 << 40) + 1).into();
-            m["decoder"]["inputs"][0]["shape"][2] = (1u64 << 40).into();
-            m["decoder"]["outputs"][1]["shape"][2] = (1u64 << 40).into();
-        }, &["initial_state"]),
+        (
+            "state_tokens = 2^40 (consistent context)",
+            |m| {
+                m["decoder"]["state_tokens"] = (1u64 << 40).into();
+                m["decoder"]["context_tokens"] = ((1u64 << 40) + 1).into();
+                m["decoder"]["inputs"][0]["shape"][2] = (1u64 << 40).into();
+                m["decoder"]["outputs"][1]["shape"][2] = (1u64 << 40).into();
+            },
+            &["initial_state"],
+        ),
         ("fps given as the string \"inf\"", |m| m["fps"] = serde_json::Value::String("inf".into()), &["schema"]),
     ];
     for (what, edit, needles) in cases {

@@ -61,7 +61,10 @@ fn c_example_reports_errors_with_status_and_message() {
     let o = run(c_example(), &["/nonexistent/bundle"], Duration::from_secs(60));
     let stderr = text(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{stderr}");
-    assert!(stderr.contains("cg_engine_create failed: CG_ERR_BUNDLE") && stderr.contains("/nonexistent/bundle"), "{stderr}");
+    assert!(
+        stderr.contains("cg_engine_create failed: CG_ERR_BUNDLE") && stderr.contains("/nonexistent/bundle"),
+        "{stderr}"
+    );
 
     let o = run(c_example(), &[&tiny(), "   "], Duration::from_secs(60));
     let stderr = text(&o.stderr);

@@ -98,7 +98,8 @@ fn generate_writes_json_and_npz_that_agree() {
     let p = Path::new("root_translation.npy");
     let root = shape_of("root_translation").to_f32(p).unwrap();
     for (i, f) in frames.iter().enumerate() {
-        let j: Vec<f32> = f["root_translation"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+        let j: Vec<f32> =
+            f["root_translation"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
         assert_eq!(j, root[3 * i..3 * i + 3], "root_translation of frame {i}");
     }
     let _ = std::fs::remove_file(json_path);
@@ -178,7 +179,18 @@ fn help_and_version() {
     let o = comgrasp(&["generate", "--help"]);
     assert!(o.status.success());
     let help = text(&o.stdout);
-    for opt in ["--bundle", "--text", "--out", "--seed", "--temperature", "--top-k", "--min-len", "--max-len", "--coords", "--fk"] {
+    for opt in [
+        "--bundle",
+        "--text",
+        "--out",
+        "--seed",
+        "--temperature",
+        "--top-k",
+        "--min-len",
+        "--max-len",
+        "--coords",
+        "--fk",
+    ] {
         assert!(help.contains(opt), "help lacks {opt}");
     }
     let o = comgrasp(&["--version"]);

@@ -74,26 +74,20 @@ fn cmake_configure(src: &Path, build: &Path, prefix_path: &Path, extra: &[&str])
 }
 
 fn cmake_build(build: &Path) {
-    run_ok(
-        Command::new("cmake").arg("--build").arg(build).args(["--parallel", "2"]),
-        Duration::from_secs(600),
-    );
+    run_ok(Command::new("cmake").arg("--build").arg(build).args(["--parallel", "2"]), Duration::from_secs(600));
 }
 
 /// Runs an example on the tiny bundle without LD_LIBRARY_PATH (cargo test sets one that
 /// would hide a missing RPATH) and checks its summary.
 fn run_example(exe: &Path) -> String {
-    let stdout = run_ok(
-        Command::new(exe).env_remove("LD_LIBRARY_PATH").arg(tiny()).arg(PROMPT),
-        Duration::from_secs(300),
-    );
+    let stdout =
+        run_ok(Command::new(exe).env_remove("LD_LIBRARY_PATH").arg(tiny()).arg(PROMPT), Duration::from_secs(300));
     let frames: u64 = field(&stdout, "frames:").split_whitespace().next().unwrap().parse().unwrap();
     assert!(frames > 0 && frames.is_multiple_of(16), "{stdout}");
     assert_eq!(field(&stdout, "status:"), "CG_END", "{stdout}");
     assert_eq!(field(&stdout, "last frame flagged:"), "yes", "{stdout}");
     stdout
 }
-
 
 /// `readelf -d` of a binary.
 fn dynamic_section(exe: &Path) -> String {
@@ -126,7 +120,11 @@ fn split_flags(s: &str) -> Vec<String> {
 fn pkg_config(pc_dir: &Path, args: &[&str]) -> String {
     require_tool("pkg-config", "--version");
     run_ok(
-        Command::new("pkg-config").env("PKG_CONFIG_PATH", pc_dir).env_remove("PKG_CONFIG_LIBDIR").args(args).arg("comgrasp"),
+        Command::new("pkg-config")
+            .env("PKG_CONFIG_PATH", pc_dir)
+            .env_remove("PKG_CONFIG_LIBDIR")
+            .args(args)
+            .arg("comgrasp"),
         Duration::from_secs(60),
     )
     .trim()
@@ -157,7 +155,12 @@ fn generated_files_point_at_this_tree() {
     let dir = profile_dir();
     let pc = std::fs::read_to_string(dir.join("comgrasp.pc")).expect("comgrasp.pc in the profile folder");
     let root = root().to_str().unwrap();
-    for line in [format!("prefix={root}"), "libdir=${pcfiledir}".into(), "includedir=${prefix}/include".into(), format!("Version: {VERSION}")] {
+    for line in [
+        format!("prefix={root}"),
+        "libdir=${pcfiledir}".into(),
+        "includedir=${prefix}/include".into(),
+        format!("Version: {VERSION}"),
+    ] {
         assert!(pc.lines().any(|l| l == line), "no line {line:?} in comgrasp.pc:\n{pc}");
     }
     let cfg = std::fs::read_to_string(dir.join("comgrasp-config.cmake")).unwrap();
@@ -171,7 +174,10 @@ fn generated_files_point_at_this_tree() {
 fn cmake_find_package_builds_and_runs_the_examples() {
     let build = fresh("examples");
     let log = cmake_configure(&root().join("examples_c"), &build, stage(), &[]);
-    assert!(log.contains(&format!("comgrasp {VERSION} (ABI 1): {}", stage().join(shared_lib_name()).display())), "{log}");
+    assert!(
+        log.contains(&format!("comgrasp {VERSION} (ABI 1): {}", stage().join(shared_lib_name()).display())),
+        "{log}"
+    );
     cmake_build(&build);
 
     // Shared: records "libcomgrasp.so" (no absolute path: the cdylib has no soname, see
@@ -191,7 +197,10 @@ fn cmake_find_package_builds_and_runs_the_examples() {
 
     // C++ wrapper (comgrasp.hpp from the package's include path).
     let out = run_ok(
-        Command::new(build.join("comgrasp_cpp_example")).env_remove("LD_LIBRARY_PATH").arg(tiny()).arg("The man lifts a small cube."),
+        Command::new(build.join("comgrasp_cpp_example"))
+            .env_remove("LD_LIBRARY_PATH")
+            .arg(tiny())
+            .arg("The man lifts a small cube."),
         Duration::from_secs(300),
     );
     assert!(out.contains("last frame flagged: yes") && out.lines().last() == Some("ok"), "{out}");
@@ -279,9 +288,15 @@ fn install_script_makes_a_working_prefix() {
     let src = root().to_str().unwrap();
     let tree = [format!("prefix={src}\n"), format!("{src}/include"), format!("{src}/bindings"), "pcfiledir".into()];
     let pc_text = std::fs::read_to_string(prefix.join("lib/pkgconfig/comgrasp.pc")).unwrap();
-    assert!(!tree.iter().any(|t| pc_text.contains(t.as_str())), "installed comgrasp.pc still names the source tree:\n{pc_text}");
+    assert!(
+        !tree.iter().any(|t| pc_text.contains(t.as_str())),
+        "installed comgrasp.pc still names the source tree:\n{pc_text}"
+    );
     let cfg_text = std::fs::read_to_string(prefix.join("lib/cmake/comgrasp/comgrasp-config.cmake")).unwrap();
-    assert!(!tree.iter().any(|t| cfg_text.contains(t.as_str())), "installed CMake package still names the source tree:\n{cfg_text}");
+    assert!(
+        !tree.iter().any(|t| cfg_text.contains(t.as_str())),
+        "installed CMake package still names the source tree:\n{cfg_text}"
+    );
 
     // pkg-config: everything under the prefix.
     let pc = prefix.join("lib/pkgconfig");

@@ -56,7 +56,8 @@ fn csharp_binding_passes_its_tests_against_the_library() {
             .env("MONO_PATH", &dir),
         Duration::from_secs(600),
     );
-    let groups = ["layout", "stream_to_end", "polling_allocates_nothing", "errors", "cancel", "cancel_from_another_thread"];
+    let groups =
+        ["layout", "stream_to_end", "polling_allocates_nothing", "errors", "cancel", "cancel_from_another_thread"];
     for group in groups.iter().chain(&["shm_subscriber", "shm_errors"]) {
         assert!(stdout.lines().any(|l| l == format!("ok {group}")), "no `ok {group}` in:\n{stdout}");
     }

@@ -123,7 +123,8 @@ fn embedded_set_is_the_listed_files_without_parity() {
     let bundle = Bundle::load(&default_dir()).unwrap();
     let mut names: Vec<&str> = files[1..].iter().map(|(n, _)| *n).collect();
     names.sort_unstable();
-    let listed: Vec<&str> = bundle.manifest.files.keys().map(String::as_str).filter(|n| !n.starts_with("parity/")).collect();
+    let listed: Vec<&str> =
+        bundle.manifest.files.keys().map(String::as_str).filter(|n| !n.starts_with("parity/")).collect();
     assert_eq!(names, listed);
     for (name, bytes) in files {
         assert_eq!(*bytes, &std::fs::read(default_dir().join(name)).unwrap()[..], "{name}");
@@ -170,13 +171,21 @@ fn corrupt_in_memory_copy_names_the_file() {
     expect_bundle_error(BundleSource::memory(flipped), "<memory>/step.onnx", &["SHA-256", "corrupt"]);
 
     let missing = leaked_copy(|files| files.retain(|(n, _)| *n != "decoder.onnx"));
-    expect_bundle_error(BundleSource::memory(missing), "<memory>/decoder.onnx", &["listed in the manifest but missing"]);
+    expect_bundle_error(
+        BundleSource::memory(missing),
+        "<memory>/decoder.onnx",
+        &["listed in the manifest but missing"],
+    );
 
     let extra = leaked_copy(|files| files.push(("objects/extra.obj", b"v 0 0 0\n".to_vec())));
     expect_bundle_error(BundleSource::memory(extra), "<memory>", &["not listed", "objects/extra.obj"]);
 
     let no_manifest = leaked_copy(|files| files.retain(|(n, _)| *n != "manifest.json"));
-    expect_bundle_error(BundleSource::memory(no_manifest), "<memory>/manifest.json", &["missing", "not a model bundle"]);
+    expect_bundle_error(
+        BundleSource::memory(no_manifest),
+        "<memory>/manifest.json",
+        &["missing", "not a model bundle"],
+    );
 }
 
 /// Cost of the embedded bundle's SHA-256 check (done once per process) and of a second
@@ -199,8 +208,14 @@ fn embedded_hash_cost() {
     let t = Instant::now();
     Bundle::load(&default_dir()).unwrap();
     let dir = t.elapsed();
-    eprintln!("embedded bundle: {bytes} bytes in {} files; SHA-256 of all {:.2} ms ({:.0} MB/s); \
+    eprintln!(
+        "embedded bundle: {bytes} bytes in {} files; SHA-256 of all {:.2} ms ({:.0} MB/s); \
                load {:.1} ms (this test's first), again {:.1} ms; the same from its directory {:.1} ms",
-              files.len(), hash.as_secs_f64() * 1e3, bytes as f64 / hash.as_secs_f64() / 1e6,
-              first.as_secs_f64() * 1e3, again.as_secs_f64() * 1e3, dir.as_secs_f64() * 1e3);
+        files.len(),
+        hash.as_secs_f64() * 1e3,
+        bytes as f64 / hash.as_secs_f64() / 1e6,
+        first.as_secs_f64() * 1e3,
+        again.as_secs_f64() * 1e3,
+        dir.as_secs_f64() * 1e3
+    );
 }

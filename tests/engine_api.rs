@@ -80,11 +80,16 @@ fn limits_and_validation() {
     assert!(validate_text(&"a".repeat(4096)).is_ok());
     let bad = StreamConfig { temperature: Some(-0.5), ..Default::default() };
     assert!(matches!(e.start("x", bad), Err(Error::InvalidArgument(_))));
-    for cfg in [EngineConfig { ring_capacity: 0, ..Default::default() }, EngineConfig { max_streams: 0, ..Default::default() }] {
+    for cfg in
+        [EngineConfig { ring_capacity: 0, ..Default::default() }, EngineConfig { max_streams: 0, ..Default::default() }]
+    {
         assert!(Engine::with_source_factory(cfg, factory(Arc::default())).is_err());
     }
     // Engine defaults merge under stream settings.
-    let merged = StreamConfig { seed: Some(1), ..Default::default() }
-        .or(&StreamConfig { seed: Some(2), top_k: Some(3), ..Default::default() });
+    let merged = StreamConfig { seed: Some(1), ..Default::default() }.or(&StreamConfig {
+        seed: Some(2),
+        top_k: Some(3),
+        ..Default::default()
+    });
     assert_eq!(merged, StreamConfig { seed: Some(1), top_k: Some(3), ..Default::default() });
 }

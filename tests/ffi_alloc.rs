@@ -5,9 +5,9 @@ mod common;
 
 use std::time::Duration;
 
+use alloc_counter::allocations_in;
 use comgrasp::ffi::*;
 use comgrasp::Frame;
-use alloc_counter::allocations_in;
 use common::*;
 
 #[test]

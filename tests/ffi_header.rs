@@ -17,10 +17,26 @@ fn header_is_current() {
 #[test]
 fn header_declares_and_documents_every_function() {
     for f in [
-        "cg_abi_version", "cg_version_string", "cg_frame_size", "cg_status_string", "cg_last_error",
-        "cg_last_error_message", "cg_last_error_status", "cg_engine_config_init", "cg_engine_config_init_sized", "cg_stream_config_init",
-        "cg_engine_create", "cg_engine_destroy", "cg_engine_stream_count", "cg_start", "cg_start_utf8",
-        "cg_poll_frame", "cg_stream_wait", "cg_cancel", "cg_stream_destroy", "cg_stream_id",
+        "cg_abi_version",
+        "cg_version_string",
+        "cg_frame_size",
+        "cg_status_string",
+        "cg_last_error",
+        "cg_last_error_message",
+        "cg_last_error_status",
+        "cg_engine_config_init",
+        "cg_engine_config_init_sized",
+        "cg_stream_config_init",
+        "cg_engine_create",
+        "cg_engine_destroy",
+        "cg_engine_stream_count",
+        "cg_start",
+        "cg_start_utf8",
+        "cg_poll_frame",
+        "cg_stream_wait",
+        "cg_cancel",
+        "cg_stream_destroy",
+        "cg_stream_id",
     ] {
         let at = [format!(" {f}("), format!("*{f}(")]
             .iter()

@@ -33,7 +33,10 @@ fn versions_and_status_strings() {
         let s = unsafe { CStr::from_ptr(cg_status_string(code)) }.to_str().unwrap();
         assert_eq!(s, "unknown cg_status value");
     }
-    assert_eq!(unsafe { CStr::from_ptr(cg_status_string(cg_status::CG_ERR_PANIC as i32)) }.to_str().unwrap().split(':').next(), Some("CG_ERR_PANIC"));
+    assert_eq!(
+        unsafe { CStr::from_ptr(cg_status_string(cg_status::CG_ERR_PANIC as i32)) }.to_str().unwrap().split(':').next(),
+        Some("CG_ERR_PANIC")
+    );
 }
 
 #[test]
@@ -116,7 +119,16 @@ fn text_validation() {
 fn stream_config_validation() {
     let e = TestEngine::new(64, 4);
     let mut s = null_mut();
-    let mut cfg = cg_stream_config { struct_size: 0, use_defaults: 0, seed: 0, temperature: 0.0, top_k: 0, min_len: 0, max_len: 0, reserved: 0 };
+    let mut cfg = cg_stream_config {
+        struct_size: 0,
+        use_defaults: 0,
+        seed: 0,
+        temperature: 0.0,
+        top_k: 0,
+        min_len: 0,
+        max_len: 0,
+        reserved: 0,
+    };
     unsafe {
         assert_eq!(cg_stream_config_init(&mut cfg), cg_status::CG_OK);
         assert_eq!(cfg.struct_size as usize, std::mem::size_of::<cg_stream_config>());
@@ -186,7 +198,9 @@ fn engine_config_validation() {
         cfg.bundle_path = bad_path.as_ptr() as *const c_char;
         assert_eq!(cg_engine_create(&cfg, &mut out), cg_status::CG_ERR_INVALID_UTF8);
         cfg.bundle_path = c"/nonexistent".as_ptr();
-        for (field, value) in [("ring_capacity", 0u32), ("ring_capacity", 1 << 20), ("max_streams", 0), ("enable_fk", 2)] {
+        for (field, value) in
+            [("ring_capacity", 0u32), ("ring_capacity", 1 << 20), ("max_streams", 0), ("enable_fk", 2)]
+        {
             let mut c = cfg;
             match field {
                 "ring_capacity" => c.ring_capacity = value,
@@ -219,7 +233,10 @@ fn invalid_handles() {
             assert_eq!(cg_poll_frame(bogus as *mut cg_stream, &mut f), cg_status::CG_ERR_INVALID_HANDLE, "{bogus:#x}");
             assert_eq!(cg_cancel(bogus as *mut cg_stream), cg_status::CG_ERR_INVALID_HANDLE);
             assert_eq!(cg_stream_destroy(bogus as *mut cg_stream), cg_status::CG_ERR_INVALID_HANDLE);
-            assert_eq!(cg_start(bogus as *mut cg_engine, c"x".as_ptr(), null(), &mut s), cg_status::CG_ERR_INVALID_HANDLE);
+            assert_eq!(
+                cg_start(bogus as *mut cg_engine, c"x".as_ptr(), null(), &mut s),
+                cg_status::CG_ERR_INVALID_HANDLE
+            );
             assert_eq!(cg_engine_destroy(bogus as *mut cg_engine), cg_status::CG_ERR_INVALID_HANDLE);
         }
         drop(Box::from_raw(foreign));

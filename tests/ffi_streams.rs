@@ -333,9 +333,6 @@ fn destroying_a_stream_while_another_thread_waits() {
     std::thread::sleep(Duration::from_millis(60));
     assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
     let last = waiter.join().unwrap();
-    assert!(
-        last == cg_status::CG_CANCELLED || last == cg_status::CG_ERR_INVALID_HANDLE,
-        "waiter ended with {last:?}"
-    );
+    assert!(last == cg_status::CG_CANCELLED || last == cg_status::CG_ERR_INVALID_HANDLE, "waiter ended with {last:?}");
     e.destroy();
 }

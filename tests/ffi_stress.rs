@@ -96,7 +96,14 @@ fn thousand_start_cancel_cycles() {
     }
     // The engine still works.
     let s = e.start("chunks=2");
-    assert_eq!(drain_checked(s, { let mut id = 0; unsafe { cg_stream_id(s, &mut id) }; id }), (32, cg_status::CG_END));
+    assert_eq!(
+        drain_checked(s, {
+            let mut id = 0;
+            unsafe { cg_stream_id(s, &mut id) };
+            id
+        }),
+        (32, cg_status::CG_END)
+    );
     unsafe { cg_stream_destroy(s) };
     let _ = null::<u8>();
     e.destroy();

@@ -51,15 +51,20 @@ fn generated() -> &'static Generated {
     G.get_or_init(|| {
         let tiny = tiny();
         let (glb_path, png_path, json_path) = (tmp("motion.glb"), tmp("motion.png"), tmp("reference.json"));
-        let (glb_s, png_s, json_s) = (glb_path.to_string_lossy(), png_path.to_string_lossy(), json_path.to_string_lossy());
-        let mut args = vec!["generate", "--bundle", &tiny, "--text", PROMPT, "--seed", SEED, "--glb", &glb_s, "--preview", &png_s];
+        let (glb_s, png_s, json_s) =
+            (glb_path.to_string_lossy(), png_path.to_string_lossy(), json_path.to_string_lossy());
+        let mut args =
+            vec!["generate", "--bundle", &tiny, "--text", PROMPT, "--seed", SEED, "--glb", &glb_s, "--preview", &png_s];
         args.extend(LENGTH);
         let o = comgrasp(&args);
         let summary = text(&o.stdout);
         assert!(o.status.success(), "generate --glb failed: {}\n{summary}", text(&o.stderr));
         // The reference: same prompt and seed, the engine's FK in glTF coordinates. A
         // separate run, so the glb run must itself have switched to glTF coordinates.
-        let mut args = vec!["generate", "--bundle", &tiny, "--text", PROMPT, "--seed", SEED, "--coords", "gltf", "--fk", "--out", &json_s];
+        let mut args = vec![
+            "generate", "--bundle", &tiny, "--text", PROMPT, "--seed", SEED, "--coords", "gltf", "--fk", "--out",
+            &json_s,
+        ];
         args.extend(LENGTH);
         let o = comgrasp(&args);
         assert!(o.status.success(), "reference run failed: {}", text(&o.stderr));
@@ -81,7 +86,11 @@ fn summary_names_what_was_written() {
     assert!(g.summary.starts_with("48 frames, "), "{}", g.summary);
     let want = format!("wrote glb {} ({} bytes, object mug (prompt says \"mug\"))", g.glb_path.display(), g.glb.len());
     assert!(g.summary.contains(&want), "{want:?} not in {}", g.summary);
-    assert!(g.summary.contains("; wrote preview ") && g.summary.contains("(1536x320, frames 0,9,19,28,38,47)"), "{}", g.summary);
+    assert!(
+        g.summary.contains("; wrote preview ") && g.summary.contains("(1536x320, frames 0,9,19,28,38,47)"),
+        "{}",
+        g.summary
+    );
 }
 
 #[test]
@@ -228,7 +237,12 @@ fn world(glb: &Glb, pose: &[([f64; 3], [f64; 4])]) -> Vec<(Mat3, [f64; 3])> {
             assert!(parent[c].replace(i).is_none(), "node {c} has two parents");
         }
     }
-    fn eval(i: usize, parent: &[Option<usize>], pose: &[([f64; 3], [f64; 4])], memo: &mut Vec<Option<(Mat3, [f64; 3])>>) -> (Mat3, [f64; 3]) {
+    fn eval(
+        i: usize,
+        parent: &[Option<usize>],
+        pose: &[([f64; 3], [f64; 4])],
+        memo: &mut Vec<Option<(Mat3, [f64; 3])>>,
+    ) -> (Mat3, [f64; 3]) {
         if let Some(w) = memo[i] {
             return w;
         }
@@ -258,7 +272,8 @@ fn glb_skeleton_and_object_reproduce_the_engine_frames() {
     assert_eq!(t, 48);
 
     // Joint nodes 0..55 carry the bundle's joint names; the skin binds exactly them.
-    let manifest: Value = serde_json::from_slice(&std::fs::read(root().join("models/tiny/manifest.json")).unwrap()).unwrap();
+    let manifest: Value =
+        serde_json::from_slice(&std::fs::read(root().join("models/tiny/manifest.json")).unwrap()).unwrap();
     let names = manifest["skeleton"]["joint_names"].as_array().unwrap();
     assert_eq!(names.len(), 55);
     for (j, name) in names.iter().enumerate() {
@@ -300,7 +315,12 @@ fn glb_skeleton_and_object_reproduce_the_engine_frames() {
     }
 
     // Every frame: glTF node evaluation = the engine's FK, and the object node = the frame's object pose.
-    let object_node = glb.json["nodes"].as_array().unwrap().iter().position(|n| n["name"] == "mug").expect("an object node named mug");
+    let object_node = glb.json["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .position(|n| n["name"] == "mug")
+        .expect("an object node named mug");
     let mut worst = 0.0f64;
     for (k, f) in frames.iter().enumerate() {
         let w = world(&glb, &local_pose(&glb, k));
@@ -374,11 +394,18 @@ impl Bits<'_> {
 }
 
 fn inflate(data: &[u8]) -> Vec<u8> {
-    const LEN_BASE: [usize; 29] = [3, 4, 5, 6, 7, 8, 9, 10, 11, 13, 15, 17, 19, 23, 27, 31, 35, 43, 51, 59, 67, 83, 99, 115, 131, 163, 195, 227, 258];
-    const LEN_EXTRA: [u32; 29] = [0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4, 5, 5, 5, 5, 0];
-    const DIST_BASE: [usize; 30] =
-        [1, 2, 3, 4, 5, 7, 9, 13, 17, 25, 33, 49, 65, 97, 129, 193, 257, 385, 513, 769, 1025, 1537, 2049, 3073, 4097, 6145, 8193, 12289, 16385, 24577];
-    const DIST_EXTRA: [u32; 30] = [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9, 10, 10, 11, 11, 12, 12, 13, 13];
+    const LEN_BASE: [usize; 29] = [
+        3, 4, 5, 6, 7, 8, 9, 10, 11, 13, 15, 17, 19, 23, 27, 31, 35, 43, 51, 59, 67, 83, 99, 115, 131, 163, 195, 227,
+        258,
+    ];
+    const LEN_EXTRA: [u32; 29] =
+        [0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4, 5, 5, 5, 5, 0];
+    const DIST_BASE: [usize; 30] = [
+        1, 2, 3, 4, 5, 7, 9, 13, 17, 25, 33, 49, 65, 97, 129, 193, 257, 385, 513, 769, 1025, 1537, 2049, 3073, 4097,
+        6145, 8193, 12289, 16385, 24577,
+    ];
+    const DIST_EXTRA: [u32; 30] =
+        [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9, 10, 10, 11, 11, 12, 12, 13, 13];
     let mut b = Bits { data, at: 0 };
     let mut out: Vec<u8> = Vec::new();
     loop {
@@ -435,7 +462,10 @@ fn preview_png_is_well_formed_and_not_blank() {
     assert_eq!(chunks.first().unwrap().0, "IHDR");
     assert_eq!(chunks.last().unwrap(), &("IEND".to_string(), &[][..]));
     let ihdr = chunks[0].1;
-    let (w, h) = (u32::from_be_bytes(ihdr[0..4].try_into().unwrap()) as usize, u32::from_be_bytes(ihdr[4..8].try_into().unwrap()) as usize);
+    let (w, h) = (
+        u32::from_be_bytes(ihdr[0..4].try_into().unwrap()) as usize,
+        u32::from_be_bytes(ihdr[4..8].try_into().unwrap()) as usize,
+    );
     assert_eq!((w, h), (6 * 256, 320), "six 256×320 panels");
     assert_eq!(&ihdr[8..], [8, 2, 0, 0, 0], "8-bit RGB, no interlace");
 
@@ -463,7 +493,10 @@ fn preview_png_is_well_formed_and_not_blank() {
     assert!(drawn > 2000 && colours.len() >= 5, "{drawn} drawn pixels, {} colours", colours.len());
     // Every panel has something drawn in it.
     for panel in 0..6 {
-        let n = (0..h).flat_map(|y| (panel * 256..panel * 256 + 256).map(move |x| (x, y))).filter(|&(x, y)| pixels[y * w + x] != background).count();
+        let n = (0..h)
+            .flat_map(|y| (panel * 256..panel * 256 + 256).map(move |x| (x, y)))
+            .filter(|&(x, y)| pixels[y * w + x] != background)
+            .count();
         assert!(n > 300, "panel {panel}: {n} drawn pixels");
     }
 }
@@ -489,7 +522,11 @@ fn bad_output_paths_fail_cleanly() {
         ([&gen[..], &["--glb", &dir_glb]].concat(), 1, format!("cannot write {dir_glb}")),
         ([&gen[..], &["--preview", &dir_png]].concat(), 1, format!("cannot write {dir_png}")),
         ([&gen[..], &["--glb", &under_file]].concat(), 2, "is not a directory".into()),
-        ([&gen[..], &["--glb", "/nonexistent/dir/m.glb"]].concat(), 2, "--glb \"/nonexistent/dir/m.glb\": directory /nonexistent/dir does not exist".into()),
+        (
+            [&gen[..], &["--glb", "/nonexistent/dir/m.glb"]].concat(),
+            2,
+            "--glb \"/nonexistent/dir/m.glb\": directory /nonexistent/dir does not exist".into(),
+        ),
         ([&gen[..], &["--glb", "m.gltf"]].concat(), 2, "must end in .glb".into()),
         ([&gen[..], &["--preview", "m.jpg"]].concat(), 2, "must end in .png".into()),
         ([&gen[..], &["--glb", "m.glb", "--coords", "unity"]].concat(), 2, "conflicts with --coords unity".into()),
@@ -510,7 +547,19 @@ fn a_prompt_without_a_catalogue_object_uses_the_first_and_says_so() {
     let tiny = tiny();
     let glb = tmp("wave.glb");
     let glb_s = glb.to_string_lossy();
-    let o = comgrasp(&["generate", "--bundle", &tiny, "--text", "A man waves", "--min-len", "1", "--max-len", "1", "--glb", &glb_s]);
+    let o = comgrasp(&[
+        "generate",
+        "--bundle",
+        &tiny,
+        "--text",
+        "A man waves",
+        "--min-len",
+        "1",
+        "--max-len",
+        "1",
+        "--glb",
+        &glb_s,
+    ]);
     let stdout = text(&o.stdout);
     assert!(o.status.success(), "{}", text(&o.stderr));
     assert!(stdout.contains("object mug (the prompt names no catalogue object; using the first)"), "{stdout}");

@@ -18,8 +18,11 @@ const TOLERANCE: f64 = 1e-4;
 fn bundle() -> Arc<Bundle> {
     let dir = tiny_dir();
     let b = Bundle::load(&dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
-    assert!(b.manifest.decoder.native.is_some(),
-            "{} has no decoder.native weights: re-export it (bundle.py writes them)", dir.display());
+    assert!(
+        b.manifest.decoder.native.is_some(),
+        "{} has no decoder.native weights: re-export it (bundle.py writes them)",
+        dir.display()
+    );
     b
 }
 
@@ -76,12 +79,18 @@ fn native_frames_match_tract_over_long_sequences_and_after_reset() {
             tract.decode(&mut ts, *t, &mut c).unwrap();
             let d = max_abs_diff(&a, &c);
             assert!(d <= TOLERANCE, "round {round} token {i}: native vs tract max|diff| {d:e}");
-            if i < k { worst_start = worst_start.max(d) } else { worst = worst.max(d) }
+            if i < k {
+                worst_start = worst_start.max(d)
+            } else {
+                worst = worst.max(d)
+            }
             frames.extend_from_slice(&a);
         }
         assert_eq!(ns.decoded(), tokens.len());
-        println!("round {round}: {} tokens, max|native - tract| first K={k}: {worst_start:.3e}, after: {worst:.3e}",
-                 tokens.len());
+        println!(
+            "round {round}: {} tokens, max|native - tract| first K={k}: {worst_start:.3e}, after: {worst:.3e}",
+            tokens.len()
+        );
         // Same tokens after reset: the very same frames (the state is fully reset).
         if round == 0 {
             first_run = frames;
@@ -103,7 +112,10 @@ fn native_frames_match_tract_over_long_sequences_and_after_reset() {
     assert!(matches!(tract.decode(&mut fresh, t0[0], &mut a), Err(comgrasp::Error::WrongState(_))));
     assert!(matches!(b.decoder.decode(&mut fresh, t0[0], &mut a), Err(comgrasp::Error::WrongState(_))));
     // Input checks are the same on both paths.
-    assert!(matches!(native.decode(&mut ns, [books[0] as i64, 0, 0, 0], &mut a), Err(comgrasp::Error::InvalidArgument(_))));
+    assert!(matches!(
+        native.decode(&mut ns, [books[0] as i64, 0, 0, 0], &mut a),
+        Err(comgrasp::Error::InvalidArgument(_))
+    ));
     assert!(matches!(native.decode(&mut ns, [0; 4], &mut a[1..]), Err(comgrasp::Error::InvalidArgument(_))));
 }
 
@@ -134,7 +146,8 @@ fn native_decoder_replays_the_pytorch_parity_vectors() {
 // ----------------------------------------------------------------------------- load errors
 
 fn native_dir(b: &TempBundle) -> String {
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
     m["decoder"]["native"]["dir"].as_str().unwrap().to_string()
 }
 
@@ -162,11 +175,16 @@ fn load_err(b: &TempBundle) -> String {
 
 /// A float32 tensor of the first component's attention or first conv, for edits.
 fn some_tensor(b: &TempBundle, dtype: &str) -> (String, Vec<usize>) {
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
     let t = m["decoder"]["native"]["tensors"].as_object().unwrap();
-    t.iter().filter(|(n, v)| n.contains(".decoder.") && v["dtype"] == dtype && v["shape"].as_array().unwrap().len() >= 2)
-        .map(|(n, v)| (n.clone(), v["shape"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect()))
-        .next().unwrap_or_else(|| panic!("no {dtype} decoder tensor"))
+    t.iter()
+        .filter(|(n, v)| n.contains(".decoder.") && v["dtype"] == dtype && v["shape"].as_array().unwrap().len() >= 2)
+        .map(|(n, v)| {
+            (n.clone(), v["shape"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap() as usize).collect())
+        })
+        .next()
+        .unwrap_or_else(|| panic!("no {dtype} decoder tensor"))
 }
 
 fn write_npy_f32(p: &Path, shape: &[usize], data: &[f32]) {
@@ -188,11 +206,21 @@ fn missing_native_tensor_is_a_bundle_error() {
 #[test]
 fn declared_shape_disagreeing_with_the_architecture_is_a_bundle_error() {
     let b = TempBundle::copy_of(bundle().origin().directory().unwrap());
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
-    let name = m["decoder"]["native"]["tensors"].as_object().unwrap().keys()
-        .find(|n| n.ends_with(".qkv.bias")).expect("an attention qkv bias").clone();
-    let mut shape: Vec<usize> = m["decoder"]["native"]["tensors"][&name]["shape"].as_array().unwrap().iter()
-        .map(|x| x.as_u64().unwrap() as usize).collect();
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
+    let name = m["decoder"]["native"]["tensors"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .find(|n| n.ends_with(".qkv.bias"))
+        .expect("an attention qkv bias")
+        .clone();
+    let mut shape: Vec<usize> = m["decoder"]["native"]["tensors"][&name]["shape"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_u64().unwrap() as usize)
+        .collect();
     shape[0] += 1;
     // the file agrees with the new declaration, the architecture does not
     let dir = native_dir(&b);
@@ -241,7 +269,9 @@ fn unknown_decoder_layer_is_a_bundle_error() {
     let rel = format!("{dir}/{name}.npy");
     write_npy_f32(&b.path(&rel), &[4], &[0.0; 4]);
     rehash(&b, &rel);
-    b.edit_manifest(|m| m["decoder"]["native"]["tensors"][name] = serde_json::json!({"dtype": "float32", "shape": [4]}));
+    b.edit_manifest(|m| {
+        m["decoder"]["native"]["tensors"][name] = serde_json::json!({"dtype": "float32", "shape": [4]})
+    });
     let e = load_err(&b);
     assert!(e.contains(name) && e.contains("architecture"), "{e}");
 }
@@ -251,13 +281,23 @@ fn attention_window_disagreeing_with_context_tokens_is_a_bundle_error() {
     // A wider attention window makes the receptive field longer than the manifest's K.
     let b = TempBundle::copy_of(bundle().origin().directory().unwrap());
     let dir = native_dir(&b);
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
-    let names: Vec<String> = m["decoder"]["native"]["tensors"].as_object().unwrap().keys()
-        .filter(|n| n.ends_with(".rel_bias")).cloned().collect();
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(b.path("manifest.json")).unwrap()).unwrap();
+    let names: Vec<String> = m["decoder"]["native"]["tensors"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .filter(|n| n.ends_with(".rel_bias"))
+        .cloned()
+        .collect();
     assert!(!names.is_empty(), "the decoder has no attention");
     for name in &names {
-        let shape: Vec<usize> = m["decoder"]["native"]["tensors"][name]["shape"].as_array().unwrap().iter()
-            .map(|x| x.as_u64().unwrap() as usize).collect();
+        let shape: Vec<usize> = m["decoder"]["native"]["tensors"][name]["shape"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap() as usize)
+            .collect();
         let wider = [shape[0], shape[1] + 2];
         let rel = format!("{dir}/{name}.npy");
         write_npy_f32(&b.path(&rel), &wider, &vec![0.0; wider[0] * wider[1]]);

@@ -49,7 +49,11 @@ fn compare_paths(dir: &Path, max_steps: usize) {
                 let lt = tract.step(&mut st, tt, k, &emb).unwrap();
                 for s in 0..N_STREAMS {
                     let d = max_abs_diff(ln[s], lt[s]);
-                    assert!(d <= TOL, "{} case {ci} step {k} stream {s}: native vs tract logits differ by {d:e}", dir.display());
+                    assert!(
+                        d <= TOL,
+                        "{} case {ci} step {k} stream {s}: native vs tract logits differ by {d:e}",
+                        dir.display()
+                    );
                     worst = worst.max(d);
                 }
                 let arg = |l: &[f32], s: usize| -> i64 {
@@ -75,8 +79,12 @@ fn compare_paths(dir: &Path, max_steps: usize) {
                     (tn, tt) = (gn, gt);
                 }
             }
-            println!("{} case {ci} ({}): {} steps agree", dir.display(),
-                     if teacher { "teacher-forced" } else { "greedy" }, if teacher { forced.len() + 1 } else { greedy_n.len() });
+            println!(
+                "{} case {ci} ({}): {} steps agree",
+                dir.display(),
+                if teacher { "teacher-forced" } else { "greedy" },
+                if teacher { forced.len() + 1 } else { greedy_n.len() }
+            );
         }
     }
     println!("{}: worst native vs tract logits difference {worst:.3e}", dir.display());
@@ -155,7 +163,6 @@ fn rel(name: &str) -> String {
     format!("native/step/{name}.npy")
 }
 
-
 fn f32_npy(shape: &[usize], values: &[f32]) -> Vec<u8> {
     comgrasp::bundle::npy::encode("<f4", shape, &values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>())
 }
@@ -230,8 +237,9 @@ fn native_tensor_missing_or_extra() {
     // A tensor the step does not use.
     let b = TempBundle::copy_of(&tiny_dir());
     put(&b, &rel("streams.0.extra"), &f32_npy(&[2], &[1.0, 2.0]));
-    b.edit_manifest(|m| m["transformer"]["native"]["tensors"]["streams.0.extra"] =
-        serde_json::json!({"dtype": "float32", "shape": [2]}));
+    b.edit_manifest(|m| {
+        m["transformer"]["native"]["tensors"]["streams.0.extra"] = serde_json::json!({"dtype": "float32", "shape": [2]})
+    });
     expect(&b, "native/step", &["streams.0.extra", "does not use"]);
 }
 

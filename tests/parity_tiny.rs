@@ -29,8 +29,11 @@ fn text_encoder_matches_pytorch() {
     for (k, case) in cases["cases"].as_array().unwrap().iter().enumerate() {
         let prompt = case["prompt"].as_str().unwrap();
         let (tok, states) = b.text.token_states(prompt).unwrap();
-        for (name, got) in [("input_ids", &tok.input_ids), ("attention_mask", &tok.attention_mask),
-                            ("token_type_ids", &tok.token_type_ids)] {
+        for (name, got) in [
+            ("input_ids", &tok.input_ids),
+            ("attention_mask", &tok.attention_mask),
+            ("token_type_ids", &tok.token_type_ids),
+        ] {
             let (_, want) = load_i64(&dir, &format!("parity/text/case{k}_{name}.npy"));
             assert_eq!(got, &want, "case {k} {name} for {prompt:?}");
         }
@@ -43,7 +46,8 @@ fn text_encoder_matches_pytorch() {
         let mut d_states = 0f64;
         for (ti, &m) in tok.attention_mask.iter().enumerate() {
             if m == 1 {
-                d_states = d_states.max(max_abs_diff(&states[ti * w..(ti + 1) * w], &want_states[ti * w..(ti + 1) * w]));
+                d_states =
+                    d_states.max(max_abs_diff(&states[ti * w..(ti + 1) * w], &want_states[ti * w..(ti + 1) * w]));
             }
         }
         assert!(d_states <= tolerance(&index, &rel), "case {k}: token states differ by {d_states:e}");
@@ -55,7 +59,10 @@ fn text_encoder_matches_pytorch() {
         assert!(d <= tolerance(&index, &rel), "case {k} {prompt:?}: embedding differs by {d:e}");
         worst_emb = worst_emb.max(d);
         worst_states = worst_states.max(d_states);
-        println!("text case {k}: embedding max|diff| {d:.3e}, states (real tokens) {d_states:.3e}, truncated {}", tok.truncated);
+        println!(
+            "text case {k}: embedding max|diff| {d:.3e}, states (real tokens) {d_states:.3e}, truncated {}",
+            tok.truncated
+        );
     }
     println!("text: {n_cases} cases, worst embedding {worst_emb:.3e}, worst states {worst_states:.3e}");
 }
@@ -91,17 +98,22 @@ fn rows(v: (Vec<usize>, Vec<i64>)) -> Vec<[i64; N_STREAMS]> {
 fn step_cases() -> Vec<StepCase> {
     let dir = tiny_dir();
     let index = parity_index(&dir);
-    index["step"].as_array().unwrap().iter().map(|c| {
-        let f = &c["files"];
-        let s = |k: &str| f[k].as_str().unwrap().to_string();
-        StepCase {
-            text_emb: load_f32(&dir, &s("text_emb")).1,
-            logits: STREAMS.iter().map(|n| load_f32(&dir, &s(&format!("logits_{n}")))).collect(),
-            tokens: rows(load_i64(&dir, &s("tokens"))),
-            greedy: rows(load_i64(&dir, &s("greedy_tokens"))),
-            files: f.clone(),
-        }
-    }).collect()
+    index["step"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            let f = &c["files"];
+            let s = |k: &str| f[k].as_str().unwrap().to_string();
+            StepCase {
+                text_emb: load_f32(&dir, &s("text_emb")).1,
+                logits: STREAMS.iter().map(|n| load_f32(&dir, &s(&format!("logits_{n}")))).collect(),
+                tokens: rows(load_i64(&dir, &s("tokens"))),
+                greedy: rows(load_i64(&dir, &s("greedy_tokens"))),
+                files: f.clone(),
+            }
+        })
+        .collect()
 }
 
 #[test]
@@ -151,7 +163,11 @@ fn step_greedy_tokens_match_pytorch() {
             let mut next = [0i64; N_STREAMS];
             for s in 0..N_STREAMS {
                 let allowed = |i: usize| {
-                    if k >= max_len { i == end[s] } else { i as i64 != pad[s] && !(k < min_len && i == end[s]) }
+                    if k >= max_len {
+                        i == end[s]
+                    } else {
+                        i as i64 != pad[s] && !(k < min_len && i == end[s])
+                    }
                 };
                 let mut best: Option<(usize, f32)> = None;
                 for (i, &x) in logits[s].iter().enumerate() {
@@ -178,13 +194,16 @@ fn step_state_reuse_and_errors() {
     let case = &step_cases()[0];
     let pad = b.manifest.pad_ids();
     let mut st = b.step.new_state();
-    let first: Vec<Vec<f32>> = b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
+    let first: Vec<Vec<f32>> =
+        b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
     b.step.step(&mut st, case.tokens[0], 1, &case.text_emb).unwrap();
     // Re-running position 0 from the same state, and from a reset state, gives the same logits.
-    let again: Vec<Vec<f32>> = b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
+    let again: Vec<Vec<f32>> =
+        b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
     assert_eq!(first, again);
     st.reset().unwrap();
-    let reset: Vec<Vec<f32>> = b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
+    let reset: Vec<Vec<f32>> =
+        b.step.step(&mut st, pad, 0, &case.text_emb).unwrap().iter().map(|l| l.to_vec()).collect();
     assert_eq!(first, reset);
 
     let slots = b.step.cache_slots();
@@ -195,7 +214,10 @@ fn step_state_reuse_and_errors() {
     bad[0] = f32::NAN;
     assert!(matches!(b.step.step(&mut st, pad, 1, &bad), Err(Error::InvalidArgument(_))));
     let vocab = b.manifest.vocab_sizes();
-    assert!(matches!(b.step.step(&mut st, [vocab[0] as i64, 0, 0, 0], 1, &case.text_emb), Err(Error::InvalidArgument(_))));
+    assert!(matches!(
+        b.step.step(&mut st, [vocab[0] as i64, 0, 0, 0], 1, &case.text_emb),
+        Err(Error::InvalidArgument(_))
+    ));
     assert!(matches!(b.step.step(&mut st, [0, -1, 0, 0], 1, &case.text_emb), Err(Error::InvalidArgument(_))));
 
     // A state belongs to the model that made it.
@@ -231,12 +253,16 @@ fn decoder_chunks_match_pytorch_stream_and_offline() {
     let d_stream = max_abs_diff(&all, &stream);
     let d_offline = max_abs_diff(&all, &offline);
     let norm = &b.manifest.normalization;
-    let de: Vec<f32> = all.chunks_exact(335)
+    let de: Vec<f32> = all
+        .chunks_exact(335)
         .flat_map(|fr| fr.iter().enumerate().map(|(c, &x)| x * norm.std[c] + norm.mean[c]).collect::<Vec<_>>())
         .collect();
     let d_denorm = max_abs_diff(&de, &denorm);
-    println!("decoder: {} chunks, max|diff| vs PyTorch stream {d_stream:.3e}, vs offline {d_offline:.3e}, \
-              denormalized {d_denorm:.3e}", tokens.len());
+    println!(
+        "decoder: {} chunks, max|diff| vs PyTorch stream {d_stream:.3e}, vs offline {d_offline:.3e}, \
+              denormalized {d_denorm:.3e}",
+        tokens.len()
+    );
     assert!(d_stream <= tolerance(&index, &rel("frames_stream")), "decoder vs stream: {d_stream:e}");
     assert!(d_offline <= tolerance(&index, &rel("frames_offline")), "decoder vs offline: {d_offline:e}");
     assert!(d_denorm <= tolerance(&index, &rel("frames_denormalized")), "denormalized: {d_denorm:e}");
@@ -258,7 +284,10 @@ fn decoder_rejects_bad_input() {
     let mut st = b.decoder.new_state();
     let mut chunk = vec![0f32; b.decoder.chunk_len()];
     let books = b.manifest.codebook_sizes();
-    assert!(matches!(b.decoder.decode(&mut st, [books[0] as i64, 0, 0, 0], &mut chunk), Err(Error::InvalidArgument(_))));
+    assert!(matches!(
+        b.decoder.decode(&mut st, [books[0] as i64, 0, 0, 0], &mut chunk),
+        Err(Error::InvalidArgument(_))
+    ));
     assert!(matches!(b.decoder.decode(&mut st, [0, 0, -3, 0], &mut chunk), Err(Error::InvalidArgument(_))));
     assert!(matches!(b.decoder.decode(&mut st, [0; 4], &mut chunk[1..]), Err(Error::InvalidArgument(_))));
     assert_eq!(st.decoded(), 0);
@@ -298,6 +327,11 @@ fn timing_report() {
         b.decoder.decode(&mut ds, [0; 4], &mut chunk).unwrap();
     }
     let dec = t3.elapsed() / n;
-    println!("tiny bundle: load {:.1} ms, text embed {:.3} ms, step {:.3} ms, decode chunk {:.3} ms",
-             load.as_secs_f64() * 1e3, text.as_secs_f64() * 1e3, step.as_secs_f64() * 1e3, dec.as_secs_f64() * 1e3);
+    println!(
+        "tiny bundle: load {:.1} ms, text embed {:.3} ms, step {:.3} ms, decode chunk {:.3} ms",
+        load.as_secs_f64() * 1e3,
+        text.as_secs_f64() * 1e3,
+        step.as_secs_f64() * 1e3,
+        dec.as_secs_f64() * 1e3
+    );
 }

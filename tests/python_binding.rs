@@ -59,7 +59,11 @@ fn python_binding_finds_the_library() {
     let code = "import comgrasp_ctypes as c; print(c.find_library()); print(c.version()); \
                 e = c.Engine(r'''BUNDLE'''); s = e.start('a mug'); print(len(s.frames()), s.status.name)";
     let out = run_ok(
-        python().current_dir(&dir).env_remove("COMGRASP_LIB").arg("-c").arg(code.replace("BUNDLE", tiny().to_str().unwrap())),
+        python()
+            .current_dir(&dir)
+            .env_remove("COMGRASP_LIB")
+            .arg("-c")
+            .arg(code.replace("BUNDLE", tiny().to_str().unwrap())),
         Duration::from_secs(300),
     );
     let lines: Vec<&str> = out.lines().collect();
@@ -69,9 +73,15 @@ fn python_binding_finds_the_library() {
 
     // COMGRASP_LIB naming a missing file is an error that names it.
     let o = run(
-        python().current_dir(&dir).env("COMGRASP_LIB", "/nonexistent/libcomgrasp.so").args(["-c", "import comgrasp_ctypes as c; c.load()"]),
+        python()
+            .current_dir(&dir)
+            .env("COMGRASP_LIB", "/nonexistent/libcomgrasp.so")
+            .args(["-c", "import comgrasp_ctypes as c; c.load()"]),
         Duration::from_secs(60),
     );
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("FileNotFoundError") && err.contains("/nonexistent/libcomgrasp.so"), "{err}");
+    assert!(
+        !o.status.success() && err.contains("FileNotFoundError") && err.contains("/nonexistent/libcomgrasp.so"),
+        "{err}"
+    );
 }

@@ -39,10 +39,8 @@ fn rng_matches_python() {
 #[test]
 fn step_cases_replay_python_tokens() {
     for case in 0..2 {
-        let loaded: Vec<(Vec<usize>, Vec<f32>)> = STREAMS
-            .iter()
-            .map(|s| load_f32(&tiny_dir(), &format!("parity/step/case{case}_logits_{s}.npy")))
-            .collect();
+        let loaded: Vec<(Vec<usize>, Vec<f32>)> =
+            STREAMS.iter().map(|s| load_f32(&tiny_dir(), &format!("parity/step/case{case}_logits_{s}.npy"))).collect();
         let vocab: Vec<usize> = loaded.iter().map(|(shape, _)| *shape.last().unwrap()).collect();
         let logits: Vec<Vec<f32>> = loaded.into_iter().map(|(_, v)| v).collect();
         assert_eq!(vocab, [18, 34, 18, 26]);
@@ -57,16 +55,11 @@ fn step_cases_replay_python_tokens() {
             let l = [row(k, 0), row(k, 1), row(k, 2), row(k, 3)];
             let (got, allocs) = count_allocs(|| sampler.sample_step(k, l).unwrap());
             assert_eq!(allocs, 0, "sample_step allocated");
-            let want: Vec<usize> = tokens[k * 4..k * 4 + 4]
-                .iter()
-                .map(|&t| t as usize)
-                .collect();
+            let want: Vec<usize> = tokens[k * 4..k * 4 + 4].iter().map(|&t| t as usize).collect();
             assert_eq!(got.to_vec(), want, "case {case} step {k}");
         }
         let mut g = TokenSampler::new(7, SamplingParams::new(0.0, 8, 4, 18, 18).unwrap(), END, PAD);
-        let got = g
-            .sample_step(0, [row(0, 0), row(0, 1), row(0, 2), row(0, 3)])
-            .unwrap();
+        let got = g.sample_step(0, [row(0, 0), row(0, 1), row(0, 2), row(0, 3)]).unwrap();
         let want: Vec<usize> = greedy[..4].iter().map(|&t| t as usize).collect();
         assert_eq!(got.to_vec(), want, "case {case} greedy step 0");
     }

@@ -94,8 +94,19 @@ fn bad_input_changes_neither_state() {
             assert!(err.is_err(), "{what} (overlap {overlap}) was accepted");
             assert_eq!((ds.decoded(), ss.filled()), (0, 1), "{what} (overlap {overlap}) changed a state");
             let sample = |_: usize, _: [&[f32]; N_STREAMS]| Ok(Some(good));
-            let err = decode_and_steps(&b.decoder, &mut ds, &[c], &mut f[..len], &b.step, &mut ss, pos, &e,
-                                       &mut ahead, sample, overlap);
+            let err = decode_and_steps(
+                &b.decoder,
+                &mut ds,
+                &[c],
+                &mut f[..len],
+                &b.step,
+                &mut ss,
+                pos,
+                &e,
+                &mut ahead,
+                sample,
+                overlap,
+            );
             assert!(err.is_err(), "{what} (overlap {overlap}, next group's steps) was accepted");
             assert_eq!((ds.decoded(), ss.filled()), (0, 1), "{what} (overlap {overlap}, steps) changed a state");
         }
@@ -226,12 +237,14 @@ fn a_grouped_decode_overlaps_the_step_after_its_last_token() {
     for (t, o) in tokens.iter().zip(want.chunks_exact_mut(n)) {
         b.decoder.decode(&mut ds, *t, o).unwrap();
     }
-    let want_logits: Vec<Vec<f32>> = b.step.step(&mut ss, tokens[3], 1, &emb).unwrap().iter().map(|l| l.to_vec()).collect();
+    let want_logits: Vec<Vec<f32>> =
+        b.step.step(&mut ss, tokens[3], 1, &emb).unwrap().iter().map(|l| l.to_vec()).collect();
     for overlap in [true, false] {
         let (mut ds, mut ss) = (b.decoder.new_state(), b.step.new_state());
         b.step.step(&mut ss, pad, 0, &emb).unwrap();
         let mut got = vec![0.0; 4 * n];
-        let logits = decode_and_step(&b.decoder, &mut ds, &tokens, &mut got, &b.step, &mut ss, 1, &emb, overlap).unwrap();
+        let logits =
+            decode_and_step(&b.decoder, &mut ds, &tokens, &mut got, &b.step, &mut ss, 1, &emb, overlap).unwrap();
         let logits: Vec<Vec<f32>> = logits.iter().map(|l| l.to_vec()).collect();
         assert_eq!(got, want, "frames, overlap {overlap}");
         assert_eq!(logits, want_logits, "logits, overlap {overlap}");

@@ -169,7 +169,11 @@ fn misuse_gives_clear_errors() {
         assert_eq!(cg_subscriber_open(b"\xff\xfe\0".as_ptr().cast(), null(), &mut sub), cg_status::CG_ERR_INVALID_UTF8);
         let mut cfg = cg_subscriber_config { struct_size: 0, buffer_frames: 0, reserved: 0 };
         assert_eq!(cg_subscriber_config_init(null_mut()), cg_status::CG_ERR_NULL_POINTER);
-        assert_eq!(cg_subscriber_open(name.as_ptr(), &cfg, &mut sub), cg_status::CG_ERR_INVALID_ARGUMENT, "struct_size 0");
+        assert_eq!(
+            cg_subscriber_open(name.as_ptr(), &cfg, &mut sub),
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            "struct_size 0"
+        );
         cg_subscriber_config_init(&mut cfg);
         for frames in [0, CG_MAX_SUBSCRIBER_BUFFER as u32 + 1] {
             cfg.buffer_frames = frames;

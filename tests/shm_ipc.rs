@@ -37,7 +37,8 @@ struct Proc {
 impl Proc {
     fn spawn(cmd: &mut Command) -> Proc {
         let what = format!("{cmd:?}");
-        let mut child = cmd.stdin(Stdio::null()).stdout(Stdio::piped()).spawn().unwrap_or_else(|e| panic!("{what}: {e}"));
+        let mut child =
+            cmd.stdin(Stdio::null()).stdout(Stdio::piped()).spawn().unwrap_or_else(|e| panic!("{what}: {e}"));
         let (tx, lines) = channel();
         let out = BufReader::new(child.stdout.take().unwrap());
         std::thread::spawn(move || {

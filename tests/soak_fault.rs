@@ -63,7 +63,9 @@ fn worker_cpu_ticks() -> Vec<u64> {
         // Fields after the parenthesised name: state is field 3, utime 14, stime 15.
         if let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) {
             let f: Vec<&str> = rest.split_whitespace().collect();
-            if let (Some(u), Some(s)) = (f.get(11).and_then(|v| v.parse::<u64>().ok()), f.get(12).and_then(|v| v.parse::<u64>().ok())) {
+            if let (Some(u), Some(s)) =
+                (f.get(11).and_then(|v| v.parse::<u64>().ok()), f.get(12).and_then(|v| v.parse::<u64>().ok()))
+            {
                 out.push(u + s);
             }
         }
@@ -105,7 +107,11 @@ fn start_cancel_cycles_keep_memory_flat() {
             let mut n = 0u64;
             let mut told_first = false;
             let end = loop {
-                let st = if n % 3 == 2 { unsafe { cg_stream_wait(s, 1, &mut f) } } else { unsafe { cg_poll_frame(s, &mut f) } };
+                let st = if n % 3 == 2 {
+                    unsafe { cg_stream_wait(s, 1, &mut f) }
+                } else {
+                    unsafe { cg_poll_frame(s, &mut f) }
+                };
                 match st {
                     cg_status::CG_OK => {
                         assert_eq!(f.frame_index, n, "frames out of order");
@@ -139,12 +145,17 @@ fn start_cancel_cycles_keep_memory_flat() {
         }
         let mut s = null_mut();
         let text = CString::new("chunks=100000 frames=16").unwrap();
-        assert_eq!(unsafe { cg_start(handle as *mut cg_engine, text.as_ptr(), null(), &mut s) }, cg_status::CG_OK, "{}", last_error());
+        assert_eq!(
+            unsafe { cg_start(handle as *mut cg_engine, text.as_ptr(), null(), &mut s) },
+            cg_status::CG_OK,
+            "{}",
+            last_error()
+        );
         job_tx.send(Job::Poll(s as usize)).unwrap();
         match i % 4 {
-            0 => {}                                                      // cancel at once
+            0 => {}                                                                    // cancel at once
             1 => first_rx.recv_timeout(Duration::from_secs(10)).expect("first frame"), // after a frame
-            2 => std::thread::sleep(Duration::from_micros(200)),         // mid-stream
+            2 => std::thread::sleep(Duration::from_micros(200)),                       // mid-stream
             _ => std::thread::yield_now(),
         }
         assert_eq!(unsafe { cg_cancel(s) }, cg_status::CG_OK);
@@ -209,7 +220,8 @@ fn stalled_consumer_with_scripted_streams() {
     eprintln!(
         "stalled consumer (scripted, ring {RING}): {produced} chunks produced then {produced_later} after {watch:?} \
          (bound {bound}); worker CPU ticks {cpu_before:?} -> {cpu_after:?}; VmRSS {:.1} -> {:.1} MiB",
-        mib(rss_stalled), mib(rss_later)
+        mib(rss_stalled),
+        mib(rss_later)
     );
     assert!(produced <= bound, "the worker ran past a full ring: {produced} chunks");
     assert_eq!(produced_later, produced, "the worker kept producing while nobody polled");
@@ -241,7 +253,11 @@ fn cancel_from_another_thread_promptly(s: *mut cg_stream) {
     assert!(cfg!(miri) || took < Duration::from_millis(50), "cg_cancel took {took:?}");
     let mut f = Frame::default();
     assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_CANCELLED);
-    assert_eq!(unsafe { cg_stream_wait(s, 1000, &mut f) }, cg_status::CG_CANCELLED, "wait must not block after a cancel");
+    assert_eq!(
+        unsafe { cg_stream_wait(s, 1000, &mut f) },
+        cg_status::CG_CANCELLED,
+        "wait must not block after a cancel"
+    );
     let t0 = Instant::now();
     assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
     let joined = t0.elapsed();

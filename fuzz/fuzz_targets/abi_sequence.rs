@@ -205,8 +205,9 @@ impl World {
         let sel = inp.u8();
         let h = match sel % 8 {
             0 => return Pick::Null,
-            1 => inp.u64() as usize,                                       // forged
-            2 => match self.stream_order.get(usize::from(inp.u8())) {     // wrong type
+            1 => inp.u64() as usize, // forged
+            2 => match self.stream_order.get(usize::from(inp.u8())) {
+                // wrong type
                 Some(&s) => s,
                 None => return Pick::Null,
             },
@@ -366,7 +367,11 @@ fn op_engine_create(inp: &mut Input) {
     let out_ptr = if inp.u8() % 8 == 0 { null_mut() } else { &mut out as *mut *mut cg_engine };
     let st = unsafe { cg_engine_create(cfg_ptr, out_ptr) };
     // No bundle can load here (no embedded default, COMGRASP_BUNDLE removed): never CG_OK.
-    check("cg_engine_create", st, &[CG_ERR_NULL_POINTER, CG_ERR_INVALID_ARGUMENT, CG_ERR_INVALID_UTF8, CG_ERR_BUNDLE, CG_ERR_IO]);
+    check(
+        "cg_engine_create",
+        st,
+        &[CG_ERR_NULL_POINTER, CG_ERR_INVALID_ARGUMENT, CG_ERR_INVALID_UTF8, CG_ERR_BUNDLE, CG_ERR_IO],
+    );
     assert_eq!(out as usize, 0x55, "cg_engine_create wrote *out on failure");
     let _ = padded.tail;
 }
@@ -483,8 +488,13 @@ fn run(data: &[u8]) {
                     unsafe { cg_start(p.ptr(), c.as_ptr() as *const c_char, cfg_ptr, out_ptr) }
                 };
                 // The effective text (a C string ends at its first NUL).
-                let text = if counted { &text_bytes[..] } else { &text_bytes[..text_bytes.iter().position(|&b| b == 0).unwrap_or(text_bytes.len())] };
-                let text_ok = std::str::from_utf8(text).is_ok_and(|t| !t.trim().is_empty()) && !(counted && text.contains(&0));
+                let text = if counted {
+                    &text_bytes[..]
+                } else {
+                    &text_bytes[..text_bytes.iter().position(|&b| b == 0).unwrap_or(text_bytes.len())]
+                };
+                let text_ok =
+                    std::str::from_utf8(text).is_ok_and(|t| !t.trim().is_empty()) && !(counted && text.contains(&0));
                 let cfg_ok = !use_cfg || stream_config_ok(&cfg.value);
                 let factory_fails = text.windows(12).any(|x| x == b"factory_fail");
                 // cg_start_utf8 rejects an embedded NUL before looking at anything else.
@@ -517,9 +527,19 @@ fn run(data: &[u8]) {
                     let mut id = 0u64;
                     expect("cg_stream_id", unsafe { cg_stream_id(out, &mut id) }, CG_OK);
                     let script = Script::parse(std::str::from_utf8(text).unwrap());
-                    w.streams.insert(h, StreamModel {
-                        engine: eh, script, id, live: true, next: 0, cancelled: false, engine_gone: false, terminal: None,
-                    });
+                    w.streams.insert(
+                        h,
+                        StreamModel {
+                            engine: eh,
+                            script,
+                            id,
+                            live: true,
+                            next: 0,
+                            cancelled: false,
+                            engine_gone: false,
+                            terminal: None,
+                        },
+                    );
                     w.stream_order.push(h);
                     streams_started += 1;
                 } else {
@@ -652,7 +672,10 @@ fn run(data: &[u8]) {
                 let len = usize::from(inp.u8() % 40);
                 let mut buf = [0x7fu8; 48];
                 let need = unsafe {
-                    cg_last_error_message(if len == 0 && inp.u8() % 2 == 0 { null_mut() } else { buf.as_mut_ptr() as *mut c_char }, len)
+                    cg_last_error_message(
+                        if len == 0 && inp.u8() % 2 == 0 { null_mut() } else { buf.as_mut_ptr() as *mut c_char },
+                        len,
+                    )
                 };
                 assert_eq!(need, whole.len() + 1, "cg_last_error_message size");
                 if len > 0 {
@@ -668,14 +691,26 @@ fn run(data: &[u8]) {
             _ => {
                 let mut e = cg_engine_config::default();
                 let mut s = cg_stream_config::default();
-                expect("cg_engine_config_init(NULL)", unsafe { cg_engine_config_init(null_mut()) }, CG_ERR_NULL_POINTER);
-                expect("cg_stream_config_init(NULL)", unsafe { cg_stream_config_init(null_mut()) }, CG_ERR_NULL_POINTER);
+                expect(
+                    "cg_engine_config_init(NULL)",
+                    unsafe { cg_engine_config_init(null_mut()) },
+                    CG_ERR_NULL_POINTER,
+                );
+                expect(
+                    "cg_stream_config_init(NULL)",
+                    unsafe { cg_stream_config_init(null_mut()) },
+                    CG_ERR_NULL_POINTER,
+                );
                 expect("cg_engine_config_init", unsafe { cg_engine_config_init(&mut e) }, CG_OK);
                 expect("cg_stream_config_init", unsafe { cg_stream_config_init(&mut s) }, CG_OK);
                 // The init functions write a struct the library accepts (struct_size between
                 // the first version's size and the library's own): creating an engine from
                 // it fails only on the bundle.
-                assert!(e.struct_size >= 32 && e.struct_size as usize <= size_of::<cg_engine_config>(), "{}", e.struct_size);
+                assert!(
+                    e.struct_size >= 32 && e.struct_size as usize <= size_of::<cg_engine_config>(),
+                    "{}",
+                    e.struct_size
+                );
                 assert_eq!(s.struct_size as usize, size_of::<cg_stream_config>());
                 assert_eq!(s.use_defaults, CG_USE_DEFAULT_ALL);
                 e.bundle_path = c"/nonexistent/comgrasp-fuzz-bundle".as_ptr();

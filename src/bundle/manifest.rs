@@ -368,7 +368,9 @@ impl Manifest {
     /// The catalogue object named `name` or having it as an alias (ASCII case-insensitive).
     pub fn find_object(&self, name: &str) -> Option<&ObjectEntry> {
         let name = name.trim();
-        self.objects.iter().find(|o| o.name.eq_ignore_ascii_case(name))
+        self.objects
+            .iter()
+            .find(|o| o.name.eq_ignore_ascii_case(name))
             .or_else(|| self.objects.iter().find(|o| o.aliases.iter().any(|a| a.eq_ignore_ascii_case(name))))
     }
 }

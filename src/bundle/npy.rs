@@ -107,8 +107,7 @@ pub fn parse_header(path: &Path, bytes: &[u8]) -> Result<NpyHeader> {
         }
         v => return Err(err(path, format!("unsupported .npy format version {v}"))),
     };
-    let end = start.checked_add(len).filter(|&e| e <= bytes.len())
-        .ok_or_else(|| err(path, "truncated .npy header"))?;
+    let end = start.checked_add(len).filter(|&e| e <= bytes.len()).ok_or_else(|| err(path, "truncated .npy header"))?;
     let text = std::str::from_utf8(&bytes[start..end]).map_err(|_| err(path, "non-UTF-8 .npy header"))?;
     let descr = dict_value(text, "descr").ok_or_else(|| err(path, format!("no 'descr' in .npy header {text:?}")))?;
     let descr = descr.trim().trim_matches(|c| c == '\'' || c == '"');
@@ -119,7 +118,10 @@ pub fn parse_header(path: &Path, bytes: &[u8]) -> Result<NpyHeader> {
         return Err(err(path, "Fortran-order .npy arrays are not supported"));
     }
     let shape_text = dict_value(text, "shape").ok_or_else(|| err(path, "no 'shape' in .npy header"))?;
-    let inner = shape_text.trim().strip_prefix('(').and_then(|s| s.strip_suffix(')'))
+    let inner = shape_text
+        .trim()
+        .strip_prefix('(')
+        .and_then(|s| s.strip_suffix(')'))
         .ok_or_else(|| err(path, format!("bad .npy shape {shape_text:?}")))?;
     let mut shape = Vec::new();
     for part in inner.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -133,7 +135,9 @@ pub fn parse_header(path: &Path, bytes: &[u8]) -> Result<NpyHeader> {
 fn dict_value<'a>(text: &'a str, key: &str) -> Option<&'a str> {
     let pat_single = format!("'{key}'");
     let pat_double = format!("\"{key}\"");
-    let at = text.find(&pat_single).map(|i| i + pat_single.len())
+    let at = text
+        .find(&pat_single)
+        .map(|i| i + pat_single.len())
         .or_else(|| text.find(&pat_double).map(|i| i + pat_double.len()))?;
     let rest = text[at..].trim_start().strip_prefix(':')?;
     let mut depth = 0i32;
@@ -166,7 +170,10 @@ pub fn read(path: &Path) -> Result<Npy> {
 pub fn parse(path: &Path, mut bytes: Vec<u8>) -> Result<Npy> {
     let h = parse_header(path, &bytes)?;
     // Checked: the shape comes from the file (a product that overflows is no real array).
-    let need = h.shape.iter().try_fold(h.dtype.size(), |acc, &d| acc.checked_mul(d))
+    let need = h
+        .shape
+        .iter()
+        .try_fold(h.dtype.size(), |acc, &d| acc.checked_mul(d))
         .ok_or_else(|| err(path, "absurd .npy shape"))?;
     let have = bytes.len() - h.data_offset;
     if have != need {

@@ -26,19 +26,25 @@ pub fn load(explicit: Option<&Path>) -> Result<Arc<Bundle>> {
     match std::env::var_os(BUNDLE_ENV) {
         Some(v) if v.is_empty() => Err(Error::bundle(
             "",
-            format!("the {BUNDLE_ENV} environment variable is set but empty: set it to a bundle directory, \
-                     or unset it to use the default bundle"),
+            format!(
+                "the {BUNDLE_ENV} environment variable is set but empty: set it to a bundle directory, \
+                     or unset it to use the default bundle"
+            ),
         )),
         Some(v) => Bundle::load(Path::new(&v)).map_err(|e| match e {
-            Error::Bundle { path, msg } => Error::Bundle { path, msg: format!("{msg} (bundle selected by {BUNDLE_ENV})") },
+            Error::Bundle { path, msg } => {
+                Error::Bundle { path, msg: format!("{msg} (bundle selected by {BUNDLE_ENV})") }
+            }
             other => other,
         }),
         None => match BundleSource::embedded() {
             Some(source) => Bundle::load_source(source),
             None => Err(Error::bundle(
                 "",
-                format!("no bundle_path given, {BUNDLE_ENV} is not set, and this build has no embedded default \
-                         bundle (feature `embedded-default`)"),
+                format!(
+                    "no bundle_path given, {BUNDLE_ENV} is not set, and this build has no embedded default \
+                         bundle (feature `embedded-default`)"
+                ),
             )),
         },
     }

@@ -41,7 +41,10 @@ enum Kind {
     /// `embedded` marks the compiled-in default, whose bytes cannot change while the
     /// process runs (so its hashes are checked once per process, see `bundle::embedded`).
     /// Private so that no other set can claim it.
-    Memory { files: StaticFiles, embedded: bool },
+    Memory {
+        files: StaticFiles,
+        embedded: bool,
+    },
 }
 
 /// What [`BundleSource::stat`] found under a name.
@@ -50,7 +53,9 @@ pub(crate) enum FileStat {
     Missing,
     /// Present, but a directory or another non-regular entry (directories only).
     NotAFile,
-    File { len: u64 },
+    File {
+        len: u64,
+    },
 }
 
 impl BundleSource {
@@ -110,7 +115,9 @@ impl BundleSource {
             Kind::Dir(d) => match fs::metadata(d) {
                 Ok(meta) if meta.is_dir() => Ok(()),
                 Ok(_) => Err(Error::bundle(d, "not a directory")),
-                Err(e) if e.kind() == io::ErrorKind::NotFound => Err(Error::bundle(d, "not a directory (it does not exist)")),
+                Err(e) if e.kind() == io::ErrorKind::NotFound => {
+                    Err(Error::bundle(d, "not a directory (it does not exist)"))
+                }
                 Err(e) => Err(Error::bundle(d, format!("not a directory that can be opened: {e}"))),
             },
             Kind::Memory { .. } => Ok(()),
@@ -128,7 +135,10 @@ impl BundleSource {
     /// (`io::ErrorKind::InvalidData`) without reading more than `limit + 1` bytes of it.
     pub(crate) fn read_at_most(&self, rel: &str, limit: u64) -> io::Result<Cow<'static, [u8]>> {
         let too_long = |len: u64| {
-            io::Error::new(io::ErrorKind::InvalidData, format!("the file is {len} bytes, more than the {limit}-byte limit"))
+            io::Error::new(
+                io::ErrorKind::InvalidData,
+                format!("the file is {len} bytes, more than the {limit}-byte limit"),
+            )
         };
         match &self.kind {
             Kind::Dir(d) => {
@@ -146,7 +156,9 @@ impl BundleSource {
             Kind::Memory { files, embedded } => match find(files, rel) {
                 Some(b) if b.len() as u64 > limit => Err(too_long(b.len() as u64)),
                 Some(b) => Ok(Cow::Borrowed(b)),
-                None => Err(io::Error::new(io::ErrorKind::NotFound, format!("not among the {} files", label(*embedded)))),
+                None => {
+                    Err(io::Error::new(io::ErrorKind::NotFound, format!("not among the {} files", label(*embedded))))
+                }
             },
         }
     }
@@ -201,9 +213,12 @@ impl BundleSource {
                 walk(d, "", 0, &mut out)?;
                 Ok(out)
             }
-            Kind::Memory { files, .. } => Ok(files.iter().map(|(n, _)| *n)
+            Kind::Memory { files, .. } => Ok(files
+                .iter()
+                .map(|(n, _)| *n)
                 .filter(|n| !n.split('/').any(|c| c.starts_with('.')))
-                .map(str::to_string).collect()),
+                .map(str::to_string)
+                .collect()),
         }
     }
 }
@@ -219,13 +234,19 @@ impl fmt::Debug for BundleSource {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match &self.kind {
             Kind::Dir(d) => f.debug_tuple("BundleSource::Dir").field(d).finish(),
-            Kind::Memory { files, embedded } => write!(f, "BundleSource::Memory({}, {} files)", label(*embedded), files.len()),
+            Kind::Memory { files, embedded } => {
+                write!(f, "BundleSource::Memory({}, {} files)", label(*embedded), files.len())
+            }
         }
     }
 }
 
 fn label(embedded: bool) -> &'static str {
-    if embedded { EMBEDDED_LABEL } else { MEMORY_LABEL }
+    if embedded {
+        EMBEDDED_LABEL
+    } else {
+        MEMORY_LABEL
+    }
 }
 
 /// Opens `path` for reading only if it is a regular file (symlinks to one are followed),

@@ -34,7 +34,11 @@ use crate::error::{Error, Result};
 pub const PARITY_DIR: &str = "parity";
 
 fn ensure(cond: bool, path: &Path, msg: impl FnOnce() -> String) -> Result<()> {
-    if cond { Ok(()) } else { Err(Error::bundle(path, msg())) }
+    if cond {
+        Ok(())
+    } else {
+        Err(Error::bundle(path, msg()))
+    }
 }
 
 /// Largest `manifest.json` accepted, in bytes. The shipped manifests are 36-60 KB (the
@@ -50,7 +54,7 @@ pub fn read_manifest(src: &BundleSource) -> Result<Manifest> {
         Ok(b) => b,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let what = if src.directory().is_some() { "the directory" } else { "the file set" };
-            return Err(Error::bundle(&path, format!("missing: {what} is not a model bundle")))
+            return Err(Error::bundle(&path, format!("missing: {what} is not a model bundle")));
         }
         Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
     };
@@ -72,8 +76,10 @@ pub fn parse_manifest(path: &Path, bytes: &[u8]) -> Result<Manifest> {
     })?;
     let version = value.get("version").and_then(|v| v.as_u64());
     ensure(version == Some(VERSION), path, || {
-        format!("unsupported bundle version {} (this engine reads version {VERSION})",
-                value.get("version").map_or("missing".into(), |v| v.to_string()))
+        format!(
+            "unsupported bundle version {} (this engine reads version {VERSION})",
+            value.get("version").map_or("missing".into(), |v| v.to_string())
+        )
     })?;
     // Parse again from the text, so schema errors carry a line and column.
     serde_json::from_str::<Manifest>(text)
@@ -101,10 +107,14 @@ pub fn check_manifest(src: &BundleSource, m: &Manifest) -> Result<()> {
         ("decoder file", &m.decoder.file),
         ("parity index", &m.parity.index),
     ] {
-        ensure(m.files.contains_key(rel.as_str()), p, || format!("{what} names {rel:?}, which is not in the files table"))?;
+        ensure(m.files.contains_key(rel.as_str()), p, || {
+            format!("{what} names {rel:?}, which is not in the files table")
+        })?;
     }
     for o in &m.objects {
-        ensure(m.files.contains_key(&o.mesh), p, || format!("object {} names mesh {:?}, which is not in the files table", o.name, o.mesh))?;
+        ensure(m.files.contains_key(&o.mesh), p, || {
+            format!("object {} names mesh {:?}, which is not in the files table", o.name, o.mesh)
+        })?;
     }
     for (name, sha) in &m.text_encoder.sha256 {
         let listed = m.files.get(name).map(|f| f.sha256.as_str());
@@ -142,8 +152,15 @@ fn check_layout(p: &Path, m: &Manifest) -> Result<()> {
         // (checked first, so j + 2 below cannot overflow).
         ensure(j < (1 << 31), p, || format!("component {}: codebook_size {j} is absurd", c.name))?;
         ensure(j >= 1 && (c.end_id, c.pad_id, c.vocab_size) == (j, j + 1, j + 2), p, || {
-            format!("component {}: codebook_size {j} needs end_id {j}, pad_id {}, vocab_size {}; got {}, {}, {}",
-                    c.name, j + 1, j + 2, c.end_id, c.pad_id, c.vocab_size)
+            format!(
+                "component {}: codebook_size {j} needs end_id {j}, pad_id {}, vocab_size {}; got {}, {}, {}",
+                c.name,
+                j + 1,
+                j + 2,
+                c.end_id,
+                c.pad_id,
+                c.vocab_size
+            )
         })?;
         pos = b;
     }
@@ -178,9 +195,12 @@ fn same_io(p: &Path, what: &str, declared: &[IoSpec], implied: &[IoSpec]) -> Res
     let show = |v: &Vec<(String, Dtype, Vec<usize>)>| {
         v.get(first).map_or("nothing".to_string(), |(n, t, s)| format!("{n} {t} {s:?}"))
     };
-    Err(Error::bundle(p, format!(
+    Err(Error::bundle(
+        p,
+        format!(
         "{what} #{first}: the manifest declares {}, but the other manifest fields imply {} ({} declared, {} implied)",
-        show(&d), show(&i), d.len(), i.len())))
+        show(&d), show(&i), d.len(), i.len()),
+    ))
 }
 
 fn check_text_encoder(p: &Path, m: &Manifest) -> Result<()> {
@@ -201,10 +221,14 @@ fn check_text_encoder(p: &Path, m: &Manifest) -> Result<()> {
     ensure(seen.contains("input_ids") && seen.contains("attention_mask"), p, || {
         "text_encoder inputs must include input_ids and attention_mask".into()
     })?;
-    let pooled = t.outputs.iter().find(|o| o.name == t.pool_output)
-        .ok_or_else(|| Error::bundle(p, format!("text_encoder pool_output {:?} is not among its outputs", t.pool_output)))?;
+    let pooled = t.outputs.iter().find(|o| o.name == t.pool_output).ok_or_else(|| {
+        Error::bundle(p, format!("text_encoder pool_output {:?} is not among its outputs", t.pool_output))
+    })?;
     ensure(pooled.dtype == Dtype::Float32 && pooled.shape == [1, tt, t.dim], p, || {
-        format!("text_encoder {} is {} {:?}, needs float32 [1, {tt}, dim {}]", pooled.name, pooled.dtype, pooled.shape, t.dim)
+        format!(
+            "text_encoder {} is {} {:?}, needs float32 [1, {tt}, dim {}]",
+            pooled.name, pooled.dtype, pooled.shape, t.dim
+        )
     })?;
     for (what, v) in [("mean_eps", t.mean_eps), ("norm_eps", t.norm_eps)] {
         ensure(v.is_finite() && v > 0.0, p, || format!("text_encoder {what} must be finite and > 0, got {v}"))?;
@@ -226,8 +250,11 @@ fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
     // Checked arithmetic throughout: the values come from a file (a hostile l_max of
     // usize::MAX must be an error, not an overflow panic).
     ensure(s == tr.block_size && Some(s) == m.l_max.checked_add(2), p, || {
-        format!("transformer cache_slots {s} / block_size {} must equal l_max + 2 = {}",
-                tr.block_size, m.l_max.saturating_add(2))
+        format!(
+            "transformer cache_slots {s} / block_size {} must equal l_max + 2 = {}",
+            tr.block_size,
+            m.l_max.saturating_add(2)
+        )
     })?;
     ensure(tr.d_text == m.text_encoder.dim, p, || {
         format!("transformer d_text {} != text_encoder dim {}", tr.d_text, m.text_encoder.dim)
@@ -235,8 +262,11 @@ fn check_transformer(p: &Path, m: &Manifest) -> Result<()> {
     ensure(tr.widths.len() == N_STREAMS && tr.head_dims.len() == N_STREAMS, p, || {
         format!("transformer widths/head_dims need {N_STREAMS} values")
     })?;
-    let mut inputs = vec![io("tokens", Dtype::Int64, &[1, N_STREAMS]), io("pos", Dtype::Int64, &[1]),
-                          io("text_emb", Dtype::Float32, &[1, tr.d_text])];
+    let mut inputs = vec![
+        io("tokens", Dtype::Int64, &[1, N_STREAMS]),
+        io("pos", Dtype::Int64, &[1]),
+        io("text_emb", Dtype::Float32, &[1, tr.d_text]),
+    ];
     let mut outputs = Vec::new();
     let mut rows = Vec::new();
     for (i, c) in m.components.iter().enumerate() {
@@ -265,10 +295,21 @@ fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
         format!("decoder frames_per_token {} != manifest frames_per_token {}", d.frames_per_token, m.frames_per_token)
     })?;
     let k1 = d.state_tokens;
-    same_io(p, "decoder input", &d.inputs, &[io("state", Dtype::Int64, &[1, N_STREAMS, k1]),
-                                            io("tokens", Dtype::Int64, &[1, N_STREAMS])])?;
-    same_io(p, "decoder output", &d.outputs, &[io("frames", Dtype::Float32, &[1, m.frames_per_token, FRAME_DIM]),
-                                              io("next_state", Dtype::Int64, &[1, N_STREAMS, k1])])?;
+    same_io(
+        p,
+        "decoder input",
+        &d.inputs,
+        &[io("state", Dtype::Int64, &[1, N_STREAMS, k1]), io("tokens", Dtype::Int64, &[1, N_STREAMS])],
+    )?;
+    same_io(
+        p,
+        "decoder output",
+        &d.outputs,
+        &[
+            io("frames", Dtype::Float32, &[1, m.frames_per_token, FRAME_DIM]),
+            io("next_state", Dtype::Int64, &[1, N_STREAMS, k1]),
+        ],
+    )?;
     let books: Vec<i64> = m.components.iter().map(|c| c.codebook_size as i64).collect();
     ensure(d.state_pad_ids == books, p, || {
         format!("decoder state_pad_ids {:?} != codebook sizes {books:?}", d.state_pad_ids)
@@ -278,9 +319,7 @@ fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
     let state_ok = d.initial_state.len() == 1
         && d.initial_state[0].len() == books.len()
         && d.initial_state[0].iter().zip(&books).all(|(row, &j)| row.len() == k1 && row.iter().all(|&v| v == j));
-    ensure(state_ok, p, || {
-        "decoder initial_state is not the state_pad_ids repeated state_tokens times".into()
-    })?;
+    ensure(state_ok, p, || "decoder initial_state is not the state_pad_ids repeated state_tokens times".into())?;
     ensure(d.contact_channels == CONTACT_CHANNELS, p, || {
         format!("decoder contact_channels {:?} != {CONTACT_CHANNELS:?}", d.contact_channels)
     })?;
@@ -295,10 +334,18 @@ fn check_decoder(p: &Path, m: &Manifest) -> Result<()> {
 fn check_skeleton_objects_sampling(p: &Path, m: &Manifest) -> Result<()> {
     let sk = &m.skeleton;
     let par = &sk.parents;
-    ensure(sk.joint_names.len() == NUM_JOINTS && par.len() == NUM_JOINTS && sk.rest_joints.len() == NUM_JOINTS, p, || {
-        format!("skeleton: need {NUM_JOINTS} joint names, parents and rest joints; got {}, {}, {}",
-                sk.joint_names.len(), par.len(), sk.rest_joints.len())
-    })?;
+    ensure(
+        sk.joint_names.len() == NUM_JOINTS && par.len() == NUM_JOINTS && sk.rest_joints.len() == NUM_JOINTS,
+        p,
+        || {
+            format!(
+                "skeleton: need {NUM_JOINTS} joint names, parents and rest joints; got {}, {}, {}",
+                sk.joint_names.len(),
+                par.len(),
+                sk.rest_joints.len()
+            )
+        },
+    )?;
     ensure(par[0] == -1 && (1..NUM_JOINTS).all(|j| par[j] >= 0 && (par[j] as usize) < j), p, || {
         "skeleton: parents must put the root first (-1) and every parent before its children".into()
     })?;
@@ -313,10 +360,16 @@ fn check_skeleton_objects_sampling(p: &Path, m: &Manifest) -> Result<()> {
         })?;
     }
     let s = &m.sampling;
-    ensure(s.min_len <= s.max_len && s.max_len <= m.l_max && s.temperature.is_finite() && s.temperature >= 0.0, p, || {
-        format!("sampling defaults need 0 <= min_len {} <= max_len {} <= l_max {}, temperature {} finite >= 0",
-                s.min_len, s.max_len, m.l_max, s.temperature)
-    })?;
+    ensure(
+        s.min_len <= s.max_len && s.max_len <= m.l_max && s.temperature.is_finite() && s.temperature >= 0.0,
+        p,
+        || {
+            format!(
+                "sampling defaults need 0 <= min_len {} <= max_len {} <= l_max {}, temperature {} finite >= 0",
+                s.min_len, s.max_len, m.l_max, s.temperature
+            )
+        },
+    )?;
     ensure(s.rng == "splitmix64", p, || format!("sampling rng {:?} is not \"splitmix64\"", s.rng))
 }
 
@@ -362,8 +415,11 @@ pub fn check_files(src: &BundleSource, m: &Manifest) -> Result<()> {
     let mp = src.path_of(MANIFEST_FILE);
     let parity = has_parity(src);
     for (rel, entry) in &m.files {
-        ensure(safe_rel(rel) && rel != MANIFEST_FILE, &mp, || format!("files table entry {rel:?} is not a path inside the bundle"))?;
-        let hex_ok = entry.sha256.len() == 64 && entry.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
+        ensure(safe_rel(rel) && rel != MANIFEST_FILE, &mp, || {
+            format!("files table entry {rel:?} is not a path inside the bundle")
+        })?;
+        let hex_ok =
+            entry.sha256.len() == 64 && entry.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
         ensure(hex_ok, &mp, || format!("files table entry {rel}: {:?} is not a lower-case hex SHA-256", entry.sha256))?;
         if !parity && rel.starts_with("parity/") {
             continue;
@@ -371,22 +427,30 @@ pub fn check_files(src: &BundleSource, m: &Manifest) -> Result<()> {
         let path = src.path_of(rel);
         let len = match src.stat(rel) {
             Ok(FileStat::File { len }) => len,
-            Ok(FileStat::Missing) => return Err(Error::bundle(&path, format!("listed in the manifest but missing (file {rel})"))),
+            Ok(FileStat::Missing) => {
+                return Err(Error::bundle(&path, format!("listed in the manifest but missing (file {rel})")))
+            }
             Ok(FileStat::NotAFile) => return Err(Error::bundle(&path, format!("file {rel} is not a regular file"))),
             Err(e) => return Err(Error::bundle(&path, format!("cannot read: {e}"))),
         };
-        ensure(len == entry.bytes, &path, || {
-            format!("file {rel} has {len} bytes, the manifest says {}", entry.bytes)
-        })?;
+        ensure(len == entry.bytes, &path, || format!("file {rel} has {len} bytes, the manifest says {}", entry.bytes))?;
         let got = src.sha256(rel)?;
         ensure(got == entry.sha256, &path, || {
-            format!("file {rel}: SHA-256 {got} does not match the manifest's {} (corrupt or replaced file)", entry.sha256)
+            format!(
+                "file {rel}: SHA-256 {got} does not match the manifest's {} (corrupt or replaced file)",
+                entry.sha256
+            )
         })?;
     }
-    let extra: Vec<String> = src.list()?.into_iter().filter(|r| r != MANIFEST_FILE && !m.files.contains_key(r)).collect();
+    let extra: Vec<String> =
+        src.list()?.into_iter().filter(|r| r != MANIFEST_FILE && !m.files.contains_key(r)).collect();
     ensure(extra.is_empty(), &src.root(), || {
         let shown: Vec<&String> = extra.iter().take(8).collect();
-        format!("{} file(s) not listed in the manifest: {shown:?}{}", extra.len(), if extra.len() > 8 { " ..." } else { "" })
+        format!(
+            "{} file(s) not listed in the manifest: {shown:?}{}",
+            extra.len(),
+            if extra.len() > 8 { " ..." } else { "" }
+        )
     })
 }
 
@@ -429,7 +493,10 @@ pub fn check_tokenizer(src: &BundleSource, m: &Manifest) -> Result<()> {
     let model_type = tok.get("model").and_then(|v| v.get("type")).and_then(|v| v.as_str()).unwrap_or("(none)");
     if let Some(want) = tokenizer_type_for(&t.kind) {
         ensure(model_type == want, &path, || {
-            format!("tokenizer model type is {model_type}, a {} text encoder needs {want} (a tokenizer of another kind)", t.kind)
+            format!(
+                "tokenizer model type is {model_type}, a {} text encoder needs {want} (a tokenizer of another kind)",
+                t.kind
+            )
         })?;
     }
     let pad = tok.get("padding").and_then(|p| p.get("pad_id")).and_then(|v| v.as_i64());
@@ -438,13 +505,17 @@ pub fn check_tokenizer(src: &BundleSource, m: &Manifest) -> Result<()> {
     })?;
     if let Some(special) = t.tokenizer.get("special_tokens").and_then(|v| v.as_object()) {
         for (role, spec) in special {
-            let (Some(token), Some(id)) = (spec.get("token").and_then(|v| v.as_str()), spec.get("id").and_then(|v| v.as_u64())) else {
+            let (Some(token), Some(id)) =
+                (spec.get("token").and_then(|v| v.as_str()), spec.get("id").and_then(|v| v.as_u64()))
+            else {
                 continue;
             };
             let got = token_id(&tok, token);
             ensure(got == Some(id), &path, || {
-                format!("special token {token:?} ({role}) has id {got:?} in the tokenizer, the manifest says {id} \
-                         (the tokenizer of another model?)")
+                format!(
+                    "special token {token:?} ({role}) has id {got:?} in the tokenizer, the manifest says {id} \
+                         (the tokenizer of another model?)"
+                )
             })?;
         }
     }
@@ -460,16 +531,21 @@ pub fn check_parity_index(src: &BundleSource, m: &Manifest) -> Result<()> {
     let path: PathBuf = src.path_of(&m.parity.index);
     let index: serde_json::Value = serde_json::from_slice(&src.read_file(&m.parity.index)?)
         .map_err(|e| Error::bundle(&path, format!("not valid JSON ({e})")))?;
-    ensure(index.get("format").and_then(|v| v.as_str()) == Some("comgrasp-parity")
-           && index.get("version").and_then(|v| v.as_u64()) == Some(1), &path, || {
-        "not a version 1 comgrasp-parity index".into()
-    })?;
-    let files = index.get("files").and_then(|v| v.as_array())
-        .ok_or_else(|| Error::bundle(&path, "no files list"))?;
+    ensure(
+        index.get("format").and_then(|v| v.as_str()) == Some("comgrasp-parity")
+            && index.get("version").and_then(|v| v.as_u64()) == Some(1),
+        &path,
+        || "not a version 1 comgrasp-parity index".into(),
+    )?;
+    let files = index.get("files").and_then(|v| v.as_array()).ok_or_else(|| Error::bundle(&path, "no files list"))?;
     for e in files {
-        let rel = e.get("path").and_then(|v| v.as_str())
+        let rel = e
+            .get("path")
+            .and_then(|v| v.as_str())
             .ok_or_else(|| Error::bundle(&path, format!("entry without a path: {e}")))?;
-        ensure(m.files.contains_key(rel), &path, || format!("lists {rel:?}, which is not in the manifest's files table"))?;
+        ensure(m.files.contains_key(rel), &path, || {
+            format!("lists {rel:?}, which is not in the manifest's files table")
+        })?;
         let dtype = e.get("dtype").and_then(|v| v.as_str()).unwrap_or("?");
         let shape = e.get("shape").cloned().unwrap_or(serde_json::Value::Null);
         let npy_path = src.path_of(rel);

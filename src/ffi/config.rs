@@ -137,7 +137,11 @@ impl Default for cg_stream_config {
 ///
 /// SAFETY: `src` is non-NULL and points to at least `struct_size` readable bytes (the
 /// caller's promise when it sets `struct_size`).
-pub(crate) unsafe fn read_versioned<T: Copy + Default>(src: *const T, min_size: usize, name: &str) -> Result<MaybeUninit<T>, Failure> {
+pub(crate) unsafe fn read_versioned<T: Copy + Default>(
+    src: *const T,
+    min_size: usize,
+    name: &str,
+) -> Result<MaybeUninit<T>, Failure> {
     let declared = unsafe { std::ptr::read_unaligned(src as *const u32) } as usize;
     if declared < min_size {
         return Err(Failure::new(
@@ -276,7 +280,9 @@ unsafe fn engine_config_init(cfg: *mut cg_engine_config, size: usize) -> Result<
     if size < ENGINE_CONFIG_V1_SIZE {
         return Err(Failure::new(
             cg_status::CG_ERR_INVALID_ARGUMENT,
-            format_args!("cg_engine_config_init: size {size} is below the first version's {ENGINE_CONFIG_V1_SIZE} bytes"),
+            format_args!(
+                "cg_engine_config_init: size {size} is below the first version's {ENGINE_CONFIG_V1_SIZE} bytes"
+            ),
         ));
     }
     let n = size.min(size_of::<cg_engine_config>());

@@ -19,10 +19,16 @@ pub(crate) fn lookup_engine(engine: *mut cg_engine) -> Result<Arc<EngineEntry>, 
         return Err(null("engine"));
     }
     let entry = ENGINES.get(engine as usize).ok_or_else(|| {
-        Failure::new(cg_status::CG_ERR_INVALID_HANDLE, "engine is not a live cg_engine handle (destroyed, or not from cg_engine_create)")
+        Failure::new(
+            cg_status::CG_ERR_INVALID_HANDLE,
+            "engine is not a live cg_engine handle (destroyed, or not from cg_engine_create)",
+        )
     })?;
     if entry.poisoned.load(Ordering::SeqCst) {
-        return Err(Failure::new(cg_status::CG_ERR_PANIC, "engine is poisoned by an earlier internal panic; destroy it"));
+        return Err(Failure::new(
+            cg_status::CG_ERR_PANIC,
+            "engine is poisoned by an earlier internal panic; destroy it",
+        ));
     }
     Ok(entry)
 }
@@ -47,9 +53,8 @@ pub unsafe extern "C" fn cg_engine_create(cfg: *const cg_engine_config, out: *mu
         let config = unsafe { engine_config_from_c(cfg)? };
         let engine = Engine::new(config)?;
         let entry = Arc::new(EngineEntry { engine, poisoned: AtomicBool::new(false) });
-        let handle = ENGINES
-            .insert(entry)
-            .ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many engine handles"))?;
+        let handle =
+            ENGINES.insert(entry).ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many engine handles"))?;
         unsafe { out.write(handle as *mut cg_engine) };
         Ok(cg_status::CG_OK)
     })
@@ -173,9 +178,8 @@ unsafe fn start(
         return Err(null("out"));
     }
     let entry = lookup_engine(engine)?;
-    let text = std::str::from_utf8(bytes).map_err(|e| {
-        Failure::new(cg_status::CG_ERR_INVALID_UTF8, format_args!("text is not valid UTF-8: {e}"))
-    })?;
+    let text = std::str::from_utf8(bytes)
+        .map_err(|e| Failure::new(cg_status::CG_ERR_INVALID_UTF8, format_args!("text is not valid UTF-8: {e}")))?;
     let opts = unsafe { stream_config_from_c(cfg)? };
     let stream = {
         let _poison = PoisonOnUnwind(&entry.poisoned);
@@ -183,11 +187,11 @@ unsafe fn start(
     };
     let id = stream.id();
     let canceller = stream.canceller();
-    let stream_entry = Arc::new(StreamEntry { id, canceller, stream: Mutex::new(stream), poisoned: AtomicBool::new(false) });
+    let stream_entry =
+        Arc::new(StreamEntry { id, canceller, stream: Mutex::new(stream), poisoned: AtomicBool::new(false) });
     // If registration fails, dropping the entry stops and joins the worker.
-    let handle = STREAMS
-        .insert(stream_entry)
-        .ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many stream handles"))?;
+    let handle =
+        STREAMS.insert(stream_entry).ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many stream handles"))?;
     unsafe { out.write(handle as *mut cg_stream) };
     Ok(cg_status::CG_OK)
 }

@@ -74,7 +74,5 @@ pub unsafe extern "C" fn cg_last_error_message(buf: *mut c_char, len: usize) -> 
 /// none failed yet). Any thread.
 #[no_mangle]
 pub extern "C" fn cg_last_error_status() -> cg_status {
-    boundary_value("cg_last_error_status", || {
-        LAST.try_with(|cell| cell.borrow().status).unwrap_or(cg_status::CG_OK)
-    })
+    boundary_value("cg_last_error_status", || LAST.try_with(|cell| cell.borrow().status).unwrap_or(cg_status::CG_OK))
 }

@@ -19,16 +19,21 @@
 //!   except `cg_cancel`, which may be called from any thread at any time.
 #![deny(missing_docs)]
 
-pub mod version;
-pub mod status;
-pub mod last_error;
 pub mod config;
-pub mod handle;
 pub mod engine;
+pub mod handle;
+pub mod last_error;
+pub mod panic;
+pub mod status;
 pub mod stream;
 pub mod subscriber;
-pub mod panic;
+pub mod version;
 
+pub use crate::shm::records::{
+    cg_stream_event, CG_EVENT_TEXT_BYTES, CG_MAX_PUBLISH_NAME_BYTES, CG_MAX_SUBSCRIBER_BUFFER,
+    CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED, CG_STREAM_EVENT_STARTED,
+};
+pub use crate::shm::{cg_publisher_stats, cg_subscriber_stats};
 pub use config::*;
 pub use engine::*;
 pub use handle::{cg_engine, cg_stream, cg_subscriber};
@@ -36,6 +41,4 @@ pub use last_error::*;
 pub use status::*;
 pub use stream::*;
 pub use subscriber::*;
-pub use crate::shm::{cg_publisher_stats, cg_subscriber_stats};
-pub use crate::shm::records::{cg_stream_event, CG_EVENT_TEXT_BYTES, CG_MAX_PUBLISH_NAME_BYTES, CG_MAX_SUBSCRIBER_BUFFER, CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED, CG_STREAM_EVENT_STARTED};
 pub use version::*;

@@ -19,10 +19,16 @@ fn lookup_stream(stream: *mut cg_stream) -> Result<Arc<StreamEntry>, Failure> {
         return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "stream is NULL"));
     }
     let entry = STREAMS.get(stream as usize).ok_or_else(|| {
-        Failure::new(cg_status::CG_ERR_INVALID_HANDLE, "stream is not a live cg_stream handle (destroyed, or not from cg_start)")
+        Failure::new(
+            cg_status::CG_ERR_INVALID_HANDLE,
+            "stream is not a live cg_stream handle (destroyed, or not from cg_start)",
+        )
     })?;
     if entry.poisoned.load(Ordering::SeqCst) {
-        return Err(Failure::new(cg_status::CG_ERR_PANIC, "stream is poisoned by an earlier internal panic; destroy it"));
+        return Err(Failure::new(
+            cg_status::CG_ERR_PANIC,
+            "stream is poisoned by an earlier internal panic; destroy it",
+        ));
     }
     Ok(entry)
 }
@@ -60,7 +66,10 @@ fn poll_with(
     let entry = lookup_stream(stream)?;
     let _poison = PoisonOnUnwind(&entry.poisoned);
     let mut guard = entry.stream.try_lock().ok_or_else(|| {
-        Failure::new(cg_status::CG_ERR_WRONG_STATE, "stream is in use by another thread (one thread at a time; only cg_cancel may run concurrently)")
+        Failure::new(
+            cg_status::CG_ERR_WRONG_STATE,
+            "stream is in use by another thread (one thread at a time; only cg_cancel may run concurrently)",
+        )
     })?;
     // SAFETY: the caller passes a valid, writable, aligned cg_frame; written only on CG_OK.
     let out = unsafe { &mut *out };

@@ -54,7 +54,10 @@ fn lookup(sub: *mut cg_subscriber) -> Result<Arc<SubscriberEntry>, Failure> {
         )
     })?;
     if entry.poisoned.load(Ordering::SeqCst) {
-        return Err(Failure::new(cg_status::CG_ERR_PANIC, "subscriber is poisoned by an earlier internal panic; close it"));
+        return Err(Failure::new(
+            cg_status::CG_ERR_PANIC,
+            "subscriber is poisoned by an earlier internal panic; close it",
+        ));
     }
     Ok(entry)
 }
@@ -194,7 +197,10 @@ pub unsafe extern "C" fn cg_subscriber_close(sub: *mut cg_subscriber) -> cg_stat
             return Ok(cg_status::CG_OK);
         }
         let entry = SUBSCRIBERS.remove(sub as usize).ok_or_else(|| {
-            Failure::new(cg_status::CG_ERR_INVALID_HANDLE, "subscriber is not a live cg_subscriber handle (already closed?)")
+            Failure::new(
+                cg_status::CG_ERR_INVALID_HANDLE,
+                "subscriber is not a live cg_subscriber handle (already closed?)",
+            )
         })?;
         drop(entry);
         Ok(cg_status::CG_OK)
@@ -204,7 +210,10 @@ pub unsafe extern "C" fn cg_subscriber_close(sub: *mut cg_subscriber) -> cg_stat
 /// Writes the counters of the engine's shared-memory publisher to `*out`.
 /// `CG_ERR_WRONG_STATE` if the engine was created without a `publish_name`. Any thread.
 #[no_mangle]
-pub unsafe extern "C" fn cg_engine_publisher_stats(engine: *mut super::cg_engine, out: *mut cg_publisher_stats) -> cg_status {
+pub unsafe extern "C" fn cg_engine_publisher_stats(
+    engine: *mut super::cg_engine,
+    out: *mut cg_publisher_stats,
+) -> cg_status {
     boundary("cg_engine_publisher_stats", || {
         if out.is_null() {
             return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));

@@ -34,7 +34,11 @@ const DEFAULT_GROUP: usize = 4;
 /// Tokens in the decode that starts at step `k` of a stream decoding `group` at once: the
 /// first token alone (so the time to first frame waits for no group), then `group`.
 pub fn tokens_at(k: usize, group: usize) -> usize {
-    if k == 0 { 1 } else { group }
+    if k == 0 {
+        1
+    } else {
+        group
+    }
 }
 
 /// Tokens per decode for these models (`COMGRASP_DECODE_GROUP`, else the module doc's

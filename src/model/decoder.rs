@@ -102,13 +102,20 @@ enum StateImp {
         /// The model's initial state (shared, read-only), for `reset`.
         initial: Arc<Tensor>,
     },
-    Native { model: Arc<NativeDecoder>, state: NativeState },
+    Native {
+        model: Arc<NativeDecoder>,
+        state: NativeState,
+    },
 }
 
 impl std::fmt::Debug for DecoderModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("DecoderModel").field("backend", &self.backend()).field("frames_per_token", &self.frames_per_token)
-            .field("state_tokens", &self.state_tokens).field("codebook", &self.codebook).finish_non_exhaustive()
+        f.debug_struct("DecoderModel")
+            .field("backend", &self.backend())
+            .field("frames_per_token", &self.frames_per_token)
+            .field("state_tokens", &self.state_tokens)
+            .field("codebook", &self.codebook)
+            .finish_non_exhaustive()
     }
 }
 
@@ -134,8 +141,10 @@ impl DecoderModel {
             (Some(DecoderBackend::Tract), _) | (None, None) => None,
             (_, Some(spec)) => Some(spec),
             (Some(DecoderBackend::Native), None) => {
-                return Err(Error::bundle(src.path_of(MANIFEST_FILE), format!(
-                    "{DECODER_ENV}=native, but the manifest has no decoder.native weights")));
+                return Err(Error::bundle(
+                    src.path_of(MANIFEST_FILE),
+                    format!("{DECODER_ENV}=native, but the manifest has no decoder.native weights"),
+                ));
             }
         };
         let imp = match native {
@@ -146,7 +155,12 @@ impl DecoderModel {
             }
             None => Imp::Tract(TractDecoder::load(src, m)?),
         };
-        Ok(DecoderModel { frames_per_token: d.frames_per_token, state_tokens: d.state_tokens, codebook: m.codebook_sizes(), imp })
+        Ok(DecoderModel {
+            frames_per_token: d.frames_per_token,
+            state_tokens: d.state_tokens,
+            codebook: m.codebook_sizes(),
+            imp,
+        })
     }
 
     /// The implementation in use.
@@ -215,12 +229,17 @@ impl DecoderModel {
         if out.len() != g * self.chunk_len() {
             return Err(Error::InvalidArgument(format!(
                 "decode output buffer has {} values, needs {} ({g} x {} frames x {FRAME_DIM})",
-                out.len(), g * self.chunk_len(), self.frames_per_token)));
+                out.len(),
+                g * self.chunk_len(),
+                self.frames_per_token
+            )));
         }
         for t in tokens {
             for (s, (&t, &j)) in t.iter().zip(&self.codebook).enumerate() {
                 if t < 0 || t as u64 >= j as u64 {
-                    return Err(Error::InvalidArgument(format!("code {t} of component {s} outside the codebook 0..{j}")));
+                    return Err(Error::InvalidArgument(format!(
+                        "code {t} of component {s} outside the codebook 0..{j}"
+                    )));
                 }
             }
         }
@@ -229,8 +248,13 @@ impl DecoderModel {
 
     /// [`decode`](Self::decode) after [`check`](Self::check) passed. The native decoder
     /// runs `extra` as one more job of its two threads; otherwise it runs after the decode.
-    pub(crate) fn decode_checked(&self, state: &mut DecoderState, tokens: &[[i64; N_STREAMS]], out: &mut [f32],
-                                 extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
+    pub(crate) fn decode_checked(
+        &self,
+        state: &mut DecoderState,
+        tokens: &[[i64; N_STREAMS]],
+        out: &mut [f32],
+        extra: Option<&mut (dyn FnMut() + Send)>,
+    ) -> Result<()> {
         match &mut state.imp {
             StateImp::Tract { run, inputs, .. } => {
                 for (t, o) in tokens.iter().zip(out.chunks_exact_mut(self.chunk_len())) {
@@ -262,8 +286,13 @@ impl DecoderModel {
         }
     }
 
-    fn decode_tract(&self, run: &mut PlanState, inputs: &mut [Arc<Tensor>; 2], tokens: [i64; N_STREAMS],
-                    out: &mut [f32]) -> Result<()> {
+    fn decode_tract(
+        &self,
+        run: &mut PlanState,
+        inputs: &mut [Arc<Tensor>; 2],
+        tokens: [i64; N_STREAMS],
+        out: &mut [f32],
+    ) -> Result<()> {
         graph::slice_mut::<i64>(&mut inputs[1], "decoder tokens")?.copy_from_slice(&tokens);
         let res = graph::run(run, inputs, "decoder.onnx")?;
         if res.len() != 2 {
@@ -285,9 +314,10 @@ impl TractDecoder {
         let flat: Vec<i64> = d.initial_state.iter().flatten().flatten().copied().collect();
         let initial = Tensor::from_shape::<i64>(&[1, N_STREAMS, k1], &flat)
             .map_err(|e| Error::bundle(&path, format!("decoder initial_state: {e:#}")))?;
-        let template_tokens = Tensor::zero::<i64>(&[1, N_STREAMS])
-            .map_err(|e| Error::bundle(&path, format!("{e:#}")))?;
-        let template_run = Mutex::new(graph::spawn(&plan, "decoder.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+        let template_tokens =
+            Tensor::zero::<i64>(&[1, N_STREAMS]).map_err(|e| Error::bundle(&path, format!("{e:#}")))?;
+        let template_run =
+            Mutex::new(graph::spawn(&plan, "decoder.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
         Ok(TractDecoder { plan, initial: Arc::new(initial), template_tokens: Arc::new(template_tokens), template_run })
     }
 }

@@ -52,7 +52,9 @@ pub(crate) fn load(src: &BundleSource, rel: &str, inputs: &[IoSpec], outputs: &[
     let path = src.path_of(rel);
     match catch_unwind(AssertUnwindSafe(|| load_inner(src, rel, &path, inputs, outputs))) {
         Ok(r) => r,
-        Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref())))),
+        Err(p) => {
+            Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref()))))
+        }
     }
 }
 
@@ -63,7 +65,9 @@ pub(crate) fn check(src: &BundleSource, rel: &str, inputs: &[IoSpec], outputs: &
     let path = src.path_of(rel);
     match catch_unwind(AssertUnwindSafe(|| typed(src, rel, &path, inputs, outputs).map(drop))) {
         Ok(r) => r,
-        Err(p) => Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref())))),
+        Err(p) => {
+            Err(Error::bundle(&path, format!("tract panicked while loading the graph: {}", panic_text(p.as_ref()))))
+        }
     }
 }
 
@@ -88,10 +92,18 @@ fn typed(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], outputs:
     .map_err(|e| bad(format!("tract cannot read the ONNX graph: {e:#}")))?;
 
     // Names and order, as the ONNX file declares them.
-    let in_names: Vec<String> = model.input_outlets().map_err(|e| bad(format!("{e:#}")))?
-        .iter().map(|o| model.node(o.node).name.clone()).collect();
-    let out_names: Vec<String> = model.output_outlets().map_err(|e| bad(format!("{e:#}")))?
-        .iter().map(|o| model.outlet_label(*o).unwrap_or(model.node(o.node).name.as_str()).to_string()).collect();
+    let in_names: Vec<String> = model
+        .input_outlets()
+        .map_err(|e| bad(format!("{e:#}")))?
+        .iter()
+        .map(|o| model.node(o.node).name.clone())
+        .collect();
+    let out_names: Vec<String> = model
+        .output_outlets()
+        .map_err(|e| bad(format!("{e:#}")))?
+        .iter()
+        .map(|o| model.outlet_label(*o).unwrap_or(model.node(o.node).name.as_str()).to_string())
+        .collect();
     let want_in: Vec<&str> = inputs.iter().map(|s| s.name.as_str()).collect();
     let want_out: Vec<&str> = outputs.iter().map(|s| s.name.as_str()).collect();
     if in_names != want_in {
@@ -117,9 +129,16 @@ fn typed(src: &BundleSource, rel: &str, path: &Path, inputs: &[IoSpec], outputs:
 fn check_fact(path: &Path, kind: &str, spec: &IoSpec, fact: &TypedFact) -> Result<()> {
     let shape_ok = fact.shape.as_concrete() == Some(spec.shape.as_slice());
     if fact.datum_type != datum(spec.dtype) || !shape_ok {
-        return Err(Error::bundle(path, format!(
-            "{kind} {} is {} in the graph (as typed by tract), the manifest declares {} {:?}",
-            spec.name, describe(fact), spec.dtype, spec.shape)));
+        return Err(Error::bundle(
+            path,
+            format!(
+                "{kind} {} is {} in the graph (as typed by tract), the manifest declares {} {:?}",
+                spec.name,
+                describe(fact),
+                spec.dtype,
+                spec.shape
+            ),
+        ));
     }
     Ok(())
 }
@@ -159,10 +178,8 @@ pub(crate) fn fill_zero(t: &mut Arc<Tensor>) -> Result<()> {
 
 /// Read access to an output tensor's elements, checking its dtype and length.
 pub(crate) fn slice<'a, T: Datum>(t: &'a Tensor, what: &str, len: usize) -> Result<&'a [T]> {
-    let s = t
-        .try_as_plain_ram()
-        .and_then(|v| v.as_slice::<T>())
-        .map_err(|e| Error::Inference(format!("{what}: {e:#}")))?;
+    let s =
+        t.try_as_plain_ram().and_then(|v| v.as_slice::<T>()).map_err(|e| Error::Inference(format!("{what}: {e:#}")))?;
     if s.len() != len {
         return Err(Error::Inference(format!("{what}: {} values, expected {len}", s.len())));
     }
@@ -186,7 +203,8 @@ pub(crate) fn spawn(plan: &Plan, what: &str) -> Result<PlanState> {
 }
 
 fn panic_text(p: &(dyn std::any::Any + Send)) -> String {
-    p.downcast_ref::<&str>().map(|s| s.to_string())
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
         .or_else(|| p.downcast_ref::<String>().cloned())
         .unwrap_or_else(|| "unknown panic".into())
 }

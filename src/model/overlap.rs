@@ -44,8 +44,15 @@ pub fn overlaps(step: &StepModel, decoder: &DecoderModel) -> Result<bool> {
 /// invalid. Allocation-free on the native path.
 #[allow(clippy::too_many_arguments)]
 pub fn decode_and_step<'s>(
-    decoder: &DecoderModel, dstate: &mut DecoderState, codes: &[[i64; N_STREAMS]], out: &mut [f32],
-    step: &StepModel, sstate: &'s mut StepState, pos: usize, text_emb: &[f32], overlap: bool,
+    decoder: &DecoderModel,
+    dstate: &mut DecoderState,
+    codes: &[[i64; N_STREAMS]],
+    out: &mut [f32],
+    step: &StepModel,
+    sstate: &'s mut StepState,
+    pos: usize,
+    text_emb: &[f32],
+    overlap: bool,
 ) -> Result<[&'s [f32]; N_STREAMS]> {
     let last = check(decoder, dstate, codes, out, step, sstate, pos, text_emb)?;
     let mut stepped = Ok(());
@@ -63,9 +70,17 @@ pub fn decode_and_step<'s>(
 /// is invalid; a sampling error is returned after the decode.
 #[allow(clippy::too_many_arguments)]
 pub fn decode_and_steps<F>(
-    decoder: &DecoderModel, dstate: &mut DecoderState, codes: &[[i64; N_STREAMS]], out: &mut [f32],
-    step: &StepModel, sstate: &mut StepState, pos: usize, text_emb: &[f32], ahead: &mut [[i64; N_STREAMS]],
-    mut sample: F, overlap: bool,
+    decoder: &DecoderModel,
+    dstate: &mut DecoderState,
+    codes: &[[i64; N_STREAMS]],
+    out: &mut [f32],
+    step: &StepModel,
+    sstate: &mut StepState,
+    pos: usize,
+    text_emb: &[f32],
+    ahead: &mut [[i64; N_STREAMS]],
+    mut sample: F,
+    overlap: bool,
 ) -> Result<(usize, bool)>
 where
     F: FnMut(usize, [&[f32]; N_STREAMS]) -> Result<Option<[i64; N_STREAMS]>> + Send,
@@ -99,8 +114,14 @@ where
 /// The checks of both calls, before either changes a state; the step's input codes.
 #[allow(clippy::too_many_arguments)]
 fn check(
-    decoder: &DecoderModel, dstate: &DecoderState, codes: &[[i64; N_STREAMS]], out: &[f32], step: &StepModel,
-    sstate: &StepState, pos: usize, text_emb: &[f32],
+    decoder: &DecoderModel,
+    dstate: &DecoderState,
+    codes: &[[i64; N_STREAMS]],
+    out: &[f32],
+    step: &StepModel,
+    sstate: &StepState,
+    pos: usize,
+    text_emb: &[f32],
 ) -> Result<[i64; N_STREAMS]> {
     decoder.check(dstate, codes, out)?;
     let last = *codes.last().ok_or_else(|| Error::InvalidArgument("no codes to decode".into()))?;
@@ -111,8 +132,12 @@ fn check(
 /// The decode, with `job` as one more job of the decoder's threads when `overlap` (run on
 /// one thread), else after it.
 fn decode_with(
-    decoder: &DecoderModel, dstate: &mut DecoderState, codes: &[[i64; N_STREAMS]], out: &mut [f32],
-    job: &mut (dyn FnMut() + Send), overlap: bool,
+    decoder: &DecoderModel,
+    dstate: &mut DecoderState,
+    codes: &[[i64; N_STREAMS]],
+    out: &mut [f32],
+    job: &mut (dyn FnMut() + Send),
+    overlap: bool,
 ) -> Result<()> {
     if overlap {
         decoder.decode_checked(dstate, codes, out, Some(job))

@@ -130,9 +130,14 @@ impl std::fmt::Debug for StepState {
 
 impl std::fmt::Debug for StepModel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("StepModel").field("backend", &self.backend()).field("n_layers", &self.n_layers)
-            .field("n_heads", &self.n_heads).field("slots", &self.slots).field("head_dims", &self.head_dims)
-            .field("vocab", &self.vocab).finish_non_exhaustive()
+        f.debug_struct("StepModel")
+            .field("backend", &self.backend())
+            .field("n_layers", &self.n_layers)
+            .field("n_heads", &self.n_heads)
+            .field("slots", &self.slots)
+            .field("head_dims", &self.head_dims)
+            .field("vocab", &self.vocab)
+            .finish_non_exhaustive()
     }
 }
 
@@ -151,8 +156,10 @@ impl StepModel {
             (StepBackend::Tract, _) | (StepBackend::Auto, None) => None,
             (_, Some(spec)) => Some(spec),
             (StepBackend::Native, None) => {
-                return Err(Error::bundle(src.path_of(crate::bundle::manifest::MANIFEST_FILE),
-                    format!("{STEP_ENV}=native, but the bundle has no transformer.native weights")));
+                return Err(Error::bundle(
+                    src.path_of(crate::bundle::manifest::MANIFEST_FILE),
+                    format!("{STEP_ENV}=native, but the bundle has no transformer.native weights"),
+                ));
             }
         };
         let imp = match native {
@@ -163,9 +170,14 @@ impl StepModel {
             None => {
                 let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
                 let path = src.path_of(&t.file);
-                let template_inputs = t.inputs.iter().map(graph::zeros).collect::<Result<Vec<_>>>()
+                let template_inputs = t
+                    .inputs
+                    .iter()
+                    .map(graph::zeros)
+                    .collect::<Result<Vec<_>>>()
                     .map_err(|e| Error::bundle(&path, e.to_string()))?;
-                let template_run = Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
+                let template_run =
+                    Mutex::new(graph::spawn(&plan, "step.onnx").map_err(|e| Error::bundle(&path, e.to_string()))?);
                 Imp::Tract(TractStep { plan, template_inputs, template_run })
             }
         };
@@ -236,15 +248,26 @@ impl StepModel {
     /// `tokens` must still be valid ids (feed the pad ids). At `pos` k >= 1 `tokens` are the
     /// codes sampled at step k-1. `pos` may go back to an earlier position (the rows
     /// from there on are then recomputed) but never skip one: the cache must hold rows 0..pos.
-    pub fn step<'s>(&self, state: &'s mut StepState, tokens: [i64; N_STREAMS], pos: usize,
-                    text_emb: &[f32]) -> Result<[&'s [f32]; N_STREAMS]> {
+    pub fn step<'s>(
+        &self,
+        state: &'s mut StepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+    ) -> Result<[&'s [f32]; N_STREAMS]> {
         self.check(state, tokens, pos, text_emb)?;
         self.run_checked(state, tokens, pos, text_emb, false)?;
         Ok(state.logits())
     }
 
     /// The errors [`step`](Self::step) reports before it touches `state`.
-    pub(crate) fn check(&self, state: &StepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) -> Result<()> {
+    pub(crate) fn check(
+        &self,
+        state: &StepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+    ) -> Result<()> {
         if !Arc::ptr_eq(&state.owner, &self.owner) {
             return Err(Error::WrongState("this StepState was created by another StepModel".into()));
         }
@@ -252,10 +275,17 @@ impl StepModel {
             return Err(Error::InvalidArgument(format!("step position {pos} beyond the cache's {} slots", self.slots)));
         }
         if pos > state.filled {
-            return Err(Error::WrongState(format!("step position {pos} skips positions: cache holds 0..{}", state.filled)));
+            return Err(Error::WrongState(format!(
+                "step position {pos} skips positions: cache holds 0..{}",
+                state.filled
+            )));
         }
         if text_emb.len() != self.d_text {
-            return Err(Error::InvalidArgument(format!("text embedding has {} values, the model takes {}", text_emb.len(), self.d_text)));
+            return Err(Error::InvalidArgument(format!(
+                "text embedding has {} values, the model takes {}",
+                text_emb.len(),
+                self.d_text
+            )));
         }
         if !text_emb.iter().all(|v| v.is_finite()) {
             return Err(Error::InvalidArgument("text embedding contains a non-finite value".into()));
@@ -270,8 +300,14 @@ impl StepModel {
 
     /// [`step`](Self::step) after [`check`](Self::check) passed; `solo`: the native step
     /// stays on the calling thread.
-    pub(crate) fn run_checked(&self, state: &mut StepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
-                              solo: bool) -> Result<()> {
+    pub(crate) fn run_checked(
+        &self,
+        state: &mut StepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+        solo: bool,
+    ) -> Result<()> {
         match (&self.imp, &mut state.imp) {
             (Imp::Native(n), StateImp::Native(st)) if solo => n.step_solo(st, tokens, pos, text_emb, &mut state.logits),
             (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, &mut state.logits),
@@ -286,8 +322,16 @@ impl StepModel {
     }
 
     #[allow(clippy::too_many_arguments)]
-    fn tract_step(&self, t: &TractStep, run: &mut PlanState, inputs: &mut [Arc<Tensor>], logits: &mut [Vec<f32>; N_STREAMS],
-                  tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) -> Result<()> {
+    fn tract_step(
+        &self,
+        t: &TractStep,
+        run: &mut PlanState,
+        inputs: &mut [Arc<Tensor>],
+        logits: &mut [Vec<f32>; N_STREAMS],
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+    ) -> Result<()> {
         let _ = &t.plan;
         graph::slice_mut::<i64>(&mut inputs[TOKENS], "tokens")?.copy_from_slice(&tokens);
         graph::slice_mut::<i64>(&mut inputs[POS], "pos")?[0] = pos as i64;
@@ -295,7 +339,11 @@ impl StepModel {
 
         let out = graph::run(run, inputs, "step.onnx")?;
         if out.len() != 3 * N_STREAMS {
-            return Err(Error::Inference(format!("step.onnx returned {} outputs, expected {}", out.len(), 3 * N_STREAMS)));
+            return Err(Error::Inference(format!(
+                "step.onnx returned {} outputs, expected {}",
+                out.len(),
+                3 * N_STREAMS
+            )));
         }
         for s in 0..N_STREAMS {
             let lg = graph::slice::<f32>(&out[s], "step.onnx logits", self.vocab[s])?;

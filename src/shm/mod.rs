@@ -22,9 +22,9 @@
 //!   otherwise.
 //! * Resources of processes that died (a killed subscriber or publisher) are reclaimed
 //!   whenever a publisher or subscriber is created and when a stream starts.
-pub mod records;
 mod node;
 pub mod publisher;
+pub mod records;
 pub mod subscriber;
 
 pub use node::reclaim_dead_nodes;

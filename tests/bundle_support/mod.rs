@@ -25,8 +25,12 @@ pub fn parity_index(dir: &Path) -> serde_json::Value {
 
 /// Tolerance recorded for `rel` in the parity index.
 pub fn tolerance(index: &serde_json::Value, rel: &str) -> f64 {
-    index["files"].as_array().expect("files")
-        .iter().find(|e| e["path"] == rel).and_then(|e| e["tolerance"].as_f64())
+    index["files"]
+        .as_array()
+        .expect("files")
+        .iter()
+        .find(|e| e["path"] == rel)
+        .and_then(|e| e["tolerance"].as_f64())
         .unwrap_or_else(|| panic!("{rel} not in parity/index.json"))
 }
 

@@ -29,7 +29,11 @@ pub fn scratch(name: &str) -> PathBuf {
 }
 
 pub fn shared_lib_name() -> &'static str {
-    if cfg!(target_os = "macos") { "libcomgrasp.dylib" } else { "libcomgrasp.so" }
+    if cfg!(target_os = "macos") {
+        "libcomgrasp.dylib"
+    } else {
+        "libcomgrasp.so"
+    }
 }
 
 /// The folder holding the freshest `libcomgrasp` (shared and static). rustc writes every
@@ -164,15 +168,12 @@ pub fn check_closing_line(stdout: &str, at_least: u32) {
         .rev()
         .find(|l| l.contains(" passed, ") && l.ends_with(" failed"))
         .unwrap_or_else(|| panic!("no `N passed, M failed` line in:\n{stdout}"));
-    let nums: Vec<u32> = line.split(|c: char| !c.is_ascii_digit()).filter(|s| !s.is_empty()).map(|s| s.parse().unwrap()).collect();
+    let nums: Vec<u32> =
+        line.split(|c: char| !c.is_ascii_digit()).filter(|s| !s.is_empty()).map(|s| s.parse().unwrap()).collect();
     assert!(nums.len() == 2 && nums[1] == 0 && nums[0] >= at_least, "{line}\n{stdout}");
 }
 
 /// The value after `key` on the first line of `stdout` that starts with it.
 pub fn field<'a>(stdout: &'a str, key: &str) -> &'a str {
-    stdout
-        .lines()
-        .find_map(|l| l.strip_prefix(key))
-        .unwrap_or_else(|| panic!("no {key:?} line in:\n{stdout}"))
-        .trim()
+    stdout.lines().find_map(|l| l.strip_prefix(key)).unwrap_or_else(|| panic!("no {key:?} line in:\n{stdout}")).trim()
 }

@@ -160,8 +160,19 @@ fn parse(args: &[String]) -> Result<Options, String> {
             o.json = true;
             continue;
         }
-        const KNOWN: [&str; 11] = ["--bundle", "--prompt", "--seed", "--steps", "--warmup", "--threads",
-                                   "--temperature", "--top-k", "--stream-runs", "--text-runs", "--bandwidth-mib"];
+        const KNOWN: [&str; 11] = [
+            "--bundle",
+            "--prompt",
+            "--seed",
+            "--steps",
+            "--warmup",
+            "--threads",
+            "--temperature",
+            "--top-k",
+            "--stream-runs",
+            "--text-runs",
+            "--bandwidth-mib",
+        ];
         if !KNOWN.contains(&name) {
             return Err(format!("unknown option {name:?}"));
         }
@@ -267,9 +278,9 @@ fn set_tract_threads(n: usize) -> (usize, &'static str) {
 fn rss() -> (Option<u64>, Option<u64>) {
     if let Ok(s) = std::fs::read_to_string("/proc/self/status") {
         let field = |name: &str| {
-            s.lines().find_map(|l| l.strip_prefix(name)).and_then(|v| {
-                v.trim().trim_end_matches("kB").trim().parse::<u64>().ok().map(|kb| kb * 1024)
-            })
+            s.lines()
+                .find_map(|l| l.strip_prefix(name))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok().map(|kb| kb * 1024))
         };
         return (field("VmHWM:"), field("VmRSS:"));
     }
@@ -377,8 +388,7 @@ fn step_weights(o: &Options, m: &comgrasp::bundle::manifest::Manifest) -> Result
 
     // Decodes the .onnx protobuf only (external data is not read), after the bundle is dropped.
     let path = o.bundle.join(&m.transformer.file);
-    let proto = tract_onnx::onnx().proto_model_for_path(&path)
-        .map_err(|e| format!("{}: {e:#}", path.display()))?;
+    let proto = tract_onnx::onnx().proto_model_for_path(&path).map_err(|e| format!("{}: {e:#}", path.display()))?;
     let (mut fp32, mut int8_elems) = (0u64, 0u64);
     for t in proto.graph.iter().flat_map(|g| &g.initializer) {
         if WEIGHT_DTYPES.contains(&t.data_type) {
@@ -543,9 +553,16 @@ fn bench(o: &Options) -> Result<Value, String> {
         default_stream: StreamConfig::default(),
         publish_name: None,
     };
-    let assembler = FrameAssembler::new(&m.normalization.mean, &m.normalization.std, &m.skeleton.parents,
-                                        &m.skeleton.rest_joints, config.coordinate_system, config.enable_fk, m.fps)
-        .map_err(err)?;
+    let assembler = FrameAssembler::new(
+        &m.normalization.mean,
+        &m.normalization.std,
+        &m.skeleton.parents,
+        &m.skeleton.rest_joints,
+        config.coordinate_system,
+        config.enable_fk,
+        m.fps,
+    )
+    .map_err(err)?;
     let n_frames = steps * f;
     let mut expected = vec![Frame::default(); n_frames];
     let mut assemble_us = Vec::with_capacity(steps);
@@ -554,8 +571,13 @@ fn bench(o: &Options) -> Result<Value, String> {
         for (i, fr) in frames.iter_mut().enumerate() {
             let idx = c * f + i;
             // Stream ids start at 1 and the first stream of the engine below is compared.
-            assembler.assemble(&normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM], 1, idx as u64,
-                               idx + 1 == n_frames, fr);
+            assembler.assemble(
+                &normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM],
+                1,
+                idx as u64,
+                idx + 1 == n_frames,
+                fr,
+            );
         }
         assemble_us.push(t.elapsed().as_secs_f64() * 1e6);
     }
@@ -705,8 +727,13 @@ fn bench(o: &Options) -> Result<Value, String> {
         let buf: Vec<u64> = (0..n as u64).collect();
         let (b1, m1) = read_bandwidth(&buf, 1, 5);
         let (b2, m2) = read_bandwidth(&buf, 2, 5);
-        let (br, _) = if o.threads > 2 { read_bandwidth(&buf, o.threads, 5) } else if o.threads == 2 { (b2, m2) }
-                      else { (b1, m1) };
+        let (br, _) = if o.threads > 2 {
+            read_bandwidth(&buf, o.threads, 5)
+        } else if o.threads == 2 {
+            (b2, m2)
+        } else {
+            (b1, m1)
+        };
         let limit = |bytes: u64, bw: f64| (bytes + cache_bytes) as f64 / bw * 1e3;
         let int8 = |bw: f64| w.int8.map(|b| limit(b, bw));
         json!({
@@ -795,57 +822,111 @@ fn print_report(r: &Value) {
     };
     let s = |path: &[&str]| r.pointer(&format!("/{}", path.join("/"))).cloned().unwrap_or(Value::Null);
     println!("comgrasp bench: {}", r["bundle"].as_str().unwrap_or("?"));
-    println!("  machine   {} ({} logical CPUs); tract: {}", r["machine"]["cpu"].as_str().unwrap_or("?"),
-             s(&["machine", "logical_cpus"]), r["threads"]["note"].as_str().unwrap_or("?"));
-    println!("  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, prompt {}",
-             s(&["config", "steps"]), s(&["config", "frames_per_token"]), s(&["config", "seed"]),
-             s(&["config", "temperature"]), s(&["config", "top_k"]), s(&["config", "prompt"]));
-    println!("  paths     step {}, decoder {}, streams overlap step k+1 with decode k: {}",
-             r["engine_path"]["step"].as_str().unwrap_or("?"), r["engine_path"]["decoder"].as_str().unwrap_or("?"),
-             if r["engine_path"]["overlap"].as_bool().unwrap_or(false) { "yes" } else { "no" });
-    println!("  load      {:.1} ms (verify + 3 graphs); step graph files {:.1} MB, KV cache {:.1} MB",
-             g(&["load_ms"]), g(&["model", "step_graph_bytes"]) / 1e6, g(&["model", "kv_cache_bytes"]) / 1e6);
-    println!("  weights   read per step: {:.1} MB as fp32 (tract path){}",
-             g(&["model", "weights", "fp32_bytes"]) / 1e6,
-             r["model"]["weights"]["int8_bytes"].as_f64()
-                 .map_or(String::new(), |b| format!(", {:.1} MB int8 (native path)", b / 1e6)));
+    println!(
+        "  machine   {} ({} logical CPUs); tract: {}",
+        r["machine"]["cpu"].as_str().unwrap_or("?"),
+        s(&["machine", "logical_cpus"]),
+        r["threads"]["note"].as_str().unwrap_or("?")
+    );
+    println!(
+        "  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, prompt {}",
+        s(&["config", "steps"]),
+        s(&["config", "frames_per_token"]),
+        s(&["config", "seed"]),
+        s(&["config", "temperature"]),
+        s(&["config", "top_k"]),
+        s(&["config", "prompt"])
+    );
+    println!(
+        "  paths     step {}, decoder {}, streams overlap step k+1 with decode k: {}",
+        r["engine_path"]["step"].as_str().unwrap_or("?"),
+        r["engine_path"]["decoder"].as_str().unwrap_or("?"),
+        if r["engine_path"]["overlap"].as_bool().unwrap_or(false) { "yes" } else { "no" }
+    );
+    println!(
+        "  load      {:.1} ms (verify + 3 graphs); step graph files {:.1} MB, KV cache {:.1} MB",
+        g(&["load_ms"]),
+        g(&["model", "step_graph_bytes"]) / 1e6,
+        g(&["model", "kv_cache_bytes"]) / 1e6
+    );
+    println!(
+        "  weights   read per step: {:.1} MB as fp32 (tract path){}",
+        g(&["model", "weights", "fp32_bytes"]) / 1e6,
+        r["model"]["weights"]["int8_bytes"]
+            .as_f64()
+            .map_or(String::new(), |b| format!(", {:.1} MB int8 (native path)", b / 1e6))
+    );
     let line = |label: &str, key: &str, unit: &str| {
-        println!("  {label:<9} median {:.3} {unit}, p90 {:.3} {unit} (n = {})", g(&[key, "median"]), g(&[key, "p90"]),
-                 s(&[key, "n"]));
+        println!(
+            "  {label:<9} median {:.3} {unit}, p90 {:.3} {unit} (n = {})",
+            g(&[key, "median"]),
+            g(&[key, "p90"]),
+            s(&[key, "n"])
+        );
     };
     line("text", "text_ms", "ms");
     line("step", "step_ms", "ms");
     line("sample", "sample_us", "us");
     line("decode", "decode_ms", "ms");
-    println!("  grouped   {} tokens per decode after the first: median {:.3} ms per token, p90 {:.3} \
-              (same bits as one by one: {})", s(&["decode_group", "tokens"]),
-             g(&["decode_group", "ms_per_token", "median"]), g(&["decode_group", "ms_per_token", "p90"]),
-             s(&["decode_group", "same_bits_as_one_by_one"]));
+    println!(
+        "  grouped   {} tokens per decode after the first: median {:.3} ms per token, p90 {:.3} \
+              (same bits as one by one: {})",
+        s(&["decode_group", "tokens"]),
+        g(&["decode_group", "ms_per_token", "median"]),
+        g(&["decode_group", "ms_per_token", "p90"]),
+        s(&["decode_group", "same_bits_as_one_by_one"])
+    );
     line("assemble", "assemble_us_per_chunk", "us");
-    println!("  derived   TTFF {:.2} ms (text + step 0 + chunk 0), RTF {:.1} (frames per token / (step + chunk))",
-             g(&["derived", "ttff_ms"]), g(&["derived", "rtf"]));
-    println!("  stream    TTFF median {:.2} ms (p90 {:.2}), {:.0} frames/s, RTF {:.1}, {:.2} ms/token; \
+    println!(
+        "  derived   TTFF {:.2} ms (text + step 0 + chunk 0), RTF {:.1} (frames per token / (step + chunk))",
+        g(&["derived", "ttff_ms"]),
+        g(&["derived", "rtf"])
+    );
+    println!(
+        "  stream    TTFF median {:.2} ms (p90 {:.2}), {:.0} frames/s, RTF {:.1}, {:.2} ms/token; \
               frames match the step loop: {}",
-             g(&["stream", "ttff_ms", "median"]), g(&["stream", "ttff_ms", "p90"]),
-             g(&["stream", "frames_per_s", "median"]), g(&["stream", "rtf", "median"]),
-             g(&["stream", "ms_per_token", "median"]), s(&["stream", "matches_step_loop"]));
-    println!("  poll      empty {:.1} ns, ready frame {:.1} ns (median per call, batches of {})",
-             g(&["poll_ns", "empty", "median"]), g(&["poll_ns", "ready", "median"]), POLL_BATCH);
-    println!("  RSS       peak {:.1} MiB (before load {:.1}, after load {:.1})", g(&["rss_mib", "peak"]),
-             g(&["rss_mib", "before_load"]), g(&["rss_mib", "after_load"]));
+        g(&["stream", "ttff_ms", "median"]),
+        g(&["stream", "ttff_ms", "p90"]),
+        g(&["stream", "frames_per_s", "median"]),
+        g(&["stream", "rtf", "median"]),
+        g(&["stream", "ms_per_token", "median"]),
+        s(&["stream", "matches_step_loop"])
+    );
+    println!(
+        "  poll      empty {:.1} ns, ready frame {:.1} ns (median per call, batches of {})",
+        g(&["poll_ns", "empty", "median"]),
+        g(&["poll_ns", "ready", "median"]),
+        POLL_BATCH
+    );
+    println!(
+        "  RSS       peak {:.1} MiB (before load {:.1}, after load {:.1})",
+        g(&["rss_mib", "peak"]),
+        g(&["rss_mib", "before_load"]),
+        g(&["rss_mib", "after_load"])
+    );
     if !r["bandwidth"].is_null() {
-        println!("  bandwidth {:.1} GB/s (1 thread), {:.1} GB/s (2 threads), {:.1} GB/s at {} thread(s); step limit \
+        println!(
+            "  bandwidth {:.1} GB/s (1 thread), {:.1} GB/s (2 threads), {:.1} GB/s at {} thread(s); step limit \
                   {:.3} ms (fp32 weights + KV){}; step / limit {:.2} ({})",
-                 g(&["bandwidth", "gb_per_s_1t"]), g(&["bandwidth", "gb_per_s_2t"]), g(&["bandwidth", "gb_per_s_run"]),
-                 s(&["bandwidth", "run_threads"]), g(&["bandwidth", "step_limit_ms_run"]),
-                 r["bandwidth"]["step_limit_int8_ms_run"].as_f64()
-                     .map_or(String::new(), |v| format!(", {v:.3} ms (int8 weights + KV)")),
-                 g(&["bandwidth", "step_over_limit_run"]),
-                 r["bandwidth"]["step_over_limit_basis"].as_str().unwrap_or("?"));
+            g(&["bandwidth", "gb_per_s_1t"]),
+            g(&["bandwidth", "gb_per_s_2t"]),
+            g(&["bandwidth", "gb_per_s_run"]),
+            s(&["bandwidth", "run_threads"]),
+            g(&["bandwidth", "step_limit_ms_run"]),
+            r["bandwidth"]["step_limit_int8_ms_run"]
+                .as_f64()
+                .map_or(String::new(), |v| format!(", {v:.3} ms (int8 weights + KV)")),
+            g(&["bandwidth", "step_over_limit_run"]),
+            r["bandwidth"]["step_over_limit_basis"].as_str().unwrap_or("?")
+        );
     }
     let toks = r["tokens"].as_array().map_or(0, Vec::len);
     let head: Vec<String> = r["tokens"].as_array().into_iter().flatten().take(4).map(|t| t.to_string()).collect();
-    println!("  tokens    {toks} steps, sha256 {}, first {}", r["tokens_sha256"].as_str().unwrap_or("?"), head.join(" "));
+    println!(
+        "  tokens    {toks} steps, sha256 {}, first {}",
+        r["tokens_sha256"].as_str().unwrap_or("?"),
+        head.join(" ")
+    );
 }
 
 #[cfg(test)]
@@ -882,8 +963,7 @@ mod tests {
     #[test]
     fn token_hash_is_sha256_of_le_int64() {
         // sha256 of 32 zero bytes (one step of four zero tokens).
-        assert_eq!(hash_tokens(&[[0, 0, 0, 0]]),
-                   "66687aadf862bd776c8fc18b8e9f8e20089714856ee233b3902a591d0d5f2925");
+        assert_eq!(hash_tokens(&[[0, 0, 0, 0]]), "66687aadf862bd776c8fc18b8e9f8e20089714856ee233b3902a591d0d5f2925");
     }
 
     #[test]

@@ -76,7 +76,11 @@ pub fn build(rest: &[[f32; 3]], parents: &[i32], unit: f64) -> SkinnedMesh {
     // along the neck → head direction.
     if rest.len() > HEAD {
         let up = normalize(sub(rest[HEAD], rest[NECK])).unwrap_or([0.0, 1.0, 0.0]);
-        let c = [rest[HEAD][0] + 0.09 * unit * up[0], rest[HEAD][1] + 0.09 * unit * up[1], rest[HEAD][2] + 0.09 * unit * up[2]];
+        let c = [
+            rest[HEAD][0] + 0.09 * unit * up[0],
+            rest[HEAD][1] + 0.09 * unit * up[1],
+            rest[HEAD][2] + 0.09 * unit * up[2],
+        ];
         capsule(&mut m, c, c, 0.1 * unit, 0.1 * unit, HEAD, false);
     }
     debug_assert!(m.joints.iter().all(|&j| (j as usize) < rest.len()) && rest.len() > PELVIS);
@@ -96,14 +100,19 @@ fn capsule(m: &mut SkinnedMesh, a: [f64; 3], b: [f64; 3], r0: f64, r1: f64, join
     let e2 = cross(u, e1);
 
     let base = m.positions.len() as u32;
-    let push = |m: &mut SkinnedMesh, centre: [f64; 3], along: f64, radius: f64, n_axial: f64, n_radial: f64, phi: f64| {
-        let radial = [phi.cos() * e1[0] + phi.sin() * e2[0], phi.cos() * e1[1] + phi.sin() * e2[1], phi.cos() * e1[2] + phi.sin() * e2[2]];
-        let pos: [f64; 3] = std::array::from_fn(|k| centre[k] + along * u[k] + radius * radial[k]);
-        let n: [f64; 3] = std::array::from_fn(|k| n_axial * u[k] + n_radial * radial[k]);
-        m.positions.push(pos.map(|v| v as f32));
-        m.normals.push(normalize(n).unwrap_or(u).map(|v| v as f32));
-        m.joints.push(joint as u8);
-    };
+    let push =
+        |m: &mut SkinnedMesh, centre: [f64; 3], along: f64, radius: f64, n_axial: f64, n_radial: f64, phi: f64| {
+            let radial = [
+                phi.cos() * e1[0] + phi.sin() * e2[0],
+                phi.cos() * e1[1] + phi.sin() * e2[1],
+                phi.cos() * e1[2] + phi.sin() * e2[2],
+            ];
+            let pos: [f64; 3] = std::array::from_fn(|k| centre[k] + along * u[k] + radius * radial[k]);
+            let n: [f64; 3] = std::array::from_fn(|k| n_axial * u[k] + n_radial * radial[k]);
+            m.positions.push(pos.map(|v| v as f32));
+            m.normals.push(normalize(n).unwrap_or(u).map(|v| v as f32));
+            m.joints.push(joint as u8);
+        };
     // Rings from the `a` end to the `b` end: the `a` hemisphere up to its equator, then
     // the `b` hemisphere from its equator on (the taper joins the two equators). Each
     // ring: (centre, offset along u, radius, polar angle θ from the axis).

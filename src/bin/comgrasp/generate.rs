@@ -65,7 +65,8 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
         println!("{HELP}");
         return Ok(());
     }
-    let opts = parse(args).map_err(|m| Failure::Usage(format!("generate: {m}\nRun `comgrasp generate --help` for usage.")))?;
+    let opts =
+        parse(args).map_err(|m| Failure::Usage(format!("generate: {m}\nRun `comgrasp generate --help` for usage.")))?;
     let t0 = Instant::now();
 
     let engine = Engine::new(EngineConfig {
@@ -189,8 +190,19 @@ fn parse(args: &[String]) -> Result<Options, String> {
         if !name.starts_with("--") {
             return Err(format!("unexpected argument {arg:?}"));
         }
-        let known =
-            ["--bundle", "--text", "--out", "--glb", "--preview", "--seed", "--temperature", "--top-k", "--min-len", "--max-len", "--coords"];
+        let known = [
+            "--bundle",
+            "--text",
+            "--out",
+            "--glb",
+            "--preview",
+            "--seed",
+            "--temperature",
+            "--top-k",
+            "--min-len",
+            "--max-len",
+            "--coords",
+        ];
         if !known.contains(&name) {
             return Err(format!("unknown option {name}"));
         }

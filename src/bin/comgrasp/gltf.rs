@@ -152,7 +152,11 @@ pub fn glb(scene: &Scene, frames: &[Frame], prompt: &str, fps: f64) -> Result<Ve
     let body_weights = bin.floats(&weights, 4, "VEC4", Some(ARRAY_BUFFER), false);
     let body_idx = bin.indices(&body.indices, nv);
     // Column-major translate(−J'_j): the inverse of each joint's bind-pose world matrix.
-    let ibm: Vec<f32> = scene.rest.iter().flat_map(|r| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -r[0], -r[1], -r[2], 1.0]).collect();
+    let ibm: Vec<f32> = scene
+        .rest
+        .iter()
+        .flat_map(|r| [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -r[0], -r[1], -r[2], 1.0])
+        .collect();
     let ibm = bin.floats(&ibm, 16, "MAT4", None, false);
     let body_node = nodes.len();
     nodes.push(json!({ "name": "body", "mesh": 0, "skin": 0 }));
@@ -291,7 +295,9 @@ mod tests {
 
     #[test]
     fn quaternion_signs_are_made_continuous() {
-        let q = continuous([[0.0, 0.0, 0.6, 0.8], [0.0, 0.0, -0.6, 0.8], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.99, 0.1]].into_iter());
+        let q = continuous(
+            [[0.0, 0.0, 0.6, 0.8], [0.0, 0.0, -0.6, 0.8], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.99, 0.1]].into_iter(),
+        );
         assert_eq!(q, [0.0, 0.0, 0.6, 0.8, 0.0, 0.0, -0.6, 0.8, 0.0, 0.0, -1.0, 0.0, -0.0, -0.0, -0.99, -0.1]);
     }
 }

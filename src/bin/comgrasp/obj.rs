@@ -176,7 +176,14 @@ mod tests {
         // Two faces of a cube sharing an edge (90°) plus a flat neighbour (0°) and a
         // zero-area sliver.
         let m = Mesh {
-            positions: vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [2.0, 0.0, 0.0]],
+            positions: vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0],
+                [0.0, 1.0, 0.0],
+                [0.0, 0.0, 1.0],
+                [2.0, 0.0, 0.0],
+            ],
             triangles: vec![[0, 1, 2], [0, 2, 3], [0, 4, 1], [0, 1, 5]],
         };
         let (p, n) = m.corners_with_normals(40.0);

@@ -322,7 +322,13 @@ mod tests {
         joints[LEFT_HIP] = [0.1, 0.0, 1.0];
         joints[RIGHT_HIP] = [-0.1, 0.0, 1.0];
         let c = Camera::facing(&joints);
-        for (a, b, want) in [(c.right, c.right, 1.0), (c.up, c.up, 1.0), (c.toward, c.toward, 1.0), (c.right, c.up, 0.0), (c.up, c.toward, 0.0)] {
+        for (a, b, want) in [
+            (c.right, c.right, 1.0),
+            (c.up, c.up, 1.0),
+            (c.toward, c.toward, 1.0),
+            (c.right, c.up, 0.0),
+            (c.up, c.toward, 0.0),
+        ] {
             assert!((dot(a, b) - want).abs() < 1e-12);
         }
         assert!(c.toward[1] < -0.5 && c.toward[2] > 0.0, "{:?}", c.toward);
@@ -343,9 +349,15 @@ mod tests {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny/manifest.json");
         let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
         let sk = &m["skeleton"];
-        let rest: Vec<[f64; 3]> = sk["rest_joints"].as_array().unwrap().iter().map(|r| std::array::from_fn(|k| r[k].as_f64().unwrap())).collect();
+        let rest: Vec<[f64; 3]> = sk["rest_joints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| std::array::from_fn(|k| r[k].as_f64().unwrap()))
+            .collect();
         let parents: Vec<i32> = sk["parents"].as_array().unwrap().iter().map(|p| p.as_i64().unwrap() as i32).collect();
-        let names: Vec<String> = sk["joint_names"].as_array().unwrap().iter().map(|n| n.as_str().unwrap().to_string()).collect();
+        let names: Vec<String> =
+            sk["joint_names"].as_array().unwrap().iter().map(|n| n.as_str().unwrap().to_string()).collect();
         // Canonical (y up, +z front, left +x) → native world (z up, facing +y), then glTF.
         let upright = |p: [f64; 3]| [-p[0], p[2], p[1] + 1.0];
         let (s, _) = CoordinateSystem::CG_COORDS_GLTF.basis();
@@ -375,7 +387,9 @@ mod tests {
         }
         let rows = |c: [u8; 3]| -> Vec<usize> {
             (0..PANEL_HEIGHT as usize)
-                .filter(|&y| (0..PANEL_WIDTH as usize).any(|x| p.image.rgb[3 * (y * 2 * PANEL_WIDTH as usize + x)..][..3] == c))
+                .filter(|&y| {
+                    (0..PANEL_WIDTH as usize).any(|x| p.image.rgb[3 * (y * 2 * PANEL_WIDTH as usize + x)..][..3] == c)
+                })
                 .collect()
         };
         let (trunk, legs) = (rows(TRUNK), rows(LEFT));

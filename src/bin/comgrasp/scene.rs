@@ -114,7 +114,10 @@ mod tests {
         let pick = |p: &str| choose_object(&cat, p).map(|(i, a)| (cat[i].name.as_str().to_owned(), a));
         assert_eq!(pick("A woman drinks from the mug"), Some(("mug".into(), Some("mug".into()))));
         assert_eq!(pick("Lift the SMALL CUBE."), Some(("cubesmall".into(), Some("small cube".into()))));
-        assert_eq!(pick("pour from the water bottle into a mug"), Some(("waterbottle".into(), Some("water bottle".into()))));
+        assert_eq!(
+            pick("pour from the water bottle into a mug"),
+            Some(("waterbottle".into(), Some("water bottle".into())))
+        );
         assert_eq!(pick("stack the cubes"), Some(("cubesmall".into(), Some("cube".into()))));
         assert_eq!(pick("he smuggles nothing"), Some(("mug".into(), None)));
         assert_eq!(pick("wave"), Some(("mug".into(), None)));

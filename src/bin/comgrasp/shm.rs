@@ -98,7 +98,18 @@ pub fn publish(args: &[String]) -> Result<(), Failure> {
     let o = Opts::parse(
         "publish",
         args,
-        &["--name", "--text", "--bundle", "--seed", "--min-len", "--max-len", "--wait-subscribers", "--poll-interval-ms", "--ring", "--raw"],
+        &[
+            "--name",
+            "--text",
+            "--bundle",
+            "--seed",
+            "--min-len",
+            "--max-len",
+            "--wait-subscribers",
+            "--poll-interval-ms",
+            "--ring",
+            "--raw",
+        ],
         &["--no-publish"],
     )
     .map_err(usage)?;
@@ -178,14 +189,20 @@ pub fn subscribe(args: &[String]) -> Result<(), Failure> {
         println!("{SUBSCRIBE_HELP}");
         return Ok(());
     }
-    let o = Opts::parse("subscribe", args, &["--name", "--raw", "--streams", "--timeout-s", "--buffer", "--read-delay-us"], &["--latency"])
-        .map_err(usage)?;
+    let o = Opts::parse(
+        "subscribe",
+        args,
+        &["--name", "--raw", "--streams", "--timeout-s", "--buffer", "--read-delay-us"],
+        &["--latency"],
+    )
+    .map_err(usage)?;
     let name = o.required("--name").map_err(usage)?;
     let streams: u64 = o.num("--streams", 1).map_err(usage)?;
     let timeout = Duration::from_secs_f64(o.num("--timeout-s", 60.0).map_err(usage)?);
     let delay = Duration::from_micros(o.num("--read-delay-us", 0).map_err(usage)?);
     let latency = o.flag("--latency");
-    let mut sub = FrameSubscriber::open(name, o.num("--buffer", CG_MAX_SUBSCRIBER_BUFFER).map_err(usage)?).map_err(run_err)?;
+    let mut sub =
+        FrameSubscriber::open(name, o.num("--buffer", CG_MAX_SUBSCRIBER_BUFFER).map_err(usage)?).map_err(run_err)?;
     let mut raw = create_raw(o.str("--raw"))?;
     println!("ready");
     let _ = std::io::stdout().flush();
@@ -230,10 +247,8 @@ pub fn subscribe(args: &[String]) -> Result<(), Failure> {
     }
     let s = sub.stats();
     let secs = first.map_or(0.0, |t| t.elapsed().as_secs_f64());
-    let mut line = format!(
-        "frames: {frames} dropped: {} events: {} seconds: {secs:.4}",
-        s.frames_dropped, s.events_received
-    );
+    let mut line =
+        format!("frames: {frames} dropped: {} events: {} seconds: {secs:.4}", s.frames_dropped, s.events_received);
     if !lat_us.is_empty() {
         lat_us.sort_by(f64::total_cmp);
         let q = |p: f64| lat_us[((lat_us.len() - 1) as f64 * p) as usize];
@@ -274,11 +289,7 @@ fn finish_subscriber((mut child, mut out): (Child, BufReader<std::process::Child
 }
 
 fn field(line: &str, key: &str) -> f64 {
-    line.split_whitespace()
-        .skip_while(|w| *w != key)
-        .nth(1)
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(f64::NAN)
+    line.split_whitespace().skip_while(|w| *w != key).nth(1).and_then(|v| v.parse().ok()).unwrap_or(f64::NAN)
 }
 
 pub fn bench(args: &[String]) -> Result<(), Failure> {
@@ -297,7 +308,10 @@ pub fn bench(args: &[String]) -> Result<(), Failure> {
         .collect::<Result<_, _>>()?;
     let pid = std::process::id();
 
-    println!("# throughput: {n} synthetic frames ({} bytes each) published as fast as possible", std::mem::size_of::<Frame>());
+    println!(
+        "# throughput: {n} synthetic frames ({} bytes each) published as fast as possible",
+        std::mem::size_of::<Frame>()
+    );
     for &k in &counts {
         let name = format!("shm-bench-{pid}-{k}");
         let publisher = FramePublisher::new(&name).map_err(run_err)?;
@@ -360,7 +374,10 @@ pub fn bench(args: &[String]) -> Result<(), Failure> {
         without.push(one(&plain)?.0);
         let (us, frames) = one(&publishing)?;
         with.push(us);
-        println!("  run: frames {frames} without_us_per_frame {:.1} with_us_per_frame {us:.1}", without.last().unwrap());
+        println!(
+            "  run: frames {frames} without_us_per_frame {:.1} with_us_per_frame {us:.1}",
+            without.last().unwrap()
+        );
     }
     let line = finish_subscriber(sub)?;
     let median = |v: &mut Vec<f64>| {

@@ -16,7 +16,11 @@ pub(crate) struct Wm {
 impl Wm {
     /// Bytes one product reads.
     pub(crate) fn bytes(&self) -> usize {
-        if self.int8 { self.rows * self.cols + 4 * self.rows } else { 4 * self.rows * self.cols }
+        if self.int8 {
+            self.rows * self.cols + 4 * self.rows
+        } else {
+            4 * self.rows * self.cols
+        }
     }
 }
 
@@ -81,7 +85,12 @@ impl Arena {
     /// Copies `n` bytes from `src` into the next slot; returns its offset.
     fn push(&mut self, src: *const u8, n: usize) -> usize {
         let at = self.used;
-        assert!(at + Self::size(n) <= self.layout.size(), "native weight arena: {} + {n} bytes of {}", at, self.layout.size());
+        assert!(
+            at + Self::size(n) <= self.layout.size(),
+            "native weight arena: {} + {n} bytes of {}",
+            at,
+            self.layout.size()
+        );
         // SAFETY: [at, at + n) is inside the buffer (checked) and not yet handed out.
         unsafe { std::ptr::copy_nonoverlapping(src, self.base.add(at), n) };
         self.used += Self::size(n);
@@ -132,12 +141,17 @@ impl Arena {
         unsafe {
             if w.int8 {
                 MatRef::I8 {
-                    rows: w.rows, cols: w.cols,
+                    rows: w.rows,
+                    cols: w.cols,
                     q: std::slice::from_raw_parts(self.base.add(w.at) as *const i8, n),
                     scale: std::slice::from_raw_parts(self.base.add(w.scale_at) as *const f32, w.rows),
                 }
             } else {
-                MatRef::F32 { rows: w.rows, cols: w.cols, w: std::slice::from_raw_parts(self.base.add(w.at) as *const f32, n) }
+                MatRef::F32 {
+                    rows: w.rows,
+                    cols: w.cols,
+                    w: std::slice::from_raw_parts(self.base.add(w.at) as *const f32, n),
+                }
             }
         }
     }
@@ -155,4 +169,3 @@ impl Drop for Arena {
         unsafe { std::alloc::dealloc(self.base, self.layout) }
     }
 }
-

@@ -23,13 +23,16 @@
 //! `Error::Bundle` at load.
 use std::collections::BTreeSet;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::{AcqRel, Relaxed}};
+use std::sync::atomic::{
+    AtomicU64, AtomicUsize,
+    Ordering::{AcqRel, Relaxed},
+};
 use std::time::Instant;
 
+use super::arena::{Arena, Wm};
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
 use super::helper_thread::{threads_from_env, Helper, Job};
-use super::arena::{Arena, Wm};
 use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -193,7 +196,11 @@ impl Component {
         let first = format!("{}.conv.weight", layer(0));
         let (width, code_dim, k) = match t.shape(&first)? {
             [w, d, k] if *w > 0 && *d > 0 && *k > 0 => (*w, *d, *k),
-            s => return Err(bad(format!("native decoder tensor {first} has shape {s:?}, expected (width, code_dim, kernel)"))),
+            s => {
+                return Err(bad(format!(
+                    "native decoder tensor {first} has shape {s:?}, expected (width, code_dim, kernel)"
+                )))
+            }
         };
         let [start, stop] = spec.slice;
         let dim = stop - start;
@@ -245,7 +252,20 @@ impl Component {
         names.note(&format!("{}.conv", layer(i + 2)), &["weight", "bias"]);
 
         let contact = CONTACT_CHANNELS.iter().filter(|&&c| (start..stop).contains(&c)).map(|&c| c - start).collect();
-        Ok(Component { offset: start, dim, contact, code_dim, width, table, conv_in, attn, depth, levels, final_a, final_b })
+        Ok(Component {
+            offset: start,
+            dim,
+            contact,
+            code_dim,
+            width,
+            table,
+            conv_in,
+            attn,
+            depth,
+            levels,
+            final_a,
+            final_b,
+        })
     }
 
     /// Tokens the newest token's frames depend on (models.vqvae.Decoder._receptive_field).
@@ -383,8 +403,12 @@ impl NativeDecoder {
         let d = &m.decoder;
         let frames = d.frames_per_token;
         if frames < 2 || !frames.is_power_of_two() {
-            return Err(Error::bundle(&dir, format!(
-                "the native decoder needs frames_per_token = 2^levels (levels >= 1), the manifest says {frames}")));
+            return Err(Error::bundle(
+                &dir,
+                format!(
+                    "the native decoder needs frames_per_token = 2^levels (levels >= 1), the manifest says {frames}"
+                ),
+            ));
         }
         if m.components.len() != N_STREAMS {
             return Err(Error::bundle(&dir, format!("{} components, expected {N_STREAMS}", m.components.len())));
@@ -398,9 +422,12 @@ impl NativeDecoder {
             let c = Component::load(&t, &mut arena, &mut names, &dir, m, ci)?;
             let k = c.context_tokens(frames);
             if k != d.context_tokens {
-                return Err(Error::bundle(&dir, format!(
+                return Err(Error::bundle(
+                    &dir,
+                    format!(
                     "the native decoder of {} reads {k} tokens (from its layers), the manifest's context_tokens is {}",
-                    m.components[ci].name, d.context_tokens)));
+                    m.components[ci].name, d.context_tokens),
+                ));
             }
             comps.push(c);
         }
@@ -409,23 +436,28 @@ impl NativeDecoder {
         for name in t.names() {
             let comp_ok = m.components.iter().any(|c| name.starts_with(&format!("parts.{}.", c.name)));
             if !comp_ok || (name.contains(".decoder.") && !names.known.contains(name)) {
-                return Err(Error::bundle(&dir, format!(
-                    "native decoder tensor {name} is not part of the decoder architecture the other tensors describe")));
+                return Err(Error::bundle(
+                    &dir,
+                    format!(
+                    "native decoder tensor {name} is not part of the decoder architecture the other tensors describe"),
+                ));
             }
         }
         let helper = start_helper(&comps)?;
         arena.trim();
         let cost_ns = std::array::from_fn(|_| AtomicU64::new(0));
-        let mut dec = NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, arena, cost_ns };
+        let mut dec =
+            NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, arena, cost_ns };
         // The context of a new sequence: zero histories, then the initial state's tokens.
         let mut st = NativeState { comps: dec.comps.iter().map(|c| c.new_state(frames)).collect() };
         let init = d.initial_state.first().ok_or_else(|| Error::bundle(&dir, "decoder initial_state is empty"))?;
         for (ci, c) in dec.comps.iter().enumerate() {
             let ids = init.get(ci).ok_or_else(|| Error::bundle(&dir, "decoder initial_state lacks a component"))?;
             for &id in ids {
-                let id = usize::try_from(id).ok().filter(|&i| i <= m.components[ci].codebook_size).ok_or_else(|| {
-                    Error::bundle(&dir, format!("decoder initial_state id {id} is neither a code nor the pad id"))
-                })?;
+                let id =
+                    usize::try_from(id).ok().filter(|&i| i <= m.components[ci].codebook_size).ok_or_else(|| {
+                        Error::bundle(&dir, format!("decoder initial_state id {id} is neither a code nor the pad id"))
+                    })?;
                 // timed: the first decodes' job order
                 let t = Instant::now();
                 c.run(&dec.arena, &mut st.comps[ci], &[id]);
@@ -458,8 +490,13 @@ impl NativeDecoder {
     /// a stream overlaps the next token step with a decode (`model::overlap`).
     /// Allocation-free. Fails only if the helper thread panicked (`Error::Panic`; the state
     /// is then not to be trusted).
-    pub(crate) fn decode_with(&self, st: &mut NativeState, ids: &[[usize; N_STREAMS]], out: &mut [f32],
-                              extra: Option<&mut (dyn FnMut() + Send)>) -> Result<()> {
+    pub(crate) fn decode_with(
+        &self,
+        st: &mut NativeState,
+        ids: &[[usize; N_STREAMS]],
+        out: &mut [f32],
+        extra: Option<&mut (dyn FnMut() + Send)>,
+    ) -> Result<()> {
         assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
         assert!((1..=MAX_GROUP).contains(&ids.len()), "decode of {} tokens", ids.len());
         let mut jobs = Jobs {

@@ -87,8 +87,19 @@ impl WindowAttention {
 
     /// Tensor names (after `prefix.`) this block reads.
     pub(crate) const TENSORS: [&'static str; 13] = [
-        "rel_bias", "norm1.weight", "norm1.bias", "qkv.weight", "qkv.bias", "out.weight", "out.bias",
-        "norm2.weight", "norm2.bias", "mlp.0.weight", "mlp.0.bias", "mlp.2.weight", "mlp.2.bias",
+        "rel_bias",
+        "norm1.weight",
+        "norm1.bias",
+        "qkv.weight",
+        "qkv.bias",
+        "out.weight",
+        "out.bias",
+        "norm2.weight",
+        "norm2.bias",
+        "mlp.0.weight",
+        "mlp.0.bias",
+        "mlp.2.weight",
+        "mlp.2.bias",
     ];
 
     pub(crate) fn window(&self) -> usize {

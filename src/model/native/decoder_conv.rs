@@ -76,7 +76,14 @@ pub(crate) struct CausalConv {
 }
 
 impl CausalConv {
-    pub(crate) fn load(t: &Tensors, a: &mut Arena, prefix: &str, cin: usize, cout: usize, k: usize) -> Result<CausalConv> {
+    pub(crate) fn load(
+        t: &Tensors,
+        a: &mut Arena,
+        prefix: &str,
+        cin: usize,
+        cout: usize,
+        k: usize,
+    ) -> Result<CausalConv> {
         let w = a.put(tap_major(t.matrix(&format!("{prefix}.weight"), cout, cin * k)?, cin, k));
         let b = t.vector(&format!("{prefix}.bias"), cout)?;
         Ok(CausalConv { cin, cout, k, w, b })

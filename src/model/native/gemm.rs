@@ -99,7 +99,12 @@ mod x86 {
             #[target_feature(enable = "avx2,fma")]
             #[inline]
             unsafe fn $tile<const R: usize, const P: usize>(
-                w: *const $elem, cols: usize, r0: usize, x: *const f32, xs: usize, p0: usize,
+                w: *const $elem,
+                cols: usize,
+                r0: usize,
+                x: *const f32,
+                xs: usize,
+                p0: usize,
             ) -> [[f32; P]; R] {
                 let mut acc = [[_mm256_setzero_ps(); P]; R];
                 let n8 = cols & !7;
@@ -132,8 +137,16 @@ mod x86 {
 
             #[target_feature(enable = "avx2,fma")]
             unsafe fn $name(
-                w: *const $elem, scale: Option<&[f32]>, rows: usize, cols: usize, x: *const f32, xs: usize,
-                npos: usize, bias: Option<&[f32]>, y: *mut f32, ys: usize,
+                w: *const $elem,
+                scale: Option<&[f32]>,
+                rows: usize,
+                cols: usize,
+                x: *const f32,
+                xs: usize,
+                npos: usize,
+                bias: Option<&[f32]>,
+                y: *mut f32,
+                ys: usize,
             ) {
                 let mut r = 0;
                 while r + 2 <= rows {
@@ -204,7 +217,8 @@ mod x86 {
         let h67 = _mm256_hadd_ps(half(a[6]), half(a[7]));
         let h0123 = _mm256_hadd_ps(h01, h23);
         let h4567 = _mm256_hadd_ps(h45, h67);
-        let s = _mm256_add_ps(_mm256_permute2f128_ps::<0x20>(h0123, h4567), _mm256_permute2f128_ps::<0x31>(h0123, h4567));
+        let s =
+            _mm256_add_ps(_mm256_permute2f128_ps::<0x20>(h0123, h4567), _mm256_permute2f128_ps::<0x31>(h0123, h4567));
         let mut out = [0.0f32; 8];
         _mm256_storeu_ps(out.as_mut_ptr(), s);
         out
@@ -216,7 +230,12 @@ mod x86 {
             #[target_feature(enable = "avx512f")]
             #[inline]
             unsafe fn $tile<const R: usize, const P: usize>(
-                w: *const $elem, cols: usize, r0: usize, x: *const f32, xs: usize, p0: usize,
+                w: *const $elem,
+                cols: usize,
+                r0: usize,
+                x: *const f32,
+                xs: usize,
+                p0: usize,
             ) -> [[f32; P]; R] {
                 let mut acc = [[_mm512_setzero_ps(); P]; R];
                 let n16 = cols & !15;
@@ -254,8 +273,16 @@ mod x86 {
 
             #[target_feature(enable = "avx512f")]
             unsafe fn $name(
-                w: *const $elem, scale: Option<&[f32]>, rows: usize, cols: usize, x: *const f32, xs: usize,
-                npos: usize, bias: Option<&[f32]>, y: *mut f32, ys: usize,
+                w: *const $elem,
+                scale: Option<&[f32]>,
+                rows: usize,
+                cols: usize,
+                x: *const f32,
+                xs: usize,
+                npos: usize,
+                bias: Option<&[f32]>,
+                y: *mut f32,
+                ys: usize,
             ) {
                 macro_rules! rows_of {
                     ($r:literal, $p:literal, $p0:expr) => {{
@@ -292,7 +319,13 @@ mod x86 {
 
     #[inline(always)]
     unsafe fn store<const R: usize, const P: usize>(
-        out: [[f32; P]; R], r0: usize, p0: usize, scale: Option<&[f32]>, bias: Option<&[f32]>, y: *mut f32, ys: usize,
+        out: [[f32; P]; R],
+        r0: usize,
+        p0: usize,
+        scale: Option<&[f32]>,
+        bias: Option<&[f32]>,
+        y: *mut f32,
+        ys: usize,
     ) {
         for i in 0..R {
             let s = scale.map_or(1.0, |s| s[r0 + i]);
@@ -310,11 +343,19 @@ mod x86 {
     /// AVX-512F is available; the bounds `super::gemm` asserts hold.
     #[target_feature(enable = "avx512f")]
     pub(super) unsafe fn gemm512(
-        m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
+        m: MatRef<'_>,
+        x: &[f32],
+        xs: usize,
+        npos: usize,
+        bias: Option<&[f32]>,
+        y: &mut [f32],
+        ys: usize,
     ) {
         let (rows, cols) = (m.rows(), m.cols());
         match m {
-            MatRef::F32 { w, .. } => gemm512_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
+            MatRef::F32 { w, .. } => {
+                gemm512_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
+            }
             MatRef::I8 { q, scale, .. } => {
                 gemm512_i8(q.as_ptr(), Some(scale), rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
             }
@@ -325,11 +366,19 @@ mod x86 {
     /// AVX2 and FMA are available; the bounds `super::gemm` asserts hold.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn gemm(
-        m: MatRef<'_>, x: &[f32], xs: usize, npos: usize, bias: Option<&[f32]>, y: &mut [f32], ys: usize,
+        m: MatRef<'_>,
+        x: &[f32],
+        xs: usize,
+        npos: usize,
+        bias: Option<&[f32]>,
+        y: &mut [f32],
+        ys: usize,
     ) {
         let (rows, cols) = (m.rows(), m.cols());
         match m {
-            MatRef::F32 { w, .. } => gemm_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys),
+            MatRef::F32 { w, .. } => {
+                gemm_f32(w.as_ptr(), None, rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
+            }
             MatRef::I8 { q, scale, .. } => {
                 gemm_i8(q.as_ptr(), Some(scale), rows, cols, x.as_ptr(), xs, npos, bias, y.as_mut_ptr(), ys)
             }
@@ -353,14 +402,25 @@ mod tests {
 
     #[test]
     fn gemm_matches_the_naive_product_for_every_block_shape() {
-        for (rows, cols, xs, npos) in [(5, 19, 7, 7), (8, 64, 32, 16), (3, 16, 16, 1), (7, 40, 20, 5), (1, 8, 8, 3), (10, 48, 48, 13), (4, 32, 40, 2)] {
+        for (rows, cols, xs, npos) in [
+            (5, 19, 7, 7),
+            (8, 64, 32, 16),
+            (3, 16, 16, 1),
+            (7, 40, 20, 5),
+            (1, 8, 8, 3),
+            (10, 48, 48, 13),
+            (4, 32, 40, 2),
+        ] {
             let q: Vec<i8> = (0..rows * cols).map(|i| ((i * 37 % 255) as i32 - 127) as i8).collect();
             let scale: Vec<f32> = (0..rows).map(|r| 0.01 * (r + 1) as f32).collect();
             let w: Vec<f32> = (0..rows * cols).map(|i| f32::from(q[i]) * scale[i / cols]).collect();
             let x: Vec<f32> = (0..(npos - 1) * xs + cols).map(|c| (c as f32 * 0.37).sin()).collect();
             let bias: Vec<f32> = (0..rows).map(|r| r as f32 * 0.5).collect();
             let want = naive(&w, rows, cols, &x, xs, npos, &bias);
-            for m in [Matrix::F32 { rows, cols, w: w.clone() }, Matrix::I8 { rows, cols, q: q.clone(), scale: scale.clone() }] {
+            for m in [
+                Matrix::F32 { rows, cols, w: w.clone() },
+                Matrix::I8 { rows, cols, q: q.clone(), scale: scale.clone() },
+            ] {
                 // output stride wider than rows: the untouched gap stays as it was
                 let ys = rows + 2;
                 let mut y = vec![-9.0; npos * ys];
@@ -420,8 +480,11 @@ mod invariance {
                     let mut part = vec![0.0; n * rows];
                     gemm((&m).into(), &x[start * xs..], xs, n, Some(&bias), &mut part, rows);
                     let want = &all[start * rows..(start + n) * rows];
-                    assert!(part.iter().zip(want).all(|(a, b)| a.to_bits() == b.to_bits()),
-                            "positions {start}..{}: computed {n} at once differ from {npos} at once", start + n);
+                    assert!(
+                        part.iter().zip(want).all(|(a, b)| a.to_bits() == b.to_bits()),
+                        "positions {start}..{}: computed {n} at once differ from {npos} at once",
+                        start + n
+                    );
                 }
             }
         }
@@ -449,7 +512,11 @@ mod speed {
                 gemm((&m).into(), &x, 512, npos, None, &mut y, rows);
             }
             let s = t.elapsed().as_secs_f64();
-            println!("npos {npos:2}: {:.1} GMAC/s, {:.1} us/call", (reps * rows * cols * npos) as f64 / s / 1e9, s / reps as f64 * 1e6);
+            println!(
+                "npos {npos:2}: {:.1} GMAC/s, {:.1} us/call",
+                (reps * rows * cols * npos) as f64 / s / 1e9,
+                s / reps as f64 * 1e6
+            );
         }
     }
 }

@@ -21,7 +21,10 @@
 //! waiting (panicking in turn) instead of waiting forever.
 use std::ops::Range;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering::{Acquire, SeqCst}};
+use std::sync::atomic::{
+    AtomicBool, AtomicU64, AtomicUsize,
+    Ordering::{Acquire, SeqCst},
+};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, TryLockError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -232,7 +235,13 @@ struct Team<'a> {
 
 impl<'a> Team<'a> {
     fn new(phases: &'a [Phase]) -> Team<'a> {
-        Team { phases, sleepers: AtomicUsize::new(0), poisoned: AtomicBool::new(false), lock: Mutex::new(()), cv: Condvar::new() }
+        Team {
+            phases,
+            sleepers: AtomicUsize::new(0),
+            poisoned: AtomicBool::new(false),
+            lock: Mutex::new(()),
+            cv: Condvar::new(),
+        }
     }
 
     /// Runs member `me`'s part; a panic poisons the team first (so the other member does
@@ -270,8 +279,11 @@ impl<'a> Team<'a> {
                 return None;
             }
             let k = (left / 4).max(1);
-            let (next, units) =
-                if me == 0 { (cur + k as u64, front..front + k) } else { (cur + ((k as u64) << 32), total - back - k..total - back) };
+            let (next, units) = if me == 0 {
+                (cur + k as u64, front..front + k)
+            } else {
+                (cur + ((k as u64) << 32), total - back - k..total - back)
+            };
             match phase.claimed.compare_exchange_weak(cur, next, SeqCst, SeqCst) {
                 Ok(_) => return Some(units),
                 Err(now) => cur = now,
@@ -422,9 +434,12 @@ mod tests {
         }
         // The helper still works.
         let n = AtomicUsize::new(0);
-        assert_eq!(h.run_team(&phases, &|m: &mut Member<'_>| m.phase(4, |units| {
-            n.fetch_add(units.len(), SeqCst);
-        })), Some(false));
+        assert_eq!(
+            h.run_team(&phases, &|m: &mut Member<'_>| m.phase(4, |units| {
+                n.fetch_add(units.len(), SeqCst);
+            })),
+            Some(false)
+        );
         assert_eq!(n.load(SeqCst), 4);
     }
 }

@@ -50,7 +50,13 @@ fn detect() -> Isa {
     {
         let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
         let avx512 = avx2 && is_x86_feature_detected!("avx512f");
-        let best = if avx512 { Isa::Avx512 } else if avx2 { Isa::Avx2 } else { Isa::Portable };
+        let best = if avx512 {
+            Isa::Avx512
+        } else if avx2 {
+            Isa::Avx2
+        } else {
+            Isa::Portable
+        };
         best.min(cap)
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -459,9 +465,18 @@ mod avx512 {
 /// matrix of the native step's weight arena (step.rs).
 #[derive(Clone, Copy, Debug)]
 pub(crate) enum MatRef<'a> {
-    F32 { rows: usize, cols: usize, w: &'a [f32] },
+    F32 {
+        rows: usize,
+        cols: usize,
+        w: &'a [f32],
+    },
     /// int8 rows times one scale per row.
-    I8 { rows: usize, cols: usize, q: &'a [i8], scale: &'a [f32] },
+    I8 {
+        rows: usize,
+        cols: usize,
+        q: &'a [i8],
+        scale: &'a [f32],
+    },
 }
 
 impl MatRef<'_> {
@@ -521,8 +536,14 @@ pub(crate) fn gemv_rows(m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Ra
 
 /// [`gemv_rows`] with the given instruction set (which must be supported: `isa <= isa()`).
 fn gemv_with(isa: Isa, m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
-    assert!(x.len() == m.cols() && rows.end <= m.rows() && y.len() == rows.len() && isa <= self::isa(),
-            "gemv: {}x{} matrix, x {}, rows {rows:?}, y {}", m.rows(), m.cols(), x.len(), y.len());
+    assert!(
+        x.len() == m.cols() && rows.end <= m.rows() && y.len() == rows.len() && isa <= self::isa(),
+        "gemv: {}x{} matrix, x {}, rows {rows:?}, y {}",
+        m.rows(),
+        m.cols(),
+        x.len(),
+        y.len()
+    );
     let (r0, r1) = (rows.start, rows.end);
     match m {
         MatRef::F32 { cols, w, .. } => {
@@ -574,8 +595,17 @@ pub(crate) fn gemm_rows(m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>
 fn gemm_with(isa: Isa, m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
     let cols = m.cols();
     let part = rows.len();
-    assert!((1..=4).contains(&n) && x.len() == n * cols && rows.end <= m.rows() && y.len() == n * part
-            && isa <= self::isa(), "gemm: {}x{cols} matrix, n {n}, x {}, rows {rows:?}, y {}", m.rows(), x.len(), y.len());
+    assert!(
+        (1..=4).contains(&n)
+            && x.len() == n * cols
+            && rows.end <= m.rows()
+            && y.len() == n * part
+            && isa <= self::isa(),
+        "gemm: {}x{cols} matrix, n {n}, x {}, rows {rows:?}, y {}",
+        m.rows(),
+        x.len(),
+        y.len()
+    );
     let (r0, r1) = (rows.start, rows.end);
     #[cfg(target_arch = "x86_64")]
     if isa >= Isa::Avx2 {
@@ -694,9 +724,11 @@ mod tests {
             let (w, ms) = matrices(rows, cols);
             let x: Vec<f32> = (0..cols).map(|c| (c as f32 * 0.37).sin()).collect();
             let bias: Vec<f32> = (0..rows).map(|r| r as f32).collect();
-            let naive: Vec<f32> = (0..rows)
-                .map(|r| (0..cols).map(|c| w[r * cols + c] * x[c]).sum::<f32>() + bias[r]).collect();
-            for (m, isa) in ms.iter().flat_map(|m| [Isa::Portable, Isa::Avx2, Isa::Avx512].map(|i| (m, i)))
+            let naive: Vec<f32> =
+                (0..rows).map(|r| (0..cols).map(|c| w[r * cols + c] * x[c]).sum::<f32>() + bias[r]).collect();
+            for (m, isa) in ms
+                .iter()
+                .flat_map(|m| [Isa::Portable, Isa::Avx2, Isa::Avx512].map(|i| (m, i)))
                 .filter(|(_, i)| *i <= super::isa())
             {
                 let mut y = vec![0.0; rows];
@@ -734,7 +766,9 @@ mod tests {
             let x: Vec<f32> = (0..cols).map(|c| (c as f32 * 0.37).sin()).collect();
             let xs: Vec<f32> = (0..4 * cols).map(|c| (c as f32 * 0.11).cos()).collect();
             let bias: Vec<f32> = (0..rows).map(|r| r as f32 * 0.3).collect();
-            for (m, isa) in ms.iter().flat_map(|m| [Isa::Portable, Isa::Avx2, Isa::Avx512].map(|i| (m, i)))
+            for (m, isa) in ms
+                .iter()
+                .flat_map(|m| [Isa::Portable, Isa::Avx2, Isa::Avx512].map(|i| (m, i)))
                 .filter(|(_, i)| *i <= super::isa())
             {
                 let mut whole = vec![0.0; rows];
@@ -751,7 +785,8 @@ mod tests {
                         let mut y4 = vec![0.0; 4 * r.len()];
                         gemm_with(isa, m.into(), &xs, 4, Some(&bias), r.clone(), &mut y4);
                         for j in 0..4 {
-                            got4[j * rows + r.start..j * rows + r.end].copy_from_slice(&y4[j * r.len()..(j + 1) * r.len()]);
+                            got4[j * rows + r.start..j * rows + r.end]
+                                .copy_from_slice(&y4[j * r.len()..(j + 1) * r.len()]);
                         }
                     }
                     let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
@@ -772,8 +807,11 @@ mod tests {
                     avx2::gemv_f32(&w, cols, &x, &mut a);
                     avx2::gemv_f32_by_blocks(&w, cols, &x, &mut b);
                 }
-                assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                           "{rows}x{cols}");
+                assert_eq!(
+                    a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    "{rows}x{cols}"
+                );
             }
         }
         let x: Vec<f32> = (0..37).map(|i| (i as f32).sin() * 3.0).collect();
@@ -829,8 +867,12 @@ mod throughput {
                     gemv_with(isa, m.into(), &x, None, 0..rows, &mut y);
                     best = best.min(t.elapsed().as_secs_f64());
                 }
-                println!("{isa:?} {}: {:.2} ms, {:.1} GB/s", if matches!(m, Matrix::F32 { .. }) { "f32" } else { "i8" },
-                         best * 1e3, m.bytes() as f64 / best / 1e9);
+                println!(
+                    "{isa:?} {}: {:.2} ms, {:.1} GB/s",
+                    if matches!(m, Matrix::F32 { .. }) { "f32" } else { "i8" },
+                    best * 1e3,
+                    m.bytes() as f64 / best / 1e9
+                );
             }
         }
     }

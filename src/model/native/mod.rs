@@ -15,5 +15,5 @@ pub(crate) mod decoder;
 mod decoder_attention;
 mod decoder_conv;
 // The second thread of the decoder and of the step (one helper per loaded model).
-mod helper_thread;
 mod gemm;
+mod helper_thread;

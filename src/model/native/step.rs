@@ -199,13 +199,19 @@ impl NativeStep {
         let tensors = Tensors::new(src, spec);
         let err = |msg: String| Error::bundle(src.path_of(&spec.dir), msg);
         if t.widths.len() != N_STREAMS || t.head_dims.len() != N_STREAMS {
-            return Err(err(format!("the transformer has {} widths, the native step needs {N_STREAMS}", t.widths.len())));
+            return Err(err(format!(
+                "the transformer has {} widths, the native step needs {N_STREAMS}",
+                t.widths.len()
+            )));
         }
         let widths: [usize; N_STREAMS] = std::array::from_fn(|i| t.widths[i]);
         let head_dims: [usize; N_STREAMS] = std::array::from_fn(|i| t.head_dims[i]);
         for s in 0..N_STREAMS {
             if widths[s] == 0 || head_dims[s] * t.n_heads != widths[s] {
-                return Err(err(format!("stream {s}: width {} is not n_heads {} x head_dim {}", widths[s], t.n_heads, head_dims[s])));
+                return Err(err(format!(
+                    "stream {s}: width {} is not n_heads {} x head_dim {}",
+                    widths[s], t.n_heads, head_dims[s]
+                )));
             }
         }
         if t.n_layers == 0 || t.cache_slots == 0 || t.d_text == 0 {
@@ -229,11 +235,21 @@ impl NativeStep {
             (0, 0)
         };
         let d = Dims {
-            n_layers: t.n_layers, n_heads: t.n_heads, slots: t.cache_slots, d_text: t.d_text, widths, head_dims,
-            vocab: m.vocab_sizes(), hidden, coord_width, coord_hidden,
+            n_layers: t.n_layers,
+            n_heads: t.n_heads,
+            slots: t.cache_slots,
+            d_text: t.d_text,
+            widths,
+            head_dims,
+            vocab: m.vocab_sizes(),
+            hidden,
+            coord_width,
+            coord_hidden,
         };
         // Guard the products used for buffer sizes against absurd manifests.
-        d.n_layers.checked_mul(d.slots).and_then(|v| v.checked_mul(widths.iter().max().copied()?))
+        d.n_layers
+            .checked_mul(d.slots)
+            .and_then(|v| v.checked_mul(widths.iter().max().copied()?))
             .filter(|&v| v <= 1 << 32)
             .ok_or_else(|| err("the KV cache would be absurdly large".into()))?;
 
@@ -248,7 +264,8 @@ impl NativeStep {
         for s in 0..N_STREAMS {
             let (w, v, hid) = (widths[s], d.vocab[s], hidden[s]);
             let p = |n: &str| format!("streams.{s}.{n}");
-            let mut lin = |n: String, rows, cols| -> Result<Linear> { Linear::load(&tensors, &mut arena, &n, rows, cols, true) };
+            let mut lin =
+                |n: String, rows, cols| -> Result<Linear> { Linear::load(&tensors, &mut arena, &n, rows, cols, true) };
             let mut blocks = Vec::with_capacity(d.n_layers);
             for l in 0..d.n_layers {
                 let b = |n: &str| format!("streams.{s}.blocks.{l}.{n}");
@@ -270,7 +287,11 @@ impl NativeStep {
             }
             let pos_shape = tensors.shape(&p("pos"))?;
             if pos_shape != [d.slots, w] {
-                return Err(err(format!("native tensor {} has shape {pos_shape:?}, expected [{}, {w}]", p("pos"), d.slots)));
+                return Err(err(format!(
+                    "native tensor {} has shape {pos_shape:?}, expected [{}, {w}]",
+                    p("pos"),
+                    d.slots
+                )));
             }
             streams.push(Stream {
                 cond: lin(p("cond"), w, d.d_text)?,
@@ -341,13 +362,18 @@ impl NativeStep {
         self.helper = if n >= 2 { Helper::start_named("comgrasp-step").ok() } else { None };
         // the input, 5 phases per layer, 6 per coordination, the heads
         let n_phases = 2 + 5 * self.d.n_layers + 6 * self.d.n_layers.saturating_sub(1);
-        self.phases = if self.helper.is_some() { (0..n_phases).map(|_| Phase::default()).collect() } else { Vec::new() };
+        self.phases =
+            if self.helper.is_some() { (0..n_phases).map(|_| Phase::default()).collect() } else { Vec::new() };
     }
 
     /// Threads a step uses (when the helper is not busy).
     #[allow(dead_code)]
     pub(crate) fn threads(&self) -> usize {
-        if self.helper.is_some() { 2 } else { 1 }
+        if self.helper.is_some() {
+            2
+        } else {
+            1
+        }
     }
 
     /// Bytes of weight matrices one step reads.
@@ -388,20 +414,39 @@ impl NativeStep {
     /// logits into `logits` and the new k/v rows into the state's cache. No allocation.
     /// On two threads when the model has a helper and it is free (see the module doc);
     /// panics if the helper thread panicked (after it has stopped touching the state).
-    pub(crate) fn step(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
-                       logits: &mut [Vec<f32>; N_STREAMS]) {
+    pub(crate) fn step(
+        &self,
+        st: &mut NativeStepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+        logits: &mut [Vec<f32>; N_STREAMS],
+    ) {
         self.step_on(st, tokens, pos, text_emb, logits, true)
     }
 
     /// [`step`](Self::step) on the calling thread alone (the helper is left alone: the
     /// caller's other thread is busy with a decode), bit-identical.
-    pub(crate) fn step_solo(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
-                            logits: &mut [Vec<f32>; N_STREAMS]) {
+    pub(crate) fn step_solo(
+        &self,
+        st: &mut NativeStepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+        logits: &mut [Vec<f32>; N_STREAMS],
+    ) {
         self.step_on(st, tokens, pos, text_emb, logits, false)
     }
 
-    fn step_on(&self, st: &mut NativeStepState, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32],
-               logits: &mut [Vec<f32>; N_STREAMS], team: bool) {
+    fn step_on(
+        &self,
+        st: &mut NativeStepState,
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+        logits: &mut [Vec<f32>; N_STREAMS],
+        team: bool,
+    ) {
         assert!(st.own.len() == MAX_THREADS && st.h.len() == N_STREAMS, "a NativeStepState of another model");
         let view = View::new(st, logits);
         // SAFETY (both calls): `view` points into `st` and `logits`, borrowed mutably for
@@ -561,22 +606,23 @@ impl NativeStep {
             })
         });
         // The shared MLP on the four concatenations at once (rows of one matrix as units).
-        let mlp = |m: &mut Member<'_>, lin: &Linear, x: &[f32], out: Buf, width: usize, part: &mut [f32], gelu: bool| {
-            let u = Units::new([width, 0, 0, 0], [self.row_block(lin.w.bytes() / lin.w.rows.max(1)), 1, 1, 1]);
-            m.phase(u.total(), |units| {
-                u.each(units, |_, r| {
-                    let part = &mut part[..N_STREAMS * r.len()];
-                    gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
-                    for (j, pj) in part.chunks_exact(r.len()).enumerate() {
-                        let dst = out.rows(j * width + r.start..j * width + r.end);
-                        dst.copy_from_slice(pj);
-                        if gelu {
-                            gelu_erf(dst);
+        let mlp =
+            |m: &mut Member<'_>, lin: &Linear, x: &[f32], out: Buf, width: usize, part: &mut [f32], gelu: bool| {
+                let u = Units::new([width, 0, 0, 0], [self.row_block(lin.w.bytes() / lin.w.rows.max(1)), 1, 1, 1]);
+                m.phase(u.total(), |units| {
+                    u.each(units, |_, r| {
+                        let part = &mut part[..N_STREAMS * r.len()];
+                        gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
+                        for (j, pj) in part.chunks_exact(r.len()).enumerate() {
+                            let dst = out.rows(j * width + r.start..j * width + r.end);
+                            dst.copy_from_slice(pj);
+                            if gelu {
+                                gelu_erf(dst);
+                            }
                         }
-                    }
-                })
-            });
-        };
+                    })
+                });
+            };
         // concatenation i: the other streams' projections in stream order (each member
         // builds its own copy)
         let cp = v.cp.all();
@@ -601,9 +647,7 @@ impl NativeStep {
             })
         });
         let u = Units::new(d.widths, d.widths);
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| c.norm[s].rows(v.tmp[s].all(), r.clone(), v.h[s].rows(r)))
-        });
+        m.phase(u.total(), |units| u.each(units, |s, r| c.norm[s].rows(v.tmp[s].all(), r.clone(), v.h[s].rows(r))));
     }
 }
 
@@ -791,7 +835,12 @@ mod tests {
             let amp = 1.0 / (cols as f32).sqrt();
             if int8 {
                 let q = (0..rows * cols).map(|_| (self.next() * 127.0) as i8).collect();
-                Matrix::I8 { rows, cols, q, scale: (0..rows).map(|_| amp / 127.0 * (1.0 + 0.5 * self.next())).collect() }
+                Matrix::I8 {
+                    rows,
+                    cols,
+                    q,
+                    scale: (0..rows).map(|_| amp / 127.0 * (1.0 + 0.5 * self.next())).collect(),
+                }
             } else {
                 Matrix::F32 { rows, cols, w: self.vec(rows * cols, amp) }
             }
@@ -837,7 +886,11 @@ mod tests {
         let coord = (1..d.n_layers)
             .map(|_| Coord {
                 inp: (0..N_STREAMS).map(|s| g.linear(a, cw, d.widths[s], int8)).collect(),
-                mlp: [g.linear(a, ch, (N_STREAMS - 1) * cw, int8), g.linear(a, ch, ch, int8), g.linear(a, cw, ch, int8)],
+                mlp: [
+                    g.linear(a, ch, (N_STREAMS - 1) * cw, int8),
+                    g.linear(a, ch, ch, int8),
+                    g.linear(a, cw, ch, int8),
+                ],
                 out: (0..N_STREAMS).map(|s| g.linear(a, d.widths[s], cw, int8)).collect(),
                 norm: (0..N_STREAMS).map(|s| g.norm(d.widths[s])).collect(),
             })
@@ -851,8 +904,16 @@ mod tests {
     fn odd_dims() -> Dims {
         let widths = [20, 36, 28, 12];
         Dims {
-            n_layers: 3, n_heads: 4, slots: 9, d_text: 11, widths, head_dims: widths.map(|w| w / 4),
-            vocab: [13, 30, 7, 9], hidden: [60, 110, 84, 35], coord_width: 10, coord_hidden: 22,
+            n_layers: 3,
+            n_heads: 4,
+            slots: 9,
+            d_text: 11,
+            widths,
+            head_dims: widths.map(|w| w / 4),
+            vocab: [13, 30, 7, 9],
+            hidden: [60, 110, 84, 35],
+            coord_width: 10,
+            coord_hidden: 22,
         }
     }
 
@@ -889,7 +950,8 @@ mod tests {
             // Two streams at once: one gets the helper, the other finds it busy and runs
             // alone; both give the same results.
             std::thread::scope(|sc| {
-                let hs: Vec<_> = (0..2).map(|_| sc.spawn(|| (0..20).map(|_| generate(&m, steps)).collect::<Vec<_>>())).collect();
+                let hs: Vec<_> =
+                    (0..2).map(|_| sc.spawn(|| (0..20).map(|_| generate(&m, steps)).collect::<Vec<_>>())).collect();
                 for h in hs {
                     for g in h.join().unwrap() {
                         assert_eq!(bits(&g), bits(&one), "int8 {int8}: concurrent streams differ");
@@ -908,9 +970,16 @@ mod tests {
         for f in [0.125, 0.25, 0.375, 0.5, 0.75, 1.0] {
             let widths = [128, 256, 192, 192].map(|w: usize| ((w as f64 * f) as usize).max(4) / 4 * 4);
             let d = Dims {
-                n_layers: 4, n_heads: 4, slots: 76, d_text: 384, widths, head_dims: widths.map(|w| w / 4),
-                vocab: [514, 1026, 514, 514], hidden: widths.map(|w| 4 * w),
-                coord_width: ((128.0 * f) as usize).max(4), coord_hidden: ((256.0 * f) as usize).max(4),
+                n_layers: 4,
+                n_heads: 4,
+                slots: 76,
+                d_text: 384,
+                widths,
+                head_dims: widths.map(|w| w / 4),
+                vocab: [514, 1026, 514, 514],
+                hidden: widths.map(|w| 4 * w),
+                coord_width: ((128.0 * f) as usize).max(4),
+                coord_hidden: ((256.0 * f) as usize).max(4),
             };
             let mut m = random_model(d, true, 3);
             let mut med = [0.0f64; 2];
@@ -930,8 +999,13 @@ mod tests {
                     med[threads - 1] += times[times.len() / 2] / 3.0;
                 }
             }
-            println!("widths {widths:?}: {:.2} MB, 1 thread {:.3} ms, 2 threads {:.3} ms ({:.2}x)",
-                     m.weight_bytes() as f64 / 1e6, med[0], med[1], med[0] / med[1]);
+            println!(
+                "widths {widths:?}: {:.2} MB, 1 thread {:.3} ms, 2 threads {:.3} ms ({:.2}x)",
+                m.weight_bytes() as f64 / 1e6,
+                med[0],
+                med[1],
+                med[0] / med[1]
+            );
         }
     }
 
@@ -944,8 +1018,16 @@ mod tests {
     fn step_throughput() {
         let widths = [512, 1024, 768, 768];
         let d = Dims {
-            n_layers: 14, n_heads: 16, slots: 76, d_text: 384, widths, head_dims: widths.map(|w| w / 16),
-            vocab: [514, 1026, 514, 514], hidden: widths.map(|w| 4 * w), coord_width: 256, coord_hidden: 512,
+            n_layers: 14,
+            n_heads: 16,
+            slots: 76,
+            d_text: 384,
+            widths,
+            head_dims: widths.map(|w| w / 16),
+            vocab: [514, 1026, 514, 514],
+            hidden: widths.map(|w| 4 * w),
+            coord_width: 256,
+            coord_hidden: 512,
         };
         let int8 = std::env::var("COMGRASP_STEP_BENCH_INT8").is_ok_and(|v| v == "1");
         let mut m = random_model(d, int8, 1);
@@ -965,8 +1047,12 @@ mod tests {
                 times.push(t.elapsed().as_secs_f64() * 1e3);
             }
             times.sort_by(f64::total_cmp);
-            println!("{threads} thread(s): median {:.2} ms/step, min {:.2}, mean {:.2}", times[steps / 2], times[0],
-                     times.iter().sum::<f64>() / steps as f64);
+            println!(
+                "{threads} thread(s): median {:.2} ms/step, min {:.2}, mean {:.2}",
+                times[steps / 2],
+                times[0],
+                times.iter().sum::<f64>() / steps as f64
+            );
         }
     }
 }

@@ -14,9 +14,18 @@ use crate::error::{Error, Result};
 /// `(out, in * kernel)`): the layout a GEMV reads row by row.
 #[derive(Clone, Debug)]
 pub(crate) enum Matrix {
-    F32 { rows: usize, cols: usize, w: Vec<f32> },
+    F32 {
+        rows: usize,
+        cols: usize,
+        w: Vec<f32>,
+    },
     /// `w[r][c] = q[r * cols + c] as f32 * scale[r]`.
-    I8 { rows: usize, cols: usize, q: Vec<i8>, scale: Vec<f32> },
+    I8 {
+        rows: usize,
+        cols: usize,
+        q: Vec<i8>,
+        scale: Vec<f32>,
+    },
 }
 
 impl Matrix {
@@ -88,8 +97,16 @@ impl<'a> Tensors<'a> {
         let path = self.src.path_of(rel);
         let a = npy::parse(&path, self.src.read_file(rel)?.into_owned())?;
         if a.dtype != dtype || a.shape != shape {
-            return Err(Error::bundle(&path, format!(
-                "is {} {:?}, the manifest declares {} {:?}", a.dtype.numpy_name(), a.shape, dtype.numpy_name(), shape)));
+            return Err(Error::bundle(
+                &path,
+                format!(
+                    "is {} {:?}, the manifest declares {} {:?}",
+                    a.dtype.numpy_name(),
+                    a.shape,
+                    dtype.numpy_name(),
+                    shape
+                ),
+            ));
         }
         Ok(a)
     }
@@ -108,8 +125,10 @@ impl<'a> Tensors<'a> {
         let e = self.entry(name)?;
         let n: usize = e.shape.iter().product();
         if e.dtype != NativeDtype::Float32 || n != len {
-            return Err(Error::bundle(self.src.path_of(&self.file(name, "")), format!(
-                "native tensor {name} is {:?} {:?}, expected float32 with {len} values", e.dtype, e.shape)));
+            return Err(Error::bundle(
+                self.src.path_of(&self.file(name, "")),
+                format!("native tensor {name} is {:?} {:?}, expected float32 with {len} values", e.dtype, e.shape),
+            ));
         }
         self.floats(&self.file(name, ""), &e.shape)
     }
@@ -125,8 +144,10 @@ impl<'a> Tensors<'a> {
             None => (0, 0),
         };
         if (r, c) != (rows, cols) {
-            return Err(Error::bundle(&path, format!(
-                "native tensor {name} has shape {:?}, expected {rows} rows of {cols}", e.shape)));
+            return Err(Error::bundle(
+                &path,
+                format!("native tensor {name} has shape {:?}, expected {rows} rows of {cols}", e.shape),
+            ));
         }
         Ok(match e.dtype {
             NativeDtype::Float32 => Matrix::F32 { rows, cols, w: self.floats(&rel, &e.shape)? },
@@ -135,7 +156,10 @@ impl<'a> Tensors<'a> {
                 let q = a.to_i8(&path)?;
                 let scale = self.floats(&self.file(name, ".scale"), &[rows])?;
                 if let Some(i) = scale.iter().position(|s| *s < 0.0) {
-                    return Err(Error::bundle(self.src.path_of(&self.file(name, ".scale")), format!("scale {i} is negative")));
+                    return Err(Error::bundle(
+                        self.src.path_of(&self.file(name, ".scale")),
+                        format!("scale {i} is negative"),
+                    ));
                 }
                 Matrix::I8 { rows, cols, q, scale }
             }
