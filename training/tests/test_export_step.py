@@ -7,7 +7,12 @@ import pytest
 import torch
 
 from comgrasp_train.export.step_graph import (
-    FORBIDDEN_OPS, OPSET, OnnxStepRunner, export_step_onnx, input_names, output_names,
+    FORBIDDEN_OPS,
+    OPSET,
+    OnnxStepRunner,
+    export_step_onnx,
+    input_names,
+    output_names,
 )
 from comgrasp_train.models.gpt_configs import STREAMS, preset
 from comgrasp_train.models.sampling import SamplingParams, generate, run_sampling_loop

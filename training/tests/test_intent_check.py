@@ -4,9 +4,8 @@ dropped) and mismatched prompts do not."""
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,8 +15,15 @@ from comgrasp_train.cli.data import main as data_main
 from comgrasp_train.dataset import prepare_features
 from comgrasp_train.grab.text import INTENT_PHRASES, describe, hands_from_contact
 from comgrasp_train.grab.text_parse import UNKNOWN, Intent, parse_prompt
-from comgrasp_train.intent_check import (SYNTH_INTENTS, check_feature_set, check_features, check_motion,
-                                         intent_rates, object_sdf_for, track_from_features)
+from comgrasp_train.intent_check import (
+    SYNTH_INTENTS,
+    check_feature_set,
+    check_features,
+    check_motion,
+    intent_rates,
+    object_sdf_for,
+    track_from_features,
+)
 from comgrasp_train.layout import COMPONENT_SLICES, CONTACT_CHANNELS, FIELD
 from comgrasp_train.metrics import unheld_object_motion
 from comgrasp_train.objects.catalogue import CATALOGUE

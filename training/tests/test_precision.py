@@ -2,8 +2,6 @@
 weights it runs are exactly the int8 rows x scale that `export --int8-weights` writes
 (scripts/precision_report.sh compares fp32 and int8 with it)."""
 
-import copy
-
 import numpy as np
 import pytest
 import torch

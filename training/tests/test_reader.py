@@ -6,14 +6,12 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 
-from comgrasp_train.grab.format import write_grab_npz
 from comgrasp_train.grab.reader import GrabFormatError, load_dataset, load_sequence
 from comgrasp_train.grab.splits import SPLITS, get_split
 from comgrasp_train.grab.text import describe, hands_from_contact
 from comgrasp_train.rotations import axis_angle_to_matrix
-
-import torch
 
 
 def test_loads_the_published_layout(grab_root):

@@ -13,7 +13,11 @@ from comgrasp_train.grab.splits import get_split
 from comgrasp_train.layout import COMPONENT_SLICES, FIELD, FRAME_DIM
 from comgrasp_train.normalization import Normalizer
 from comgrasp_train.representation import (
-    build_features, features_to_joints, features_to_params, object_centre_local, resample_sequence,
+    build_features,
+    features_to_joints,
+    features_to_params,
+    object_centre_local,
+    resample_sequence,
 )
 from comgrasp_train.rotations import axis_angle_to_matrix
 

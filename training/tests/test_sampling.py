@@ -9,7 +9,13 @@ import torch
 
 from comgrasp_train.models.gpt_configs import preset
 from comgrasp_train.models.sampling import (
-    SamplingParams, SplitMix64, TokenSampler, allowed_ids, exp_det, generate, resolve_seeds,
+    SamplingParams,
+    SplitMix64,
+    TokenSampler,
+    allowed_ids,
+    exp_det,
+    generate,
+    resolve_seeds,
     sample_logits,
 )
 from comgrasp_train.models.transformer import ComGraspTransformer

@@ -24,7 +24,7 @@ pytest.importorskip("transformers")
 pytest.importorskip("tokenizers")
 pytest.importorskip("onnxruntime")
 
-from comgrasp_train.export.text_encoder_export import (  # noqa: E402
+from comgrasp_train.export.text_encoder_export import (
     DEFAULT_PARITY_PROMPTS,
     export_text_encoder,
     manifest_fragment,
@@ -32,7 +32,7 @@ from comgrasp_train.export.text_encoder_export import (  # noqa: E402
     run_onnx,
     sha256_file,
 )
-from comgrasp_train.text_encoder import load_text_encoder, pool_token_states  # noqa: E402
+from comgrasp_train.text_encoder import load_text_encoder, pool_token_states
 
 PROMPTS = [
     "pick up the mug and drink from it",
@@ -193,7 +193,7 @@ def test_minilm_parity_files(minilm_bundle):
     pdir = out / "parity" / "text"
     doc = json.loads((pdir / "cases.json").read_text(encoding="utf-8"))
     assert len(doc["cases"]) == len(DEFAULT_PARITY_PROMPTS) == frag["parity"]["n"]
-    for k, c in enumerate(doc["cases"]):
+    for c in doc["cases"]:
         ids = np.load(pdir / c["files"]["input_ids"])
         assert ids.shape == (1, 32) and ids.dtype == np.int64 and ids[0].tolist() == c["input_ids"]
         h = np.load(pdir / c["files"]["last_hidden_state"])

@@ -9,7 +9,6 @@ import torch
 from comgrasp_train.models.gpt_configs import PRESETS, TransformerConfig, preset
 from comgrasp_train.models.transformer import ComGraspTransformer, count_parameters
 
-
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 

@@ -64,7 +64,7 @@ _INSTALL_HINT = (
 
 def _import_smplx():
     try:
-        import smplx  # noqa: PLC0415 - optional dependency, imported on use
+        import smplx  # optional dependency, imported on use
     except ImportError as e:
         raise ImportError(_INSTALL_HINT) from e
     return smplx
@@ -133,7 +133,7 @@ def _load_model_data(path: Path) -> _ModelData:
 
 def read_vtemp(path: str | Path) -> np.ndarray:
     """Vertices (10475, 3) float64 of a GRAB subject template mesh (``body/vtemp``)."""
-    import trimesh  # noqa: PLC0415
+    import trimesh
 
     try:
         m = trimesh.load(str(path), process=False, force="mesh")

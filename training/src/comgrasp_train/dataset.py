@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 
 from .body_model import BodyModelConfig, make_body_model
-from .grab.reader import GrabFormatError, LoadSummary, load_sequence, split_files
-from .parallel import parallel_map
-from .grab.splits import SplitConfig
 from .grab.paraphrase import Meaning
 from .grab.paraphrase import paraphrases as paraphrase
+from .grab.reader import GrabFormatError, LoadSummary, load_sequence, split_files
+from .grab.splits import SplitConfig
 from .grab.text import describe, hands_from_contact
+from .parallel import parallel_map
 from .representation import build_features, resample_sequence
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ class FeatureSet:
         )
 
     @staticmethod
-    def load(path: str | Path) -> "FeatureSet":
+    def load(path: str | Path) -> FeatureSet:
         d = np.load(path, allow_pickle=False)
         info = json.loads(str(d["info"]))
         offs = np.concatenate([[0], np.cumsum(d["lengths"])])
@@ -74,7 +74,7 @@ def prepare_features(
     job = partial(_prepare_one, root=str(root), fps=fps, body=body, mention_hands=mention_hands,
                   paraphrases=paraphrases)
     out, summary = FeatureSet(fps), LoadSummary()
-    for f, r in zip(files, parallel_map(job, files, workers, progress=progress, desc=f"preparing {part}", unit="seq")):
+    for r in parallel_map(job, files, workers, progress=progress, desc=f"preparing {part}", unit="seq"):
         if isinstance(r, str):
             summary.skipped += 1
             summary.problems.append(r)

@@ -31,7 +31,7 @@ class MotionModel:
     checkpoints: tuple[dict, dict] = ({}, {})  # which file and step of the VQ and GPT runs
 
     @staticmethod
-    def load(vq_dir: Path, gpt_dir: Path, device: str = "cpu") -> "MotionModel":
+    def load(vq_dir: Path, gpt_dir: Path, device: str = "cpu") -> MotionModel:
         vq, _, vq_conf = load_vq(vq_dir, device)
         gpt, _, gpt_conf = load_gpt(gpt_dir, device)
         text = gpt_conf["text"]

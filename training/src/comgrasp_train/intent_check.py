@@ -31,9 +31,9 @@ sequence of SynthGrasp-400 and -1000 passes (``comgrasp-data check-intent DATA``
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch

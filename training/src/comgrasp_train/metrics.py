@@ -43,8 +43,8 @@ The pair must share T, fps and the surface-point set (same backend and subject).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import torch

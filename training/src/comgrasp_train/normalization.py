@@ -25,7 +25,7 @@ class Normalizer:
     std: np.ndarray  # (335,) float32
 
     @staticmethod
-    def fit(features: list[np.ndarray]) -> "Normalizer":
+    def fit(features: list[np.ndarray]) -> Normalizer:
         """Statistics over all frames of all sequences (float64 accumulation)."""
         n = sum(len(f) for f in features)
         if n == 0:
@@ -61,7 +61,7 @@ class Normalizer:
         path.with_suffix(".json").write_text(json.dumps({"mean": self.mean.tolist(), "std": self.std.tolist()}))
 
     @staticmethod
-    def load(path: str | Path) -> "Normalizer":
+    def load(path: str | Path) -> Normalizer:
         d = np.load(path)
         mean, std = d["mean"].astype(np.float32), d["std"].astype(np.float32)
         if mean.shape != (FRAME_DIM,) or std.shape != (FRAME_DIM,) or not np.all(std > 0):

@@ -5,7 +5,8 @@ small; threads would only contend with the other workers), results in input orde
 from __future__ import annotations
 
 import multiprocessing as mp
-from typing import Callable, Iterable, Iterator, TypeVar
+from collections.abc import Callable, Iterable, Iterator
+from typing import TypeVar
 
 import torch
 from tqdm import tqdm

@@ -15,14 +15,14 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-import trimesh  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
-from PIL import Image  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+import trimesh
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+from PIL import Image
 
-from . import skeleton as sk  # noqa: E402
+from . import skeleton as sk
 
 _FACE_JOINTS = (22, 23, 24)
 BODY_BONES = tuple((sk.PARENTS[j], j) for j in range(1, 22))
@@ -47,7 +47,7 @@ class ObjectGeometry:
     faces: np.ndarray | None  # (F, 3), or None to draw the vertices as points
 
     @staticmethod
-    def from_mesh(mesh, max_faces: int = _MAX_OBJECT_FACES, max_points: int = 1200) -> "ObjectGeometry":
+    def from_mesh(mesh, max_faces: int = _MAX_OBJECT_FACES, max_points: int = 1200) -> ObjectGeometry:
         """``mesh``: a path, a trimesh, or a (vertices, faces) pair."""
         if isinstance(mesh, (str, Path)):
             mesh = trimesh.load(mesh, force="mesh", process=False)

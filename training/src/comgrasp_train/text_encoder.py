@@ -48,8 +48,8 @@ import json
 import os
 import warnings
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -403,7 +403,7 @@ class MiniLMTextEncoder(TextEncoder):
 
     @classmethod
     def from_bert(cls, bert: nn.Module, tokenizer_json: str, *, name: str,
-                  max_tokens: int = DEFAULT_MINILM_MAX_TOKENS) -> "MiniLMTextEncoder":
+                  max_tokens: int = DEFAULT_MINILM_MAX_TOKENS) -> MiniLMTextEncoder:
         """The same encoder (BERT token states, mean pooling, L2) around an in-memory
         ``BertModel`` (eager attention) and a WordPiece tokenizer JSON with [CLS]/[SEP]/
         [PAD]/[UNK], e.g. the tiny random-weight encoder of the test bundle (export/tiny.py)."""

@@ -92,8 +92,14 @@ def cmd_generate(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from ..evaluate import (evaluate_generation, evaluate_ground_truth_intent, evaluate_reconstruction, summarize,
-                            summarize_repeats, write_report)
+    from ..evaluate import (
+        evaluate_generation,
+        evaluate_ground_truth_intent,
+        evaluate_reconstruction,
+        summarize,
+        summarize_repeats,
+        write_report,
+    )
     from ..inference import MotionModel
     from ..normalization import Normalizer
     from ..train.vq_trainer import load_prepared, load_vq

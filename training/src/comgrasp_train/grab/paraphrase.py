@@ -106,7 +106,7 @@ class Meaning:
     last: str | None = None  # a pass: taker
 
     @staticmethod
-    def of(meta: dict) -> "Meaning":
+    def of(meta: dict) -> Meaning:
         """From a prepared sequence's meta (``dataset.prepare_features``)."""
         return Meaning(meta.get("gender", "neutral"), meta["intent"], meta["object"], meta.get("hands"),
                        meta.get("first"), meta.get("last"))

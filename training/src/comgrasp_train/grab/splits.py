@@ -10,7 +10,7 @@ can select checkpoints and stop early without looking at the test subjects.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 ALL_SUBJECTS = tuple(f"s{i}" for i in range(1, 11))
 

@@ -137,7 +137,7 @@ class VQConfig:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict) -> "VQConfig":
+    def from_dict(d: dict) -> VQConfig:
         m = dict(d["model"])
         m["components"] = tuple(ComponentConfig(**c) for c in m["components"])
         m.setdefault("reset_mode", "absolute")  # configs saved before the mode existed
@@ -155,7 +155,7 @@ class VQConfig:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2))
 
     @staticmethod
-    def load_json(path: str | Path) -> "VQConfig":
+    def load_json(path: str | Path) -> VQConfig:
         return VQConfig.from_dict(json.loads(Path(path).read_text()))
 
 

@@ -76,7 +76,7 @@ class TransformerConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TransformerConfig":
+    def from_dict(cls, d: dict) -> TransformerConfig:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
@@ -87,10 +87,10 @@ class TransformerConfig:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load_json(cls, path: str | Path) -> "TransformerConfig":
+    def load_json(cls, path: str | Path) -> TransformerConfig:
         return cls.from_dict(json.loads(Path(path).read_text()))
 
-    def replace(self, **changes) -> "TransformerConfig":
+    def replace(self, **changes) -> TransformerConfig:
         return type(self).from_dict({**self.to_dict(), **changes})
 
 

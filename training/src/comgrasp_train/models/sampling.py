@@ -51,8 +51,8 @@ k = max_len End is forced in all streams, so the length is at most max_len <= L_
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, fields
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -147,7 +147,7 @@ class SamplingParams:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SamplingParams":
+    def from_dict(cls, d: dict) -> SamplingParams:
         unknown = set(d) - {f.name for f in fields(cls)}
         if unknown:
             raise ValueError(f"unknown SamplingParams keys: {sorted(unknown)}")

@@ -189,11 +189,11 @@ class ComGraspTransformer(nn.Module):
         """Blocks + coordination + heads. caches[i][l] = (cache_k, cache_v, valid) or None.
         Returns (logits per stream, [[(k, v) per layer] per stream])."""
         kvs: list[list] = [[] for _ in hs]
-        for l in range(self.cfg.n_layers):
-            if l > 0:
-                hs = self.coord[l - 1](hs)
+        for layer in range(self.cfg.n_layers):
+            if layer > 0:
+                hs = self.coord[layer - 1](hs)
             for i, s in enumerate(self.streams):
-                hs[i], kv = s.blocks[l](hs[i], None if caches is None else caches[i][l])
+                hs[i], kv = s.blocks[layer](hs[i], None if caches is None else caches[i][layer])
                 kvs[i].append(kv)
         return [s.head(s.ln_f(h)) for s, h in zip(self.streams, hs)], kvs
 
@@ -231,7 +231,7 @@ class ComGraspTransformer(nn.Module):
         is_cond = (pos == 0)[:, None]  # (1, 1): condition step selects the text projection
         hs = [(torch.where(is_cond, s.cond(text_emb), s.tok(tokens[:, i])) + s.pos[pos])[:, None]
               for i, s in enumerate(self.streams)]
-        caches = [[(ck[l], cv[l], valid) for l in range(self.cfg.n_layers)]
+        caches = [[(ck[layer], cv[layer], valid) for layer in range(self.cfg.n_layers)]
                   for ck, cv in zip(cache_k, cache_v)]
         logits, kvs = self._trunk(hs, caches)
         new_k = [torch.stack([k for k, _ in kv]) for kv in kvs]

@@ -20,7 +20,7 @@ training the four tokenizers independently, each with its own loss scale):
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F

@@ -115,7 +115,7 @@ class GridSDF(ObjectSDF):
         os.replace(tmp, path)  # atomic, so parallel evaluators never read a partial file
 
     @staticmethod
-    def load(path: Path) -> "GridSDF":
+    def load(path: Path) -> GridSDF:
         with np.load(path) as z:
             return GridSDF(z["grid"], z["origin"], float(z["spacing"]), float(z["radius"]))
 

@@ -86,7 +86,7 @@ class Shape:
         )
 
     @staticmethod
-    def from_json(text: str) -> "Shape":
+    def from_json(text: str) -> Shape:
         d = json.loads(text)
         parts = tuple(
             Part(p["kind"], dict(p["params"]), tuple(p["pos"]), tuple(p["rotvec"])) for p in d["parts"]
@@ -97,7 +97,7 @@ class Shape:
         return Shape(parts, d.get("meta", {}))
 
     @staticmethod
-    def load(path: str | Path) -> "Shape":
+    def load(path: str | Path) -> Shape:
         return Shape.from_json(Path(path).read_text())
 
 

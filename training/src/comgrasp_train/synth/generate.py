@@ -19,7 +19,7 @@ import json
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass
-from functools import lru_cache, partial
+from functools import cache, partial
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +110,7 @@ def plan_dataset(n_sequences: int, seed: int) -> list[SequenceSpec]:
     return specs
 
 
-@lru_cache(maxsize=None)
+@cache
 def _mesh_vertices(path: str) -> np.ndarray:
     return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, dtype=np.float64)
 

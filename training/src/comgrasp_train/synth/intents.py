@@ -16,8 +16,7 @@ from ..objects.catalogue import TABLE_SIZE, ObjectSpec
 from .grasp import Obstacles, edge_point, floor_plane
 from .hand_placement import first_grasp, grasp_styles, turn
 from .ik import axis_angle, unit
-from .plan import (IDLE, MAX_SECONDS, HandPlan, Plan, PlanRejected, PoseTrack, Track, grasp_in, grasp_out, snap,
-                   world_pose)
+from .plan import IDLE, MAX_SECONDS, HandPlan, Plan, PlanRejected, PoseTrack, Track, grasp_in, grasp_out, snap, world_pose
 from .scene import SIDES, THETA_MAX, UP, Scene, make_scene, side_sign
 from .subjects import SubjectModel
 

@@ -9,7 +9,7 @@ sequence. ``required_bend`` is how far the torso must bow for a hand to reach a 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import torch
@@ -31,7 +31,7 @@ def side_sign(side: str) -> float:
     return -1.0 if side == "left" else 1.0
 
 
-@lru_cache(maxsize=None)
+@cache
 def hand_model(sbj_id: str, side: str) -> Hand:
     return Hand(subject_model(sbj_id), side)
 

@@ -15,7 +15,7 @@ the rest pose, the lowest foot proxy point on the floor z = 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +93,7 @@ class SubjectModel:
         return float(-(feet @ ROOT_ROT.T)[:, 2].min())
 
 
-@lru_cache(maxsize=None)
+@cache
 def subject_model(sbj_id: str) -> SubjectModel:
     return SubjectModel(SUBJECT[sbj_id])
 

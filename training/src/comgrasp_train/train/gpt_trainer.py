@@ -37,7 +37,7 @@ class GPTTrainConfig:
     val_every: int = 250  # validation NLL on the prepared val part, when there is one (0 = off)
 
     @staticmethod
-    def from_dict(d: dict) -> "GPTTrainConfig":
+    def from_dict(d: dict) -> GPTTrainConfig:
         known = {f.name for f in fields(GPTTrainConfig)}
         if set(d) - known:
             raise ValueError(f"unknown GPTTrainConfig fields: {sorted(set(d) - known)}")

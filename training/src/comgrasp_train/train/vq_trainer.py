@@ -25,7 +25,6 @@ from ..representation import features_to_joints
 from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .windows import WindowSampler
 
-
 REST_JOINTS_FILE = "rest_joints.npy"
 
 
@@ -103,7 +102,7 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
             for a in range(0, len(val_x), cfg.train.batch_size):
                 x = val_x[a:a + cfg.train.batch_size].to(rt.device)
                 rb = val_rest[a:a + cfg.train.batch_size, None].to(rt.device)
-                _, m = compute_loss(core, x, lambda f: features_to_joints(f, rb), cfg, denorm)
+                _, m = compute_loss(core, x, lambda f, rb=rb: features_to_joints(f, rb), cfg, denorm)
                 for k, v in m.items():
                     metrics[k] = metrics.get(k, 0.0) + float(v) * len(x) / len(val_x)
             core.train()
