@@ -2,8 +2,12 @@
 //! per file that `models/default/manifest.json` lists (manifest.json first), so the library
 //! carries its default bundle (`src/bundle/embedded.rs` includes the generated file).
 //!
-//! `parity/` is left out: it only serves the bundle's own tests, and the loader treats it
-//! as optional. Nothing is verified here beyond what is needed to name the files: the
+//! Left out: `parity/` (it only serves the bundle's own tests, and the loader treats it as
+//! optional), and the ONNX graph of each model that has native weights (`transformer.file`
+//! when `transformer.native` is set, `decoder.file` when `decoder.native` is): the engine
+//! runs those natively, so the library holds each weight once. The graphs stay in
+//! `models/default` as the reference for tract and onnxruntime; the generated `OMITTED`
+//! names them, so the loader knows they are absent on purpose. Nothing is verified here beyond what is needed to name the files: the
 //! loader checks sizes and SHA-256 at run time with its precise messages, and tests load
 //! the embedded bundle, so a bad `models/default` fails those tests.
 use std::fmt::Write as _;
@@ -51,8 +55,17 @@ pub fn generate(crate_dir: &Path, out_dir: &Path) {
         // `{:?}` of a str is a valid Rust string literal (quotes and backslashes escaped).
         writeln!(code, "    ({rel:?}, include_bytes!({abs:?})),").unwrap();
     };
+    // The reference graph of each natively-run model.
+    let omitted: Vec<&str> = ["transformer", "decoder"]
+        .iter()
+        .filter_map(|model| {
+            let m = value.get(model)?;
+            m.get("native").filter(|n| !n.is_null())?;
+            m.get("file")?.as_str()
+        })
+        .collect();
     entry("manifest.json");
-    for rel in files.keys().filter(|rel| !rel.starts_with("parity/")) {
+    for rel in files.keys().filter(|rel| !rel.starts_with("parity/") && !omitted.contains(&rel.as_str())) {
         // A name leaving the bundle would embed an arbitrary file; the loader rejects such
         // a manifest anyway, so refuse to build it.
         let inside = !rel.is_empty() && Path::new(rel).components().all(|c| matches!(c, Component::Normal(_)));
@@ -62,6 +75,11 @@ pub fn generate(crate_dir: &Path, out_dir: &Path) {
         entry(rel);
     }
     code.push_str("];\n");
+    writeln!(
+        code,
+        "/// The reference graphs left out (their models run natively).\npub(super) static OMITTED: &[&str] = &{omitted:?};"
+    )
+    .unwrap();
     fs::write(out_dir.join("embedded_bundle.rs"), code).expect("write embedded_bundle.rs");
 }
 

@@ -2,8 +2,9 @@
 //! both alike): `cargo run --release --example decode_bench -- <bundle> [chunks]`.
 use std::time::Instant;
 
-use comgrasp::bundle::{Bundle, N_STREAMS};
+use comgrasp::bundle::N_STREAMS;
 use comgrasp::model::{DecoderBackend, DecoderModel};
+use comgrasp::Bundle;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.partial_cmp(b).unwrap());

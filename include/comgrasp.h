@@ -15,31 +15,6 @@
 // never writes past the caller's struct, whichever of the two is newer.
 #define cg_engine_config_init(cfg) cg_engine_config_init_sized((cfg), sizeof(*(cfg)))
 
-// Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
-// signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
-#define CG_ABI_VERSION 1
-
-// Longest accepted prompt, in UTF-8 bytes (excluding the terminating NUL).
-#define CG_MAX_TEXT_BYTES 4096
-
-// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
-#define CG_USE_DEFAULT_SEED (1 << 0)
-
-// Set in `cg_stream_config.use_defaults`: ignore `temperature`.
-#define CG_USE_DEFAULT_TEMPERATURE (1 << 1)
-
-// Set in `cg_stream_config.use_defaults`: ignore `top_k`.
-#define CG_USE_DEFAULT_TOP_K (1 << 2)
-
-// Set in `cg_stream_config.use_defaults`: ignore `min_len`.
-#define CG_USE_DEFAULT_MIN_LEN (1 << 3)
-
-// Set in `cg_stream_config.use_defaults`: ignore `max_len`.
-#define CG_USE_DEFAULT_MAX_LEN (1 << 4)
-
-// All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
-#define CG_USE_DEFAULT_ALL 31
-
 // Body joints 1..21 of the SMPL-X tree.
 #define CG_BODY_JOINTS 21
 
@@ -70,6 +45,63 @@
 // Largest subscriber buffer, in frames (~8.5 s at 30 fps). The shared memory a publisher
 // maps grows with `MAX_SUBSCRIBERS * MAX_SUBSCRIBER_BUFFER` frames (~3.3 MiB).
 #define CG_MAX_SUBSCRIBER_BUFFER 256
+
+// `cg_engine_config.step_backend` / `decoder_backend`: native when the bundle has native
+// weights, else the ONNX graph in tract.
+#define CG_BACKEND_AUTO 0
+
+// The Rust kernels (`CG_ERR_BUNDLE` at creation if the bundle has no native weights).
+#define CG_BACKEND_NATIVE 1
+
+// The bundle's ONNX graph in tract (the reference; slower).
+#define CG_BACKEND_TRACT 2
+
+// `cg_engine_config.overlap`: when it pays (both models native, two decoder threads, the
+// step no bigger than the decoder).
+#define CG_OVERLAP_AUTO 0
+
+// Never overlap.
+#define CG_OVERLAP_OFF 1
+
+// Overlap whenever both models are native and the decoder has two threads.
+#define CG_OVERLAP_ON 2
+
+// `cg_engine_config.max_isa`: the best instruction set the CPU has.
+#define CG_ISA_BEST 0
+
+// Plain code, no SIMD intrinsics.
+#define CG_ISA_PORTABLE 1
+
+// At most AVX2 + FMA.
+#define CG_ISA_AVX2 2
+
+// At most AVX-512F (the same as `CG_ISA_BEST` today).
+#define CG_ISA_AVX512 3
+
+// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
+#define CG_USE_DEFAULT_SEED (1 << 0)
+
+// Set in `cg_stream_config.use_defaults`: ignore `temperature`.
+#define CG_USE_DEFAULT_TEMPERATURE (1 << 1)
+
+// Set in `cg_stream_config.use_defaults`: ignore `top_k`.
+#define CG_USE_DEFAULT_TOP_K (1 << 2)
+
+// Set in `cg_stream_config.use_defaults`: ignore `min_len`.
+#define CG_USE_DEFAULT_MIN_LEN (1 << 3)
+
+// Set in `cg_stream_config.use_defaults`: ignore `max_len`.
+#define CG_USE_DEFAULT_MAX_LEN (1 << 4)
+
+// All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
+#define CG_USE_DEFAULT_ALL 31
+
+// Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
+// signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
+#define CG_ABI_VERSION 1
+
+// Longest accepted prompt, in UTF-8 bytes (excluding the terminating NUL).
+#define CG_MAX_TEXT_BYTES 4096
 
 // Result of every `cg_*` function that can fail. Non-negative values are normal outcomes,
 // negative values are errors; after an error, `cg_last_error()` on the same thread has a
@@ -187,6 +219,30 @@ typedef struct cg_engine_config {
   // `cg_engine_create`. Default NULL (no shared memory). Appended after the first version
   // of this struct (32 bytes, which stays accepted).
   const char *publish_name;
+  // Runtime options (the fields from here on were appended in library 0.3; a host with an
+  // older header gets them all automatic). Each is 0 for "automatic", the fastest choice
+  // for the bundle and machine. Step implementation: a `CG_BACKEND_*` value.
+  uint32_t step_backend;
+  // Decoder implementation: a `CG_BACKEND_*` value.
+  uint32_t decoder_backend;
+  // Threads of the native step: 0 automatic (2 when the machine has two cores and the
+  // model is big enough for it to pay), 1 or 2.
+  uint32_t step_threads;
+  // Threads of the native decoder: 0 automatic, 1 or 2.
+  uint32_t decoder_threads;
+  // Tokens a stream decodes at once after its first chunk: 0 automatic (4 when both
+  // models are native and the step is no bigger than the decoder, else 1), or 1 to
+  // `CG_MAX_DECODE_GROUP`. The frames are the same for every value.
+  uint32_t decode_group;
+  // Run the next token steps while a chunk decodes: a `CG_OVERLAP_*` value. The frames
+  // are the same either way.
+  uint32_t overlap;
+  // Cap on the native kernels' instruction set: a `CG_ISA_*` value. Process-wide (the
+  // kernels are shared code): an engine created with a cap lowers it for every engine
+  // of the process from then on.
+  uint32_t max_isa;
+  // Reserved, must be 0.
+  uint32_t reserved2;
 } cg_engine_config;
 
 // Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets
@@ -326,39 +382,6 @@ typedef struct cg_publisher_stats {
 extern "C" {
 #endif // __cplusplus
 
-// The library's `CG_ABI_VERSION`. A host compiled against a header with a different value
-// must not use this library. Any thread.
-uint32_t cg_abi_version(void);
-
-// The library's version ("MAJOR.MINOR.PATCH"), a static NUL-terminated string that lives
-// for the whole program; do not free it. Any thread.
-const char *cg_version_string(void);
-
-// `sizeof(cg_frame)` as the library sees it; a binding compares it with its own
-// struct size (C# `Marshal.SizeOf<CgFrame>()`) to detect a layout mismatch. Any thread.
-size_t cg_frame_size(void);
-
-// A static, NUL-terminated description of a status code. Takes a plain integer so any
-// value is safe to pass; unknown values give "unknown cg_status value". Never returns NULL;
-// the string lives for the whole program and must not be freed. Any thread.
-const char *cg_status_string(int32_t status);
-
-// The message of the most recent failing `cg_*` call on the calling thread, as a
-// NUL-terminated UTF-8 string ("" if none failed yet). Never NULL. The pointer stays valid
-// until the next failing `cg_*` call on the same thread (or the thread's exit); copy it if
-// you need it longer. Do not free it.
-const char *cg_last_error(void);
-
-// Copies the last error message of the calling thread into `buf` (capacity `len` bytes),
-// truncating if needed; the result is always NUL-terminated when `len > 0`. Returns the
-// size needed for the whole message including its NUL, so `cg_last_error_message(NULL, 0)`
-// asks for the size. Any thread; `buf` may be NULL only when `len` is 0.
-size_t cg_last_error_message(char *buf, size_t len);
-
-// The status of the most recent failing `cg_*` call on the calling thread (`CG_OK` if
-// none failed yet). Any thread.
-cg_status cg_last_error_status(void);
-
 // Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
 // `size` (capped at this library's `sizeof(cg_engine_config)`). `size` is the HOST's
 // `sizeof(cg_engine_config)`: the header's `cg_engine_config_init(cfg)` macro passes it, so
@@ -420,11 +443,32 @@ cg_status cg_start_utf8(struct cg_engine *engine,
                         const struct cg_stream_config *cfg,
                         struct cg_stream **out);
 
+// The message of the most recent failing `cg_*` call on the calling thread, as a
+// NUL-terminated UTF-8 string ("" if none failed yet). Never NULL. The pointer stays valid
+// until the next failing `cg_*` call on the same thread (or the thread's exit); copy it if
+// you need it longer. Do not free it.
+const char *cg_last_error(void);
+
+// Copies the last error message of the calling thread into `buf` (capacity `len` bytes),
+// truncating if needed; the result is always NUL-terminated when `len > 0`. Returns the
+// size needed for the whole message including its NUL, so `cg_last_error_message(NULL, 0)`
+// asks for the size. Any thread; `buf` may be NULL only when `len` is 0.
+size_t cg_last_error_message(char *buf, size_t len);
+
+// The status of the most recent failing `cg_*` call on the calling thread (`CG_OK` if
+// none failed yet). Any thread.
+cg_status cg_last_error_status(void);
+
+// A static, NUL-terminated description of a status code. Takes a plain integer so any
+// value is safe to pass; unknown values give "unknown cg_status value". Never returns NULL;
+// the string lives for the whole program and must not be freed. Any thread.
+const char *cg_status_string(int32_t status);
+
 // Takes the next frame of the stream if one is ready. **Never blocks and never
 // allocates**: call it every game tick. Returns `CG_OK` and writes `*out` (the caller owns
 // the memory; nothing is written for any other status); `CG_PENDING` when no frame is
-// ready yet; `CG_END` once the stream finished and every frame was delivered (the last
-// frame had `is_last = 1`; further calls keep returning `CG_END`); `CG_CANCELLED` after
+// ready yet; `CG_END` on the first call after the frame with `is_last = 1` (further
+// calls keep returning `CG_END`, also after a `cg_cancel`); `CG_CANCELLED` after
 // `cg_cancel` or engine destruction (undelivered frames are discarded and the stream's
 // buffers are freed; further calls keep returning `CG_CANCELLED`); or the worker's error
 // (e.g. `CG_ERR_INFERENCE`, message in `cg_last_error`) after the frames produced before
@@ -442,7 +486,9 @@ cg_status cg_stream_wait(struct cg_stream *stream, uint32_t timeout_ms, struct c
 
 // Asks the stream's worker to stop; it stops within one generator call (~8 ms with the
 // default bundle on 2 cores) and releases its model state. From then on `cg_poll_frame`
-// returns `CG_CANCELLED`. Never blocks. Idempotent (cancelling twice, or a finished
+// returns `CG_CANCELLED` (undelivered frames are discarded), except on a stream that has
+// already delivered its `is_last` frame or returned `CG_END` or its error: that result
+// stays (a cancel after the end changes nothing). Never blocks. Idempotent (cancelling twice, or a finished
 // stream, is `CG_OK`). The handle stays valid: destroy it with `cg_stream_destroy`. **Any
 // thread**, also while another thread is inside `cg_poll_frame` or `cg_stream_wait` on the
 // same stream (that call then returns `CG_CANCELLED`).
@@ -500,6 +546,18 @@ cg_status cg_subscriber_close(struct cg_subscriber *sub);
 // Writes the counters of the engine's shared-memory publisher to `*out`.
 // `CG_ERR_WRONG_STATE` if the engine was created without a `publish_name`. Any thread.
 cg_status cg_engine_publisher_stats(struct cg_engine *engine, struct cg_publisher_stats *out);
+
+// The library's `CG_ABI_VERSION`. A host compiled against a header with a different value
+// must not use this library. Any thread.
+uint32_t cg_abi_version(void);
+
+// The library's version ("MAJOR.MINOR.PATCH"), a static NUL-terminated string that lives
+// for the whole program; do not free it. Any thread.
+const char *cg_version_string(void);
+
+// `sizeof(cg_frame)` as the library sees it; a binding compares it with its own
+// struct size (C# `Marshal.SizeOf<CgFrame>()`) to detect a layout mismatch. Any thread.
+size_t cg_frame_size(void);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The data pipeline on its own: generate SynthGrasp, check it with the metric suite, render
-# a sequence (no model involved; see README "Data").
+# a sequence (no model involved; see docs/data.md).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_python.sh

@@ -4,6 +4,8 @@
 #   PREFIX/include/comgrasp.h and comgrasp.hpp (the C++17 wrapper)
 #   PREFIX/lib/pkgconfig/comgrasp.pc
 #   PREFIX/lib/cmake/comgrasp/comgrasp-config.cmake and comgrasp-config-version.cmake
+#   PREFIX/share/comgrasp/valgrind.supp (a host's own valgrind run needs it: tract and rayon
+#     trip two known false positives, each explained in the file)
 #
 #   cargo build --release && scripts/install.sh /usr/local      [PROFILE_DIR]
 #
@@ -32,11 +34,12 @@ done
 mkdir -p "$1"
 prefix=$(cd "$1" && pwd)
 lib="$prefix/lib"
-mkdir -p "$lib/pkgconfig" "$lib/cmake/comgrasp" "$prefix/include"
+mkdir -p "$lib/pkgconfig" "$lib/cmake/comgrasp" "$prefix/include" "$prefix/share/comgrasp"
 
 install -m 755 "$src/$shared" "$lib/$shared"
 install -m 644 "$src/libcomgrasp.a" "$lib/libcomgrasp.a"
 install -m 644 "$root/include/comgrasp.h" "$root/bindings/cpp/comgrasp.hpp" "$prefix/include/"
+install -m 644 "$root/scripts/valgrind.supp" "$prefix/share/comgrasp/valgrind.supp"
 
 # Rewrites with sed and checks that each marked line was there, so a change of the
 # templates in build/packaging.rs cannot silently produce a package pointing at the tree.
@@ -72,3 +75,4 @@ install -m 644 "$src/comgrasp-config-version.cmake" "$lib/cmake/comgrasp/comgras
 echo "installed comgrasp into $prefix:"
 echo "  pkg-config: PKG_CONFIG_PATH=$lib/pkgconfig pkg-config --cflags --libs comgrasp"
 echo "  CMake:      -DCMAKE_PREFIX_PATH=$prefix, find_package(comgrasp CONFIG REQUIRED)"
+echo "  valgrind:   --suppressions=$prefix/share/comgrasp/valgrind.supp"

@@ -290,7 +290,7 @@ def cmd_report(a) -> int:
     kl = sum(t["kl_mean_nats"] * t["stream_steps"] for t in tf) / steps
     ent = sum(t["entropy_mean_nats"] * t["stream_steps"] for t in tf) / steps
     rec_mean = float(abs(rec["int8"].mean() - rec["fp32"].mean()))
-    # The bounds (README, Performance) and whether they hold.
+    # The bounds (docs/performance.md) and whether they hold.
     bounds = []
     for setting in ("VQ reconstruction", "generation"):
         v = [ok for (s_, _), ok in verdict.items() if s_ == setting]

@@ -8,6 +8,10 @@ cd "$(dirname "$0")/.."
 bash scripts/setup_system.sh
 bash scripts/setup_python.sh
 bash scripts/setup_node.sh
+# Lint gates first (a minute together; they fail the run before the long suites start):
+# formatting (rustfmt.toml), clippy with warnings as errors (allowances: [lints] in
+# Cargo.toml, each with its reason), ruff over training/ and bindings/python.
+bash scripts/lint.sh
 log=$(mktemp)
 trap 'rm -f "$log"' EXIT
 .venv/bin/python -m pytest training/tests -q -p no:cacheprovider 2>&1 | tee "$log"

@@ -23,7 +23,7 @@
 //! the *next* group (one after the first chunk, then G) run, each sampled, on one thread
 //! while the decoder's jobs decode this group on both
 //! ([`overlap::decode_and_steps`](crate::model::overlap::decode_and_steps)); the next call
-//! decodes those codes. Same tokens and frames (README, Performance, for the speed).
+//! decodes those codes. Same tokens and frames (docs/performance.md for the speed).
 //!
 //! **`is_last`.** Whether a call's last chunk is the sequence's last is decided at the
 //! *next* step (End sampled there). With overlap that step has run by the time the chunks
@@ -43,21 +43,53 @@
 use std::sync::Arc;
 
 use crate::assemble::FrameAssembler;
-use crate::bundle::{Bundle, N_STREAMS};
-use crate::engine::{EngineConfig, SourceFactory, StreamRequest};
+use crate::bundle::N_STREAMS;
+use crate::config::{EngineConfig, StreamConfig};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::model::{decode_group, overlap, DecoderState, StepState, MAX_DECODE_GROUP};
+use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
 use crate::sampler::{SamplingParams, TokenSampler};
 
-pub use crate::stream::ChunkSource;
+/// Where a stream's frames come from. The real implementation is
+/// [`Generator`] (text → tokens → decoded, assembled frames); tests use
+/// deterministic doubles.
+pub trait ChunkSource: Send {
+    /// Produces the next chunk (normally 16 frames per decoded token, already assembled, with `stream_id`,
+    /// consecutive `frame_index` and a correct `is_last`) by appending to `out`, which the
+    /// caller passes in empty. Returns `Ok(true)` when more chunks follow and `Ok(false)` when
+    /// this chunk (possibly empty) was the last one. Must return promptly (a few token
+    /// steps at most): cancellation is checked between calls.
+    fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool>;
+
+    /// The most frames one `next_chunk` call appends: the worker reserves this much once, so
+    /// its loop never reallocates. A source may exceed it (the vector grows).
+    fn max_chunk_frames(&self) -> usize {
+        16
+    }
+}
+
+/// What a [`SourceFactory`] gets for one new stream.
+#[derive(Debug)]
+pub struct StreamRequest<'a> {
+    /// The new stream's id; every frame must carry it.
+    pub stream_id: u64,
+    /// The prompt, already validated (non-blank, at most [`MAX_TEXT_BYTES`](crate::config::MAX_TEXT_BYTES)).
+    pub text: &'a str,
+    /// The stream's settings merged with the engine defaults (bundle defaults not applied).
+    pub config: &'a StreamConfig,
+}
+
+/// Builds the [`ChunkSource`] of a new stream. Runs on the thread that calls
+/// `Engine::start`, so it should only set up state (cheap); heavy work (text encoding,
+/// token steps) belongs in `next_chunk`, on the worker.
+pub type SourceFactory = Box<dyn Fn(&StreamRequest<'_>) -> Result<Box<dyn ChunkSource>> + Send + Sync>;
 
 /// Loads the bundle the config selects (`bundle::select`: the path, else `COMGRASP_BUNDLE`,
 /// else the embedded default), verifying it, and returns it with the factory that builds
 /// one [`Generator`] per stream. Everything expensive (graph loading, the assembler)
 /// happens here, once per engine.
 pub fn source_factory(config: &EngineConfig) -> Result<(Arc<Bundle>, SourceFactory)> {
-    let bundle = crate::bundle::select::load(config.bundle_path.as_deref())?;
+    let bundle = Bundle::select(config.bundle_path.as_deref(), &config.runtime)?;
     let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), config)?);
     let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
         Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?))
@@ -97,8 +129,8 @@ impl Pipeline {
         if pad_ids.iter().any(|&p| p < 0) {
             return Err(Error::bundle(&manifest_path, "negative pad id"));
         }
-        let overlap = overlap::overlaps(&bundle.step, &bundle.decoder)?;
-        let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder)?;
+        let overlap = overlap::overlaps(&bundle.step, &bundle.decoder, config.runtime.overlap);
+        let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder, config.runtime.decode_group);
         Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group })
     }
 

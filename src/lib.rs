@@ -1,30 +1,54 @@
 //! ComGrasp Engine: streaming text-to-whole-body-grasp motion with a C ABI.
 //!
-//! Layers, bottom up: [`bundle`] (load and verify a model bundle from a directory or the
-//! default one embedded in the library, feature `embedded-default`), [`text`] (tokenizer +
-//! text encoder), [`model`] (the Transformer step graph with a Rust-owned KV cache and the
-//! streaming VQ decoder), [`sampler`] (the cross-language deterministic sampler),
-//! [`frame`] (the C frame and its assembly from 335-D features), [`generator`] (one
-//! generation: text -> tokens -> 16-frame chunks), [`engine`] / [`stream`] (threads, ring
-//! buffers, cancellation), [`shm`] (frames shared with other processes over iceoryx2) and
-//! [`ffi`], the C ABI, a thin wrapper with a panic boundary.
+//! **Floors**, bottom up. A module imports only from floors below its own (or its own
+//! module); `tests/layers.rs` reads every `crate::` path and fails on one that points up.
+//!
+//! 1. [`error`], [`frame`] (the C frame, coordinate systems), [`config`] (engine, stream and
+//!    runtime options: plain data);
+//! 2. [`bundle`]: a bundle's files, manifest and verification, from a directory or the
+//!    default embedded in the library (feature `embedded-default`); files only;
+//! 3. [`sampler`] (the cross-language deterministic sampler), [`skeleton`] (FK) and
+//!    [`assemble`] (335-D features -> frames);
+//! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
+//!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract; graph rewrites
+//!    in `model::graph` only);
+//! 5. [`generator`]: one generation, text -> tokens -> 16-frame chunks (a [`ChunkSource`]);
+//! 6. [`stream`]: a worker thread, its ring buffer, cancellation, [`stream::StreamSink`]s;
+//! 7. [`shm`]: frames shared with other processes over iceoryx2 (a sink the engine attaches);
+//! 8. [`engine`]: the bundle, the streams, the publisher;
+//! 9. [`ffi`]: the C ABI, a thin wrapper with a panic boundary.
+//!
+//! **Public API.** Rust hosts use the re-exports below and [`ffi`] is the C ABI. The
+//! other modules are public for the `comgrasp` CLI, the examples and the tests (hidden
+//! from the docs): no stability promise.
 #![allow(non_camel_case_types)]
 
-pub mod assemble;
-pub mod bundle;
-pub mod engine;
 pub mod error;
-pub mod ffi;
 pub mod frame;
-pub mod generator;
-pub mod model;
+pub mod config;
+#[doc(hidden)]
+pub mod bundle;
+#[doc(hidden)]
 pub mod sampler;
-pub mod shm;
+#[doc(hidden)]
 pub mod skeleton;
+#[doc(hidden)]
+pub mod assemble;
+#[doc(hidden)]
+pub mod model;
+#[doc(hidden)]
+pub mod generator;
 pub mod stream;
-pub mod text;
+pub mod shm;
+pub mod engine;
+pub mod ffi;
 
-pub use engine::{Engine, EngineConfig};
+pub use bundle::BundleSource;
+pub use config::{DecoderBackend, EngineConfig, InstructionSet, RuntimeOptions, StepBackend, StreamConfig};
+pub use engine::Engine;
 pub use error::{Error, Result};
 pub use frame::{CoordinateSystem, Frame};
-pub use stream::{ChunkSource, PollResult, Stream, StreamConfig};
+pub use generator::ChunkSource;
+pub use model::Bundle;
+pub use shm::{FrameSubscriber, PublisherStats, SubscriberStats};
+pub use stream::{PollResult, Stream, StreamCanceller};

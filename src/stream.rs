@@ -23,7 +23,7 @@
 //! * consumer waiting ([`Stream::wait`]): same idea with `consumer_waiting` and a condvar whose
 //!   mutex the worker takes only when a consumer actually waits.
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::atomic::{fence, AtomicBool, AtomicU8, Ordering};
+use std::sync::atomic::{fence, AtomicBool, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::thread::{self, JoinHandle, Thread};
 use std::time::{Duration, Instant};
@@ -32,30 +32,33 @@ use parking_lot::{Condvar, Mutex};
 use ringbuf::traits::{Consumer, Observer, Producer, Split};
 use ringbuf::{HeapCons, HeapProd, HeapRb};
 
-use crate::engine::StreamSet;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::shm::publisher::StreamPublication;
-use crate::shm::{CG_STREAM_EVENT_CANCELLED, CG_STREAM_EVENT_ENDED, CG_STREAM_EVENT_FAILED};
 
-pub use crate::engine::StreamConfig;
+pub use crate::config::StreamConfig;
+pub use crate::generator::ChunkSource;
 
-/// Where a stream's frames come from. The real implementation is
-/// [`crate::generator::Generator`] (text → tokens → decoded, assembled frames); tests use
-/// deterministic doubles.
-pub trait ChunkSource: Send {
-    /// Produces the next chunk (normally 16 frames per decoded token, already assembled, with `stream_id`,
-    /// consecutive `frame_index` and a correct `is_last`) by appending to `out`, which the
-    /// caller passes in empty. Returns `Ok(true)` when more chunks follow and `Ok(false)` when
-    /// this chunk (possibly empty) was the last one. Must return promptly (a few token
-    /// steps at most): cancellation is checked between calls.
-    fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool>;
+/// How a stream's worker finished, as a [`StreamSink`] hears it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StreamOutcome {
+    /// Every frame was produced.
+    Ended,
+    /// Cancelled (by the host or because the engine was dropped).
+    Cancelled,
+    /// The source failed or panicked.
+    Failed,
+}
 
-    /// The most frames one `next_chunk` call appends: the worker reserves this much once, so
-    /// its loop never reallocates. A source may exceed it (the vector grows).
-    fn max_chunk_frames(&self) -> usize {
-        16
-    }
+/// Sees every frame of one stream as its worker produces it, before the frame enters the
+/// ring (so it never waits for the host's polling). The engine attaches shared-memory
+/// publishing this way. Called on the worker thread: it must not block.
+pub trait StreamSink: Send {
+    /// Before the first frame.
+    fn started(&mut self);
+    /// Each frame, in order.
+    fn frame(&mut self, frame: &Frame);
+    /// Once, after the last frame and after the source's state was freed.
+    fn finished(&mut self, outcome: StreamOutcome);
 }
 
 /// What [`Stream::poll`] found. Only `Frame` writes the output frame.
@@ -180,6 +183,11 @@ pub struct Stream {
     join: Option<JoinHandle<()>>,
     /// Lets the engine know the stream is gone (live count, `max_streams`).
     set: Arc<StreamSet>,
+    /// `End` once the `is_last` frame was delivered, `Error` once the error was reported:
+    /// from then on `poll` returns it without looking at the worker, so `End` follows the
+    /// last frame at once (not after the worker freed its model) and a later cancel cannot
+    /// turn a finished stream into a cancelled one.
+    finished: Option<PollResult>,
 }
 
 impl Stream {
@@ -190,7 +198,7 @@ impl Stream {
         source: Box<dyn ChunkSource>,
         ring_capacity: usize,
         set: Arc<StreamSet>,
-        publication: Option<StreamPublication>,
+        sink: Option<Box<dyn StreamSink>>,
     ) -> Result<Stream> {
         if ring_capacity == 0 {
             return Err(Error::InvalidArgument("ring capacity must be at least 1 frame".into()));
@@ -202,7 +210,7 @@ impl Stream {
         set.worker_started();
         let spawned = thread::Builder::new()
             .name(format!("comgrasp-stream-{}", shared.id))
-            .spawn(move || worker_main(worker_shared, source, prod, worker_set, publication));
+            .spawn(move || worker_main(worker_shared, source, prod, worker_set, sink));
         let join = match spawned {
             Ok(j) => j,
             Err(e) => {
@@ -211,7 +219,7 @@ impl Stream {
             }
         };
         let _ = shared.worker.set(join.thread().clone());
-        Ok(Stream { shared, cons: Some(cons), join: Some(join), set })
+        Ok(Stream { shared, cons: Some(cons), join: Some(join), set, finished: None })
     }
 
     /// The stream's id (unique per engine, starting at 1); frames carry it as `stream_id`.
@@ -220,9 +228,13 @@ impl Stream {
     }
 
     /// Takes the next frame if there is one. Never blocks, never allocates. `out` is written
-    /// only when the result is [`PollResult::Frame`]. After a cancel it returns `Cancelled`
-    /// (and frees the ring buffer); after `End`/`Error` it keeps returning the same result.
+    /// only when the result is [`PollResult::Frame`]. `End` comes on the call after the
+    /// `is_last` frame. After a cancel it returns `Cancelled` (and frees the ring buffer);
+    /// once it returned `End` or `Error` it keeps returning that, also after a cancel.
     pub fn poll(&mut self, out: &mut Frame) -> PollResult {
+        if let Some(done) = self.finished {
+            return done;
+        }
         if self.shared.is_cancelled() {
             // Release the ring now (the worker drops its half within one call); a cancelled
             // stream holds no frame memory even if the host keeps the handle for a while.
@@ -236,6 +248,9 @@ impl Stream {
             return PollResult::Cancelled;
         };
         if let Some(frame) = cons.try_pop() {
+            if frame.is_last != 0 {
+                self.finished = Some(PollResult::End);
+            }
             *out = frame;
             fence(Ordering::SeqCst);
             if self.shared.producer_parked.load(Ordering::Relaxed) {
@@ -247,8 +262,8 @@ impl Stream {
         }
         match state {
             RUNNING => PollResult::Pending,
-            ENDED => PollResult::End,
-            FAILED => PollResult::Error,
+            ENDED => *self.finished.insert(PollResult::End),
+            FAILED => *self.finished.insert(PollResult::Error),
             _ => PollResult::Cancelled,
         }
     }
@@ -290,8 +305,9 @@ impl Stream {
     }
 
     /// Asks the worker to stop. Takes effect within one generator call (~8 ms with the
-    /// default bundle on 2 cores); from then on `poll` returns `Cancelled`. Idempotent;
-    /// also fine after the stream ended.
+    /// default bundle on 2 cores); from then on `poll` returns `Cancelled`, unless it had
+    /// already returned `End` or `Error` (or delivered the `is_last` frame), which stays.
+    /// Idempotent.
     pub fn cancel(&self) {
         self.shared.cancel()
     }
@@ -349,7 +365,7 @@ fn worker_main(
     source: Box<dyn ChunkSource>,
     prod: HeapProd<Frame>,
     set: Arc<StreamSet>,
-    publication: Option<StreamPublication>,
+    sink: Option<Box<dyn StreamSink>>,
 ) {
     // Decrement the engine's worker count even if something below panics.
     struct Finished(Arc<StreamSet>);
@@ -362,11 +378,11 @@ fn worker_main(
 
     let mut source = source;
     let mut prod = prod;
-    let mut publication = publication;
-    if let Some(p) = publication.as_mut() {
-        p.started();
+    let mut sink = sink;
+    if let Some(s) = sink.as_mut() {
+        s.started();
     }
-    let outcome = match catch_unwind(AssertUnwindSafe(|| run(&shared, &mut *source, &mut prod, publication.as_mut()))) {
+    let outcome = match catch_unwind(AssertUnwindSafe(|| run(&shared, &mut *source, &mut prod, sink.as_deref_mut()))) {
         Ok(o) => o,
         Err(payload) => Outcome::Failed(Error::Panic(panic_message(&*payload))),
     };
@@ -374,11 +390,11 @@ fn worker_main(
     // end, so a host that sees End/Cancelled can rely on the memory being released.
     drop(catch_unwind(AssertUnwindSafe(move || drop(source))));
     drop(prod);
-    if let Some(p) = publication.as_mut() {
-        p.finished(match outcome {
-            Outcome::Ended => CG_STREAM_EVENT_ENDED,
-            Outcome::Cancelled => CG_STREAM_EVENT_CANCELLED,
-            Outcome::Failed(_) => CG_STREAM_EVENT_FAILED,
+    if let Some(s) = sink.as_mut() {
+        s.finished(match outcome {
+            Outcome::Ended => StreamOutcome::Ended,
+            Outcome::Cancelled => StreamOutcome::Cancelled,
+            Outcome::Failed(_) => StreamOutcome::Failed,
         });
     }
     let state = match outcome {
@@ -397,7 +413,7 @@ fn run(
     shared: &StreamShared,
     source: &mut dyn ChunkSource,
     prod: &mut HeapProd<Frame>,
-    mut publication: Option<&mut StreamPublication>,
+    mut sink: Option<&mut (dyn StreamSink + 'static)>,
 ) -> Outcome {
     // Reused for every chunk: the steady state allocates nothing.
     let mut chunk: Vec<Frame> = Vec::with_capacity(source.max_chunk_frames());
@@ -412,8 +428,8 @@ fn run(
         };
         for frame in chunk.drain(..) {
             // Published before it enters the ring: subscribers never wait for the host.
-            if let Some(p) = publication.as_deref_mut() {
-                p.frame(&frame);
+            if let Some(s) = sink.as_deref_mut() {
+                s.frame(&frame);
             }
             if !push_waiting(shared, prod, frame) {
                 return Outcome::Cancelled;
@@ -463,5 +479,96 @@ pub(crate) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
         s.clone()
     } else {
         "non-string panic payload".to_string()
+    }
+}
+
+/// The part of the engine that streams share: id counter, live list, worker count.
+pub(crate) struct StreamSet {
+    pub(crate) next_id: AtomicU64,
+    max: usize,
+    /// Small (at most `max_streams`), so a Vec with linear removal is the simplest fit.
+    pub(crate) live: Mutex<Vec<Arc<StreamShared>>>,
+    workers: Mutex<usize>,
+    workers_idle: Condvar,
+}
+
+impl StreamSet {
+    pub(crate) fn new(max: usize) -> Self {
+        StreamSet {
+            next_id: AtomicU64::new(1),
+            max,
+            live: Mutex::new(Vec::with_capacity(max)),
+            workers: Mutex::new(0),
+            workers_idle: Condvar::new(),
+        }
+    }
+
+    /// Registers a new stream if the limit allows; the returned guard unregisters it again
+    /// unless [`Reservation::keep`] is called (so a failing or panicking factory leaks nothing).
+    pub(crate) fn reserve<'a>(self: &'a Arc<Self>, shared: &Arc<StreamShared>) -> Result<Reservation<'a>> {
+        let mut live = self.live.lock();
+        if live.len() >= self.max {
+            return Err(Error::LimitReached(format!(
+                "{} streams are alive, max_streams is {}; destroy finished streams first",
+                live.len(),
+                self.max
+            )));
+        }
+        live.push(Arc::clone(shared));
+        Ok(Reservation { set: self, id: shared.id(), armed: true })
+    }
+
+    pub(crate) fn remove(&self, id: u64) {
+        let mut live = self.live.lock();
+        if let Some(i) = live.iter().position(|s| s.id() == id) {
+            live.swap_remove(i);
+        }
+    }
+
+    pub(crate) fn worker_started(&self) {
+        *self.workers.lock() += 1;
+    }
+
+    pub(crate) fn worker_finished(&self) {
+        let mut n = self.workers.lock();
+        *n -= 1;
+        if *n == 0 {
+            self.workers_idle.notify_all();
+        }
+    }
+
+    /// Cancels every live stream and waits until every worker has exited.
+    pub(crate) fn shutdown(&self) {
+        // Clone the list so no lock is held while cancelling (cancel takes the stream's
+        // own condvar lock).
+        let live: Vec<Arc<StreamShared>> = self.live.lock().clone();
+        for s in &live {
+            s.cancel_if_running();
+        }
+        drop(live);
+        let mut n = self.workers.lock();
+        while *n > 0 {
+            self.workers_idle.wait(&mut n);
+        }
+    }
+}
+
+pub(crate) struct Reservation<'a> {
+    set: &'a StreamSet,
+    id: u64,
+    armed: bool,
+}
+
+impl Reservation<'_> {
+    pub(crate) fn keep(mut self) {
+        self.armed = false;
+    }
+}
+
+impl Drop for Reservation<'_> {
+    fn drop(&mut self) {
+        if self.armed {
+            self.set.remove(self.id);
+        }
     }
 }

@@ -7,8 +7,10 @@ mod bundle_support;
 
 use alloc_counter::count_allocs;
 use bundle_support::tiny_dir;
-use comgrasp::bundle::{Bundle, N_STREAMS};
+use comgrasp::bundle::N_STREAMS;
+use comgrasp::config::RuntimeOptions;
 use comgrasp::model::{DecoderBackend, DecoderModel};
+use comgrasp::Bundle;
 
 #[test]
 fn native_decode_allocates_nothing_on_one_thread_or_two() {
@@ -19,11 +21,14 @@ fn native_decode_allocates_nothing_on_one_thread_or_two() {
         |i: usize| -> [i64; N_STREAMS] { std::array::from_fn(|s| ((i * 7919 + s * 104_729) % books[s]) as i64) };
     let chunks = 200;
     let mut frames = Vec::new();
-    // The only test in this binary, so setting the variable races with nothing; it is read
-    // when a decoder loads. "2": the helper-thread split even for a small model.
-    for threads in ["1", "2"] {
-        std::env::set_var("COMGRASP_DECODER_THREADS", threads);
-        let model = DecoderModel::load_backend(b.origin(), &b.manifest, Some(DecoderBackend::Native))
+    // 2: the helper-thread split even for a small model.
+    for threads in [1, 2] {
+        let options = RuntimeOptions {
+            decoder_backend: Some(DecoderBackend::Native),
+            decoder_threads: Some(threads),
+            ..Default::default()
+        };
+        let model = DecoderModel::load(b.origin(), &b.manifest, &options)
             .unwrap_or_else(|e| panic!("{} needs decoder.native weights: {e}", dir.display()));
         let mut st = model.new_state();
         let mut out = vec![0f32; model.chunk_len()];
@@ -46,7 +51,6 @@ fn native_decode_allocates_nothing_on_one_thread_or_two() {
         assert!(all.iter().all(|v| v.is_finite()));
         frames.push(all);
     }
-    std::env::remove_var("COMGRASP_DECODER_THREADS");
     // The split changes who computes a component, not how: the same frames up to the
     // rounding of two separately loaded copies of the weights (the GEMV kernels align
     // their loads to where the allocator put each row, which moves the summation order).

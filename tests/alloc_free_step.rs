@@ -10,8 +10,10 @@ use std::path::Path;
 
 use alloc_counter::{allocations_in, count_allocs_all_threads};
 use bundle_support::tiny_dir;
-use comgrasp::bundle::{Bundle, BundleSource};
+use comgrasp::bundle::BundleSource;
+use comgrasp::config::RuntimeOptions;
 use comgrasp::model::{StepBackend, StepModel};
+use comgrasp::Bundle;
 
 /// Voluntary + involuntary context switches of this process's threads named `name`
 /// (`None` where /proc is missing or no thread has that name).
@@ -34,11 +36,12 @@ fn switches_of(name: &str) -> Option<u64> {
 
 fn check(dir: &Path, threads: &str) {
     let b = Bundle::load(dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
-    // The only test in this binary: nothing else reads the variable meanwhile.
-    std::env::set_var("COMGRASP_STEP_THREADS", threads);
-    let step = StepModel::load_with(&BundleSource::dir(dir), &b.manifest, StepBackend::Native);
-    std::env::remove_var("COMGRASP_STEP_THREADS");
-    let step = step.unwrap();
+    let options = RuntimeOptions {
+        step_backend: StepBackend::Native,
+        step_threads: Some(threads.parse().unwrap()),
+        ..Default::default()
+    };
+    let step = StepModel::load(&BundleSource::dir(dir), &b.manifest, &options).unwrap();
     let emb = b.text.embed("pick up the mug").unwrap();
     let pad = b.manifest.pad_ids();
     let vocab = b.manifest.vocab_sizes();

@@ -11,8 +11,8 @@ mod bundle_support;
 
 use alloc_counter::count_allocs_all_threads;
 use bundle_support::tiny_dir;
-use comgrasp::bundle::Bundle;
 use comgrasp::engine::StreamConfig;
+use comgrasp::Bundle;
 use comgrasp::{CoordinateSystem, Engine, EngineConfig, Frame, PollResult};
 
 /// Polls without blocking until the stream ends; returns the frames received.

@@ -7,7 +7,7 @@ use std::fs;
 use std::path::Path;
 
 use bundle_support::*;
-use comgrasp::bundle::Bundle;
+use comgrasp::Bundle;
 
 /// Loads `dir`, expecting an `Error::Bundle` about `file` (see [`assert_bundle_error`]).
 fn expect_bundle_error(dir: &Path, file: &str, needles: &[&str]) -> String {

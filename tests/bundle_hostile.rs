@@ -17,7 +17,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use bundle_support::*;
-use comgrasp::bundle::Bundle;
+use comgrasp::Bundle;
 use comgrasp::Error;
 
 /// Longest any single load may take here (the tiny bundle loads in well under a second).

@@ -37,6 +37,15 @@ fn generate(out: &Path, extra: &[&str]) -> usize {
     // "N frames, S s of motion at F fps; first frame X ms after start, ..."
     assert_eq!(stdout.lines().count(), 1, "one summary line: {stdout}");
     assert!(stdout.contains(" s of motion at 30 fps; first frame ") && stdout.contains(" total "), "{stdout}");
+    // "... generation G ms (Rx real time), ...": R is the seconds of motion over G.
+    let number_before = |text: &str, marker: &str| -> f64 {
+        let head = &text[..text.find(marker).unwrap_or_else(|| panic!("no {marker:?} in {text}"))];
+        head.rsplit([' ', '(']).next().unwrap().parse().unwrap()
+    };
+    let (motion_s, generation_ms) = (number_before(&stdout, " s of motion"), number_before(&stdout, " ms ("));
+    let rtf = number_before(&stdout, "x real time)");
+    let want = motion_s * 1e3 / generation_ms;
+    assert!(rtf > 0.0 && (rtf - want).abs() <= 0.5 + 0.02 * want, "real-time factor {rtf} vs {want}: {stdout}");
     stdout.split_whitespace().next().unwrap().parse().unwrap()
 }
 

@@ -279,10 +279,16 @@ fn install_script_makes_a_working_prefix() {
         "lib/pkgconfig/comgrasp.pc",
         "lib/cmake/comgrasp/comgrasp-config.cmake",
         "lib/cmake/comgrasp/comgrasp-config-version.cmake",
+        "share/comgrasp/valgrind.supp",
     ] {
         let p = prefix.join(f);
         assert!(p.is_file() && !p.is_symlink(), "{} is not a plain file", p.display());
     }
+    // A host's valgrind run needs the same suppressions as ours (tests/c_example.rs uses them).
+    assert_eq!(
+        std::fs::read(prefix.join("share/comgrasp/valgrind.supp")).unwrap(),
+        std::fs::read(root().join("scripts/valgrind.supp")).unwrap()
+    );
     // Nothing may still point at the source tree's headers or its profile folder (the
     // prefix itself lies under target/tmp, so compare whole paths).
     let src = root().to_str().unwrap();

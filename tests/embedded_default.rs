@@ -16,9 +16,11 @@ use std::sync::Once;
 use std::time::{Duration, Instant};
 
 use comgrasp::bundle::source::StaticFiles;
-use comgrasp::bundle::{embedded, select, verify, Bundle, BundleSource};
+use comgrasp::bundle::{embedded, select, verify, BundleSource};
+use comgrasp::config::{DecoderBackend, RuntimeOptions, StepBackend};
 use comgrasp::engine::StreamConfig;
 use comgrasp::ffi::*;
+use comgrasp::Bundle;
 use comgrasp::{Engine, EngineConfig, Error, Frame, PollResult};
 
 fn default_dir() -> PathBuf {
@@ -35,10 +37,14 @@ fn embedded_files() -> StaticFiles {
     embedded::files().expect("built with feature embedded-default")
 }
 
-/// A copy of the embedded files passed through `edit`, leaked so it is `'static` like
-/// `include_bytes!` data (a few MiB per call, once per test).
+/// A copy of the embedded files plus the reference graphs the library leaves out (read
+/// from models/default: a plain in-memory bundle must be complete), passed through `edit`,
+/// leaked so it is `'static` like `include_bytes!` data (a few MiB per call, once per test).
 fn leaked_copy(edit: impl FnOnce(&mut Vec<(&'static str, Vec<u8>)>)) -> StaticFiles {
     let mut owned: Vec<(&'static str, Vec<u8>)> = embedded_files().iter().map(|(n, b)| (*n, b.to_vec())).collect();
+    for name in embedded::omitted() {
+        owned.push((name, std::fs::read(default_dir().join(name)).unwrap()));
+    }
     edit(&mut owned);
     let files: Vec<(&'static str, &'static [u8])> =
         owned.into_iter().map(|(n, b)| (n, &*Box::leak(b.into_boxed_slice()))).collect();
@@ -117,18 +123,49 @@ fn file_bytes_equal_the_files_on_disk_for_both_sources() {
 }
 
 #[test]
-fn embedded_set_is_the_listed_files_without_parity() {
+fn embedded_set_is_the_listed_files_without_parity_and_reference_graphs() {
     let files = embedded_files();
     assert_eq!(files[0].0, "manifest.json");
     let bundle = Bundle::load(&default_dir()).unwrap();
+    // Both default models run natively: their ONNX graphs stay on disk only, so the
+    // library holds each weight once.
+    let m = &bundle.manifest;
+    assert!(m.transformer.native.is_some() && m.decoder.native.is_some());
+    assert_eq!(embedded::omitted(), [m.transformer.file.as_str(), m.decoder.file.as_str()]);
     let mut names: Vec<&str> = files[1..].iter().map(|(n, _)| *n).collect();
     names.sort_unstable();
-    let listed: Vec<&str> =
-        bundle.manifest.files.keys().map(String::as_str).filter(|n| !n.starts_with("parity/")).collect();
+    let listed: Vec<&str> = m
+        .files
+        .keys()
+        .map(String::as_str)
+        .filter(|n| !n.starts_with("parity/") && !embedded::omitted().contains(n))
+        .collect();
     assert_eq!(names, listed);
     for (name, bytes) in files {
         assert_eq!(*bytes, &std::fs::read(default_dir().join(name)).unwrap()[..], "{name}");
     }
+}
+
+#[test]
+fn tract_backend_on_the_embedded_default_says_where_the_graphs_are() {
+    no_env_override();
+    let embedded = BundleSource::embedded().unwrap();
+    let tract = RuntimeOptions { step_backend: StepBackend::Tract, ..Default::default() };
+    match Bundle::load_with(embedded.clone(), &tract) {
+        Err(Error::Bundle { path, msg }) => {
+            assert_eq!(path, Path::new("<embedded>/step.onnx"));
+            assert!(msg.contains("native weights") && msg.contains("models/default"), "{msg}");
+        }
+        other => panic!("expected a bundle error, got {:?}", other.map(drop)),
+    }
+    let tract = RuntimeOptions { decoder_backend: Some(DecoderBackend::Tract), ..Default::default() };
+    match Bundle::load_with(embedded, &tract) {
+        Err(Error::Bundle { path, .. }) => assert_eq!(path, Path::new("<embedded>/decoder.onnx")),
+        other => panic!("expected a bundle error, got {:?}", other.map(drop)),
+    }
+    // The same options on the directory run both graphs in tract.
+    let dir = Bundle::load_with(BundleSource::dir(default_dir()), &tract).unwrap();
+    assert_eq!(dir.decoder.backend(), DecoderBackend::Tract);
 }
 
 #[test]

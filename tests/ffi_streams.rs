@@ -33,12 +33,53 @@ fn frames_arrive_in_order_then_end() {
         assert_eq!(unsafe { cg_stream_wait(s, 10, &mut f) }, cg_status::CG_END);
     }
     assert_eq!(f.frame_index, 12345, "out is written only on CG_OK");
-    // Cancelling a finished stream is allowed (idempotent) and reported from then on.
+    // Cancelling a finished stream is allowed (idempotent) and changes nothing: END stays.
     assert_eq!(unsafe { cg_cancel(s) }, cg_status::CG_OK);
     assert_eq!(unsafe { cg_cancel(s) }, cg_status::CG_OK);
-    assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_CANCELLED);
+    assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_END);
+    assert_eq!(unsafe { cg_stream_wait(s, 10, &mut f) }, cg_status::CG_END);
     assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
     assert_eq!(e.stream_count(), 0);
+    e.destroy();
+}
+
+#[test]
+fn end_follows_the_last_frame_at_once() {
+    // The worker takes 2 s to free its model state after the last chunk: END must not wait
+    // for that (it used to come up to 26 ms late with the default bundle).
+    let e = TestEngine::new(256, 4);
+    let s = e.start("chunks=2 drop_delay_ms=2000");
+    let mut f = Frame::default();
+    loop {
+        assert_eq!(poll_until_ready(s, &mut f, Duration::from_secs(10)), cg_status::CG_OK);
+        if f.is_last == 1 {
+            break;
+        }
+    }
+    assert_eq!(f.frame_index, 31);
+    assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_END);
+    assert_eq!(e.counters.sources_alive.load(Ordering::SeqCst), 1, "the worker is still freeing its source");
+    // A cancel now (the host's clean-up) does not turn the finished stream into a cancelled one.
+    assert_eq!(unsafe { cg_cancel(s) }, cg_status::CG_OK);
+    assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_END);
+    assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
+    assert_eq!(e.counters.sources_alive.load(Ordering::SeqCst), 0, "destroy joined the worker");
+    e.destroy();
+}
+
+#[test]
+fn cancel_after_the_last_frame_before_end_keeps_end() {
+    let e = TestEngine::new(256, 4);
+    let s = e.start("chunks=1 frames=4");
+    let mut f = Frame::default();
+    for i in 0..4 {
+        assert_eq!(poll_until_ready(s, &mut f, Duration::from_secs(10)), cg_status::CG_OK);
+        assert_eq!(f.frame_index, i);
+    }
+    assert_eq!(f.is_last, 1);
+    assert_eq!(unsafe { cg_cancel(s) }, cg_status::CG_OK);
+    assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_END);
+    assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
     e.destroy();
 }
 

@@ -9,8 +9,10 @@ use std::fs;
 use std::path::Path;
 
 use bundle_support::*;
-use comgrasp::bundle::{Bundle, BundleSource, N_STREAMS};
+use comgrasp::bundle::{BundleSource, N_STREAMS};
+use comgrasp::config::RuntimeOptions;
 use comgrasp::model::{StepBackend, StepModel};
+use comgrasp::Bundle;
 
 const TOL: f64 = 1e-4;
 
@@ -107,14 +109,15 @@ fn thread_names() -> Vec<String> {
 }
 
 /// The logits of every step of a generation (the parity case's text embedding, tokens
-/// derived from the step number) with `COMGRASP_STEP_THREADS=threads`, as bits.
+/// derived from the step number) with `threads` step threads, as bits.
 fn logits_bits(dir: &Path, threads: &str) -> Vec<u32> {
     let b = Bundle::load(dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()));
-    // Only this test sets the variable; the other tests read it at load and work with either.
-    std::env::set_var("COMGRASP_STEP_THREADS", threads);
-    let step = StepModel::load_with(&BundleSource::dir(dir), &b.manifest, StepBackend::Native);
-    std::env::remove_var("COMGRASP_STEP_THREADS");
-    let step = step.unwrap();
+    let options = RuntimeOptions {
+        step_backend: StepBackend::Native,
+        step_threads: Some(threads.parse().unwrap()),
+        ..Default::default()
+    };
+    let step = StepModel::load(&BundleSource::dir(dir), &b.manifest, &options).unwrap();
     if threads == "2" && cfg!(target_os = "linux") {
         assert!(thread_names().iter().any(|n| n == "comgrasp-step"), "no step helper thread with 2 threads");
     }

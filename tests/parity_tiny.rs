@@ -8,7 +8,8 @@ mod bundle_support;
 use std::sync::Arc;
 
 use bundle_support::*;
-use comgrasp::bundle::{Bundle, N_STREAMS, STREAMS};
+use comgrasp::bundle::{N_STREAMS, STREAMS};
+use comgrasp::Bundle;
 use comgrasp::Error;
 
 fn bundle() -> Arc<Bundle> {

@@ -14,11 +14,12 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use comgrasp::bundle::{Bundle, N_STREAMS};
+use comgrasp::bundle::N_STREAMS;
 use comgrasp::engine::{SourceFactory, StreamConfig, StreamRequest};
 use comgrasp::generator::{ChunkSource, Generator, Pipeline};
 use comgrasp::model::overlap::{decode_and_step, decode_and_steps};
 use comgrasp::model::{decode_group, DecoderBackend, DecoderModel, MAX_DECODE_GROUP};
+use comgrasp::Bundle;
 use comgrasp::{Engine, EngineConfig, Error, Frame, PollResult};
 
 fn tiny_dir() -> PathBuf {

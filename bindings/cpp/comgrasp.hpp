@@ -117,6 +117,15 @@ public:
     EngineConfig &enable_fk(bool on = true) { raw_.enable_fk = on ? 1u : 0u; return *this; }
     EngineConfig &ring_capacity(uint32_t frames) { raw_.ring_capacity = frames; return *this; }
     EngineConfig &max_streams(uint32_t n) { raw_.max_streams = n; return *this; }
+    /// Runtime options (0 = automatic; see `cg_engine_config`): `CG_BACKEND_*` values,
+    /// 1 or 2 threads, 1..`CG_MAX_DECODE_GROUP` tokens per decode, `CG_OVERLAP_*`, `CG_ISA_*`.
+    EngineConfig &step_backend(uint32_t b) { raw_.step_backend = b; return *this; }
+    EngineConfig &decoder_backend(uint32_t b) { raw_.decoder_backend = b; return *this; }
+    EngineConfig &step_threads(uint32_t n) { raw_.step_threads = n; return *this; }
+    EngineConfig &decoder_threads(uint32_t n) { raw_.decoder_threads = n; return *this; }
+    EngineConfig &decode_group(uint32_t tokens) { raw_.decode_group = tokens; return *this; }
+    EngineConfig &overlap(uint32_t mode) { raw_.overlap = mode; return *this; }
+    EngineConfig &max_isa(uint32_t isa) { raw_.max_isa = isa; return *this; }
     /// Also publish every frame and stream event over shared memory under `name` (1..64
     /// ASCII letters, digits, '_', '-', '.'), for `Subscriber`s in any process.
     EngineConfig &publish_name(std::string name) {

@@ -209,6 +209,23 @@ namespace ComGrasp
         /// 1..64 bytes), borrowed during cg_engine_create only; IntPtr.Zero = no shared memory.
         /// Appended after the first version (an older library's init leaves StructSize at 32).</summary>
         public IntPtr PublishName;
+        // Runtime options (library 0.3; an older library's init leaves StructSize at 40): 0 is
+        // automatic everywhere. See cg_engine_config in comgrasp.h for each field.
+        /// <summary>CG_BACKEND_AUTO (0), CG_BACKEND_NATIVE (1) or CG_BACKEND_TRACT (2).</summary>
+        public uint StepBackend;
+        /// <summary>CG_BACKEND_AUTO (0), CG_BACKEND_NATIVE (1) or CG_BACKEND_TRACT (2).</summary>
+        public uint DecoderBackend;
+        /// <summary>0 automatic, 1 or 2.</summary>
+        public uint StepThreads;
+        /// <summary>0 automatic, 1 or 2.</summary>
+        public uint DecoderThreads;
+        /// <summary>0 automatic, 1..8 tokens per decode.</summary>
+        public uint DecodeGroup;
+        /// <summary>CG_OVERLAP_AUTO (0), CG_OVERLAP_OFF (1) or CG_OVERLAP_ON (2).</summary>
+        public uint Overlap;
+        /// <summary>CG_ISA_BEST (0), CG_ISA_PORTABLE (1), CG_ISA_AVX2 (2) or CG_ISA_AVX512 (3); process-wide.</summary>
+        public uint MaxIsa;
+        public uint Reserved2;
     }
 
     /// <summary>struct cg_stream_config. Fill with cg_stream_config_init; to override a field set
@@ -335,6 +352,14 @@ namespace ComGrasp
         public const int MaxPublishNameBytes = 64;
         /// <summary>CG_MAX_SUBSCRIBER_BUFFER: largest subscriber buffer, in frames (the default).</summary>
         public const uint MaxSubscriberBuffer = 256;
+        /// <summary>CG_BACKEND_*: cg_engine_config.step_backend / decoder_backend.</summary>
+        public const uint BackendAuto = 0, BackendNative = 1, BackendTract = 2;
+        /// <summary>CG_OVERLAP_*: cg_engine_config.overlap.</summary>
+        public const uint OverlapAuto = 0, OverlapOff = 1, OverlapOn = 2;
+        /// <summary>CG_ISA_*: cg_engine_config.max_isa.</summary>
+        public const uint IsaBest = 0, IsaPortable = 1, IsaAvx2 = 2, IsaAvx512 = 3;
+        /// <summary>CG_MAX_DECODE_GROUP: largest cg_engine_config.decode_group.</summary>
+        public const uint MaxDecodeGroup = 8;
 
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern uint cg_abi_version();
@@ -466,6 +491,17 @@ namespace ComGrasp
         /// (1..64 ASCII letters, digits, '_', '-', '.'), for <see cref="ComGraspSubscriber"/>s in
         /// any process; null (default): no shared memory.</summary>
         public string PublishName;
+        /// <summary>Runtime options (library 0.3; see cg_engine_config in comgrasp.h); null keeps
+        /// the automatic choice. Backends: ComGraspNative.BackendNative/BackendTract.</summary>
+        public uint? StepBackend, DecoderBackend;
+        /// <summary>Threads of the step / decoder, 1 or 2.</summary>
+        public uint? StepThreads, DecoderThreads;
+        /// <summary>Tokens per decode, 1..ComGraspNative.MaxDecodeGroup.</summary>
+        public uint? DecodeGroup;
+        /// <summary>ComGraspNative.OverlapOff / OverlapOn.</summary>
+        public uint? Overlap;
+        /// <summary>Highest instruction set, process-wide: ComGraspNative.IsaPortable/IsaAvx2/IsaAvx512.</summary>
+        public uint? MaxIsa;
     }
 
     /// <summary>Sampling overrides of one stream; null fields keep the bundle's defaults.</summary>
@@ -511,9 +547,24 @@ namespace ComGrasp
             cfg.EnableFk = options.EnableFk ? 1u : 0u;
             if (options.RingCapacity.HasValue) cfg.RingCapacity = options.RingCapacity.Value;
             if (options.MaxStreams.HasValue) cfg.MaxStreams = options.MaxStreams.Value;
-            if (options.PublishName != null && cfg.StructSize < sizeof(CgEngineConfig))
+            // An older library's init leaves StructSize short of the fields it does not know.
+            if (options.PublishName != null
+                && cfg.StructSize < (uint)Marshal.OffsetOf(typeof(CgEngineConfig), "PublishName") + (uint)IntPtr.Size)
                 throw new InvalidOperationException(
                     "comgrasp: the loaded library predates cg_engine_config.publish_name (library 0.2)");
+            bool runtime = options.StepBackend.HasValue || options.DecoderBackend.HasValue || options.StepThreads.HasValue
+                || options.DecoderThreads.HasValue || options.DecodeGroup.HasValue || options.Overlap.HasValue
+                || options.MaxIsa.HasValue;
+            if (runtime && cfg.StructSize < sizeof(CgEngineConfig))
+                throw new InvalidOperationException(
+                    "comgrasp: the loaded library predates cg_engine_config's runtime options (library 0.3)");
+            if (options.StepBackend.HasValue) cfg.StepBackend = options.StepBackend.Value;
+            if (options.DecoderBackend.HasValue) cfg.DecoderBackend = options.DecoderBackend.Value;
+            if (options.StepThreads.HasValue) cfg.StepThreads = options.StepThreads.Value;
+            if (options.DecoderThreads.HasValue) cfg.DecoderThreads = options.DecoderThreads.Value;
+            if (options.DecodeGroup.HasValue) cfg.DecodeGroup = options.DecodeGroup.Value;
+            if (options.Overlap.HasValue) cfg.Overlap = options.Overlap.Value;
+            if (options.MaxIsa.HasValue) cfg.MaxIsa = options.MaxIsa.Value;
             byte[] path = options.BundlePath == null ? null : ComGraspNative.NulTerminated(options.BundlePath);
             byte[] publish = options.PublishName == null ? null : ComGraspNative.NulTerminated(options.PublishName);
             IntPtr h = IntPtr.Zero;

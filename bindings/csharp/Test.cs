@@ -38,6 +38,7 @@ static unsafe class ComGraspTest
         Run("polling_allocates_nothing", PollingAllocatesNothing);
         Run("stream_ids_and_determinism", StreamIdsAndDeterminism);
         Run("errors", Errors);
+        Run("runtime_options", RuntimeOptions);
         Run("last_error_is_per_thread", LastErrorIsPerThread);
         Run("cancel", Cancel);
         Run("cancel_from_another_thread", CancelFromAnotherThread);
@@ -111,13 +112,14 @@ static unsafe class ComGraspTest
         Eq(Marshal.SizeOf(typeof(CgFrame)), 1608, "Marshal.SizeOf(CgFrame)");
         Eq(ComGraspNative.cg_frame_size().ToUInt64(), (ulong)sizeof(CgFrame), "cg_frame_size()");
         Eq(ComGraspNative.FrameSize, sizeof(CgFrame), "ComGraspNative.FrameSize");
-        Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 40 : 32, "sizeof(CgEngineConfig)");
+        Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 72 : 64, "sizeof(CgEngineConfig)");
         Eq(sizeof(CgStreamConfig), 40, "sizeof(CgStreamConfig)");
         Eq(sizeof(CgSubscriberConfig), 16, "sizeof(CgSubscriberConfig)");
         Eq(sizeof(CgStreamEvent), 280, "sizeof(CgStreamEvent)");
         Eq(sizeof(CgSubscriberStats), 48, "sizeof(CgSubscriberStats)");
         Eq(sizeof(CgPublisherStats), 40, "sizeof(CgPublisherStats)");
         Eq((int)Marshal.OffsetOf(typeof(CgEngineConfig), "PublishName"), IntPtr.Size == 8 ? 32 : 28, "offset of PublishName");
+        Eq((int)Marshal.OffsetOf(typeof(CgEngineConfig), "StepBackend"), IntPtr.Size == 8 ? 40 : 32, "offset of StepBackend");
         CgEngineConfig ec;
         Eq(ComGraspNative.cg_engine_config_init_sized(&ec, (UIntPtr)sizeof(CgEngineConfig)), CgStatus.Ok, "cg_engine_config_init_sized");
         Eq(ec.StructSize, (uint)sizeof(CgEngineConfig), "cg_engine_config_init's struct_size");
@@ -290,6 +292,42 @@ static unsafe class ComGraspTest
                 }
             }
         }
+    }
+
+    // The runtime options change how the frames are computed (threads, decode grouping,
+    // overlap), never which frames: a stream equals the automatic choice's byte for byte.
+    static void RuntimeOptions()
+    {
+        var sopts = new ComGraspStreamOptions { Seed = 5, MinLen = 2, MaxLen = 4 };
+        List<CgFrame> auto;
+        using (var engine = NewEngine())
+        using (var s = engine.Start("The woman picks up the mug.", sopts))
+            auto = Drain(s);
+        var opts = new ComGraspEngineOptions
+        {
+            BundlePath = bundle, StepBackend = ComGraspNative.BackendNative, StepThreads = 1, DecoderThreads = 1,
+            DecodeGroup = 1, Overlap = ComGraspNative.OverlapOff, MaxIsa = ComGraspNative.IsaBest,
+        };
+        List<CgFrame> manual;
+        using (var engine = new ComGraspEngine(opts))
+        using (var s = engine.Start("The woman picks up the mug.", sopts))
+            manual = Drain(s);
+        Eq(manual.Count, auto.Count, "same frame count");
+        for (int i = 0; i < auto.Count; i++)
+        {
+            CgFrame x = auto[i], y = manual[i];
+            byte* px = (byte*)&x, py = (byte*)&y;
+            for (int k = 8; k < sizeof(CgFrame); k++)
+                if (px[k] != py[k]) throw new Exception("frame " + i + " differs at byte " + k);
+        }
+        var e = Throws("step_threads 3", () => new ComGraspEngine(new ComGraspEngineOptions { BundlePath = bundle, StepThreads = 3 }));
+        Eq(e.Status, CgStatus.ErrInvalidArgument, "step_threads 3");
+        Check(e.NativeMessage.Contains("step_threads"), "message names the field: " + e.NativeMessage);
+        e = Throws("decode_group 9", () => new ComGraspEngine(new ComGraspEngineOptions
+        {
+            BundlePath = bundle, DecodeGroup = ComGraspNative.MaxDecodeGroup + 1,
+        }));
+        Check(e.NativeMessage.Contains("decode_group"), "message names the field: " + e.NativeMessage);
     }
 
     static List<CgFrame> Drain(ComGraspStream s)

@@ -40,11 +40,13 @@ import enum
 import os
 import sys
 from pathlib import Path
-from typing import Iterator, List, Optional, Union
+from typing import Dict, Iterator, List, Optional, Union
 
 __all__ = [
     "ABI_VERSION", "FRAME_SIZE", "MAX_TEXT_BYTES", "BODY_JOINTS", "HAND_JOINTS", "NUM_JOINTS",
     "MAX_PUBLISH_NAME_BYTES", "MAX_SUBSCRIBER_BUFFER", "EVENT_TEXT_BYTES", "EventKind",
+    "BACKEND_AUTO", "BACKEND_NATIVE", "BACKEND_TRACT", "OVERLAP_AUTO", "OVERLAP_OFF", "OVERLAP_ON",
+    "ISA_BEST", "ISA_PORTABLE", "ISA_AVX2", "ISA_AVX512", "MAX_DECODE_GROUP",
     "Status", "Coords", "CgFrame", "CgEngineConfig", "CgStreamConfig", "CgSubscriberConfig",
     "CgStreamEvent", "CgSubscriberStats", "CgPublisherStats", "ComgraspError",
     "Engine", "Stream", "Subscriber", "load", "find_library", "version",
@@ -166,6 +168,15 @@ class CgEngineConfig(ctypes.Structure):
         ("max_streams", ctypes.c_uint32),
         ("reserved", ctypes.c_uint32),
         ("publish_name", ctypes.c_char_p),  # library 0.2 (an older one's init sets struct_size 32)
+        # Runtime options, library 0.3 (an older one's init sets struct_size 40); 0 = automatic.
+        ("step_backend", ctypes.c_uint32),  # CG_BACKEND_AUTO / _NATIVE / _TRACT (0, 1, 2)
+        ("decoder_backend", ctypes.c_uint32),
+        ("step_threads", ctypes.c_uint32),  # 1 or 2
+        ("decoder_threads", ctypes.c_uint32),
+        ("decode_group", ctypes.c_uint32),  # 1..8 tokens per decode
+        ("overlap", ctypes.c_uint32),  # CG_OVERLAP_AUTO / _OFF / _ON (0, 1, 2)
+        ("max_isa", ctypes.c_uint32),  # CG_ISA_BEST / _PORTABLE / _AVX2 / _AVX512 (0..3), process-wide
+        ("reserved2", ctypes.c_uint32),
     ]
 
 
@@ -473,19 +484,31 @@ class Stream(_Owned):
 
 
 
+# cg_engine_config's runtime options (0 = automatic), for Engine(runtime={...}).
+BACKEND_AUTO, BACKEND_NATIVE, BACKEND_TRACT = 0, 1, 2
+OVERLAP_AUTO, OVERLAP_OFF, OVERLAP_ON = 0, 1, 2
+ISA_BEST, ISA_PORTABLE, ISA_AVX2, ISA_AVX512 = 0, 1, 2, 3
+MAX_DECODE_GROUP = 8
+_RUNTIME_FIELDS = ("step_backend", "decoder_backend", "step_threads", "decoder_threads", "decode_group",
+                   "overlap", "max_isa")
+
+
 class Engine(_Owned):
     """A loaded model bundle (cg_engine). ``bundle_path=None`` uses ``$COMGRASP_BUNDLE``, else
     the bundle embedded in the library. ``publish_name`` (1..64 ASCII letters, digits, '_',
     '-', '.') also publishes every frame and stream event over shared memory for
-    :class:`Subscriber` s in any process. Closing it cancels the streams still running (their
-    Stream objects stay usable and report CANCELLED)."""
+    :class:`Subscriber` s in any process. ``runtime`` sets cg_engine_config's runtime options
+    by field name, e.g. ``{"step_threads": 1, "decode_group": 8}`` (values as in comgrasp.h:
+    BACKEND_*, OVERLAP_*, ISA_* here); they change how frames are computed, never which.
+    Closing it cancels the streams still running (their Stream objects stay usable and report
+    CANCELLED)."""
 
     _kind, _destroy = "engine", "cg_engine_destroy"
 
     def __init__(self, bundle_path: Union[str, os.PathLike, None] = None, *, coords: Coords = Coords.NATIVE,
                  enable_fk: bool = False, ring_capacity: Optional[int] = None,
                  max_streams: Optional[int] = None, publish_name: Union[str, bytes, None] = None,
-                 lib: Optional[ctypes.CDLL] = None):
+                 runtime: Optional[Dict[str, int]] = None, lib: Optional[ctypes.CDLL] = None):
         self._lib = lib or load()
         cfg = CgEngineConfig()
         self._lib.cg_engine_config_init_sized(ctypes.byref(cfg), ctypes.sizeof(cfg))
@@ -498,11 +521,19 @@ class Engine(_Owned):
         if bundle_path is not None:
             cfg.bundle_path = os.fsencode(bundle_path)
         if publish_name is not None:
-            if cfg.struct_size < ctypes.sizeof(CgEngineConfig):
+            if cfg.struct_size < CgEngineConfig.publish_name.offset + ctypes.sizeof(ctypes.c_char_p):
                 raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
                                     "this library predates cg_engine_config.publish_name (library 0.2)")
             # Kept referenced by cfg until cg_engine_create returns (the library copies it).
             cfg.publish_name = _name_bytes("cg_engine_create", publish_name)
+        for field, value in (runtime or {}).items():
+            if field not in _RUNTIME_FIELDS:
+                raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
+                                    f"unknown runtime option {field!r}; one of {_RUNTIME_FIELDS}")
+            if cfg.struct_size < ctypes.sizeof(CgEngineConfig):
+                raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
+                                    "this library predates the runtime options (library 0.3)")
+            setattr(cfg, field, value)
         h = ctypes.c_void_p()
         _check(self._lib, "cg_engine_create", self._lib.cg_engine_create(ctypes.byref(cfg), ctypes.byref(h)))
         self._h: Optional[ctypes.c_void_p] = h

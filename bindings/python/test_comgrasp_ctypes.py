@@ -21,7 +21,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import comgrasp_ctypes as cg  # noqa: E402
-from comgrasp_ctypes import CgFrame, CgStreamEvent, Coords, ComgraspError, Engine, EventKind, Status, Subscriber  # noqa: E402
+from comgrasp_ctypes import CgFrame, CgStreamEvent, ComgraspError, Coords, Engine, EventKind, Status, Subscriber  # noqa: E402
 
 BUNDLE = os.environ.get("COMGRASP_TEST_BUNDLE", str(HERE.parent.parent / "models" / "tiny"))
 PROMPT = "A woman drinks from the mug"
@@ -44,8 +44,9 @@ def test_layout_matches_c():
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
     assert ctypes.sizeof(cg.CgStreamConfig) == 40
-    assert ctypes.sizeof(cg.CgEngineConfig) == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
+    assert ctypes.sizeof(cg.CgEngineConfig) == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
     assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
+    assert cg.CgEngineConfig.step_backend.offset == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
     assert ctypes.sizeof(cg.CgSubscriberConfig) == 16 and ctypes.sizeof(CgStreamEvent) == 280
     assert ctypes.sizeof(cg.CgSubscriberStats) == 48 and ctypes.sizeof(cg.CgPublisherStats) == 40
     assert CgFrame.contact.offset == 940 and CgFrame.joint_positions.offset == 948
@@ -131,6 +132,23 @@ def test_iteration_ids_and_determinism():
             for x, y in zip(fa, fb):
                 assert x.stream_id == a.id and y.stream_id == b.id
                 assert bytes(x)[8:] == bytes(y)[8:]  # all but the stream id
+
+
+def test_runtime_options_change_how_not_what():
+    opts = dict(seed=5, min_len=2, max_len=4)
+    with engine() as e, e.start(PROMPT, **opts) as s:
+        auto = s.frames()
+    runtime = dict(step_backend=cg.BACKEND_NATIVE, step_threads=1, decoder_threads=1, decode_group=1,
+                   overlap=cg.OVERLAP_OFF, max_isa=cg.ISA_BEST)
+    with engine(runtime=runtime) as e, e.start(PROMPT, **opts) as s:
+        manual = s.frames()
+    assert len(auto) == len(manual) > 0
+    assert all(bytes(x)[8:] == bytes(y)[8:] for x, y in zip(auto, manual))
+    for field, bad in (("step_threads", 3), ("decode_group", cg.MAX_DECODE_GROUP + 1), ("overlap", 3)):
+        err = raises(engine, runtime={field: bad})
+        assert err.status == Status.ERR_INVALID_ARGUMENT and field in err.message, err
+    err = raises(engine, runtime={"threads": 1})
+    assert err.status == Status.ERR_INVALID_ARGUMENT and "threads" in err.message
 
 
 def test_errors():
@@ -338,7 +356,7 @@ def main() -> int:
         try:
             fn()
             print(f"ok {name}")
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             import traceback
 
             failed += 1

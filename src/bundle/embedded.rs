@@ -1,6 +1,7 @@
 //! The default bundle compiled into the library (cargo feature `embedded-default`, on by
 //! default). `build/embed.rs` turns every file that `models/default/manifest.json` lists,
-//! `parity/` left out (the loader treats parity as optional), into one `include_bytes!`.
+//! `parity/` left out (the loader treats parity as optional) and the reference graphs of
+//! natively-run models left out ([`omitted`]), into one `include_bytes!`.
 //!
 //! The bytes sit in the binary's read-only data: sharing them between engines costs
 //! nothing, and they cannot change while the process runs. So their sizes and SHA-256
@@ -16,6 +17,20 @@ use crate::error::{Error, Result};
 #[cfg(feature = "embedded-default")]
 mod generated {
     include!(concat!(env!("OUT_DIR"), "/embedded_bundle.rs"));
+}
+
+/// The reference graphs `build/embed.rs` left out because their models run natively
+/// (`step.onnx` and `decoder.onnx` for the default bundle): the library holds each weight
+/// once. Empty in a build without the feature.
+pub fn omitted() -> &'static [&'static str] {
+    #[cfg(feature = "embedded-default")]
+    {
+        generated::OMITTED
+    }
+    #[cfg(not(feature = "embedded-default"))]
+    {
+        &[]
+    }
 }
 
 /// The embedded files (`manifest.json` first), or `None` in a build without the feature.

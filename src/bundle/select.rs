@@ -9,19 +9,18 @@
 //! embedded bundle: a user who sets it means that bundle, and quietly getting another model
 //! would be much harder to notice than a failed engine creation.
 use std::path::Path;
-use std::sync::Arc;
 
 use super::source::BundleSource;
-use super::Bundle;
 use crate::error::{Error, Result};
 
 /// Environment variable naming a bundle directory, used when no path is given.
 pub const BUNDLE_ENV: &str = "COMGRASP_BUNDLE";
 
-/// Loads the bundle at `explicit`, or the one the selection order above picks.
-pub fn load(explicit: Option<&Path>) -> Result<Arc<Bundle>> {
+/// The source the selection order above picks, and whether [`BUNDLE_ENV`] picked it (so
+/// the loader's errors can say so). Reads the variable only when `explicit` is `None`.
+pub fn source(explicit: Option<&Path>) -> Result<(BundleSource, bool)> {
     if let Some(path) = explicit {
-        return Bundle::load(path);
+        return Ok((BundleSource::dir(path), false));
     }
     match std::env::var_os(BUNDLE_ENV) {
         Some(v) if v.is_empty() => Err(Error::bundle(
@@ -31,14 +30,9 @@ pub fn load(explicit: Option<&Path>) -> Result<Arc<Bundle>> {
                      or unset it to use the default bundle"
             ),
         )),
-        Some(v) => Bundle::load(Path::new(&v)).map_err(|e| match e {
-            Error::Bundle { path, msg } => {
-                Error::Bundle { path, msg: format!("{msg} (bundle selected by {BUNDLE_ENV})") }
-            }
-            other => other,
-        }),
+        Some(v) => Ok((BundleSource::dir(Path::new(&v)), true)),
         None => match BundleSource::embedded() {
-            Some(source) => Bundle::load_source(source),
+            Some(source) => Ok((source, false)),
             None => Err(Error::bundle(
                 "",
                 format!(

@@ -85,6 +85,13 @@ impl BundleSource {
         }
     }
 
+    /// Whether `rel` is a file this source leaves out on purpose: a reference graph of a
+    /// natively-run model in the embedded default ([`super::embedded::omitted`]). The
+    /// verification skips it, and loading it (the tract backend) is a clear error.
+    pub fn omits(&self, rel: &str) -> bool {
+        self.is_embedded() && super::embedded::omitted().contains(&rel)
+    }
+
     /// Whether this is the default bundle compiled into the library.
     pub fn is_embedded(&self) -> bool {
         matches!(self.kind, Kind::Memory { embedded: true, .. })

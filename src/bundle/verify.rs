@@ -421,7 +421,7 @@ pub fn check_files(src: &BundleSource, m: &Manifest) -> Result<()> {
         let hex_ok =
             entry.sha256.len() == 64 && entry.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
         ensure(hex_ok, &mp, || format!("files table entry {rel}: {:?} is not a lower-case hex SHA-256", entry.sha256))?;
-        if !parity && rel.starts_with("parity/") {
+        if (!parity && rel.starts_with("parity/")) || src.omits(rel) {
             continue;
         }
         let path = src.path_of(rel);

@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 use super::panic::{boundary, Failure};
 use super::status::cg_status;
+use crate::config::{DecoderBackend, InstructionSet, RuntimeOptions, StepBackend};
 use crate::engine::{EngineConfig, StreamConfig};
 use crate::frame::{cg_coordinate_system, CoordinateSystem};
 
@@ -54,7 +55,56 @@ pub struct cg_engine_config {
     /// `cg_engine_create`. Default NULL (no shared memory). Appended after the first version
     /// of this struct (32 bytes, which stays accepted).
     pub publish_name: *const c_char,
+    /// Runtime options (the fields from here on were appended in library 0.3; a host with an
+    /// older header gets them all automatic). Each is 0 for "automatic", the fastest choice
+    /// for the bundle and machine. Step implementation: a `CG_BACKEND_*` value.
+    pub step_backend: u32,
+    /// Decoder implementation: a `CG_BACKEND_*` value.
+    pub decoder_backend: u32,
+    /// Threads of the native step: 0 automatic (2 when the machine has two cores and the
+    /// model is big enough for it to pay), 1 or 2.
+    pub step_threads: u32,
+    /// Threads of the native decoder: 0 automatic, 1 or 2.
+    pub decoder_threads: u32,
+    /// Tokens a stream decodes at once after its first chunk: 0 automatic (4 when both
+    /// models are native and the step is no bigger than the decoder, else 1), or 1 to
+    /// `CG_MAX_DECODE_GROUP`. The frames are the same for every value.
+    pub decode_group: u32,
+    /// Run the next token steps while a chunk decodes: a `CG_OVERLAP_*` value. The frames
+    /// are the same either way.
+    pub overlap: u32,
+    /// Cap on the native kernels' instruction set: a `CG_ISA_*` value. Process-wide (the
+    /// kernels are shared code): an engine created with a cap lowers it for every engine
+    /// of the process from then on.
+    pub max_isa: u32,
+    /// Reserved, must be 0.
+    pub reserved2: u32,
 }
+
+/// `cg_engine_config.step_backend` / `decoder_backend`: native when the bundle has native
+/// weights, else the ONNX graph in tract.
+pub const CG_BACKEND_AUTO: u32 = 0;
+/// The Rust kernels (`CG_ERR_BUNDLE` at creation if the bundle has no native weights).
+pub const CG_BACKEND_NATIVE: u32 = 1;
+/// The bundle's ONNX graph in tract (the reference; slower).
+pub const CG_BACKEND_TRACT: u32 = 2;
+/// `cg_engine_config.overlap`: when it pays (both models native, two decoder threads, the
+/// step no bigger than the decoder).
+pub const CG_OVERLAP_AUTO: u32 = 0;
+/// Never overlap.
+pub const CG_OVERLAP_OFF: u32 = 1;
+/// Overlap whenever both models are native and the decoder has two threads.
+pub const CG_OVERLAP_ON: u32 = 2;
+/// `cg_engine_config.max_isa`: the best instruction set the CPU has.
+pub const CG_ISA_BEST: u32 = 0;
+/// Plain code, no SIMD intrinsics.
+pub const CG_ISA_PORTABLE: u32 = 1;
+/// At most AVX2 + FMA.
+pub const CG_ISA_AVX2: u32 = 2;
+/// At most AVX-512F (the same as `CG_ISA_BEST` today).
+pub const CG_ISA_AVX512: u32 = 3;
+/// Most tokens in one decode (`cg_engine_config.decode_group`).
+pub const CG_MAX_DECODE_GROUP: u32 = crate::config::MAX_DECODE_GROUP as u32;
 
 /// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
 pub const CG_USE_DEFAULT_SEED: u32 = 1 << 0;
@@ -112,6 +162,14 @@ impl Default for cg_engine_config {
             max_streams: d.max_streams as u32,
             reserved: 0,
             publish_name: std::ptr::null(),
+            step_backend: CG_BACKEND_AUTO,
+            decoder_backend: CG_BACKEND_AUTO,
+            step_threads: 0,
+            decoder_threads: 0,
+            decode_group: 0,
+            overlap: CG_OVERLAP_AUTO,
+            max_isa: CG_ISA_BEST,
+            reserved2: 0,
         }
     }
 }
@@ -201,6 +259,20 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
     }
     let bundle_path = unsafe { optional_str(bundle_path, "cg_engine_config.bundle_path")? }.map(PathBuf::from);
     let publish_name = unsafe { optional_str(publish_name, "cg_engine_config.publish_name")? }.map(String::from);
+    // SAFETY: plain integers, read one by one (the struct as a whole may hold an invalid
+    // enum value, so it is never materialized).
+    let runtime = runtime_from_c(unsafe {
+        [
+            std::ptr::addr_of!((*p).step_backend).read(),
+            std::ptr::addr_of!((*p).decoder_backend).read(),
+            std::ptr::addr_of!((*p).step_threads).read(),
+            std::ptr::addr_of!((*p).decoder_threads).read(),
+            std::ptr::addr_of!((*p).decode_group).read(),
+            std::ptr::addr_of!((*p).overlap).read(),
+            std::ptr::addr_of!((*p).max_isa).read(),
+            std::ptr::addr_of!((*p).reserved2).read(),
+        ]
+    })?;
     Ok(EngineConfig {
         bundle_path,
         coordinate_system,
@@ -209,6 +281,61 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
         max_streams: max_streams as usize,
         default_stream: StreamConfig::default(),
         publish_name,
+        runtime,
+    })
+}
+
+/// The runtime fields of a C engine config (`step_backend` .. `reserved2`, in order), validated.
+fn runtime_from_c(fields: [u32; 8]) -> Result<RuntimeOptions, Failure> {
+    let [step_backend, decoder_backend, step_threads, decoder_threads, decode_group, overlap, max_isa, reserved2] =
+        fields;
+    let invalid = |field: &str, v: u32, want: &str| {
+        Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("cg_engine_config.{field} is {v}, expected {want}"),
+        )
+    };
+    let backend = |field: &str, v: u32| match v {
+        CG_BACKEND_AUTO => Ok(None),
+        CG_BACKEND_NATIVE => Ok(Some(DecoderBackend::Native)),
+        CG_BACKEND_TRACT => Ok(Some(DecoderBackend::Tract)),
+        _ => Err(invalid(field, v, "a CG_BACKEND_* value (0 to 2)")),
+    };
+    let threads = |field: &str, v: u32| match v {
+        0 => Ok(None),
+        1 | 2 => Ok(Some(v as usize)),
+        _ => Err(invalid(field, v, "0 (automatic), 1 or 2")),
+    };
+    if reserved2 != 0 {
+        return Err(invalid("reserved2", reserved2, "0"));
+    }
+    Ok(RuntimeOptions {
+        step_backend: match backend("step_backend", step_backend)? {
+            None => StepBackend::Auto,
+            Some(DecoderBackend::Native) => StepBackend::Native,
+            Some(DecoderBackend::Tract) => StepBackend::Tract,
+        },
+        decoder_backend: backend("decoder_backend", decoder_backend)?,
+        step_threads: threads("step_threads", step_threads)?,
+        decoder_threads: threads("decoder_threads", decoder_threads)?,
+        decode_group: match decode_group {
+            0 => None,
+            g if g <= CG_MAX_DECODE_GROUP => Some(g as usize),
+            g => return Err(invalid("decode_group", g, "0 (automatic) to CG_MAX_DECODE_GROUP")),
+        },
+        overlap: match overlap {
+            CG_OVERLAP_AUTO => None,
+            CG_OVERLAP_OFF => Some(false),
+            CG_OVERLAP_ON => Some(true),
+            v => return Err(invalid("overlap", v, "a CG_OVERLAP_* value (0 to 2)")),
+        },
+        max_isa: match max_isa {
+            CG_ISA_BEST => None,
+            CG_ISA_PORTABLE => Some(InstructionSet::Portable),
+            CG_ISA_AVX2 => Some(InstructionSet::Avx2),
+            CG_ISA_AVX512 => Some(InstructionSet::Avx512),
+            v => return Err(invalid("max_isa", v, "a CG_ISA_* value (0 to 3)")),
+        },
     })
 }
 
@@ -325,10 +452,10 @@ mod tests {
         struct FromC {
             struct_size: u32,
             coordinate_system: u32,
-            rest: [u64; 4],
+            rest: [u64; 8],
         }
         assert_eq!(size_of::<FromC>(), size_of::<cg_engine_config>());
-        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 4] };
+        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 8] };
         let r = unsafe { engine_config_from_c(&bad as *const FromC as *const cg_engine_config) };
         assert_eq!(r.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
 
@@ -358,5 +485,74 @@ mod tests {
         assert_eq!((full.struct_size as usize, full.max_streams), (size_of::<cg_engine_config>(), 16));
         named.publish_name = c"".as_ptr();
         assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+    }
+
+    #[test]
+    fn runtime_fields() {
+        // A host compiled against the 0.2 header (40 bytes, up to publish_name): whatever
+        // follows its struct is never read, and every runtime option is automatic.
+        #[repr(C)]
+        struct V2 {
+            head: cg_engine_config_v2_head,
+            trailing_garbage: [u32; 8],
+        }
+        #[repr(C)]
+        struct cg_engine_config_v2_head {
+            struct_size: u32,
+            coordinate_system: u32,
+            bundle_path: *const c_char,
+            small: [u32; 4],
+            publish_name: *const c_char,
+        }
+        assert_eq!(size_of::<cg_engine_config_v2_head>(), std::mem::offset_of!(cg_engine_config, step_backend));
+        let head = cg_engine_config_v2_head {
+            struct_size: size_of::<cg_engine_config_v2_head>() as u32,
+            coordinate_system: 0,
+            bundle_path: std::ptr::null(),
+            small: [0, 256, 16, 0],
+            publish_name: std::ptr::null(),
+        };
+        let v2 = V2 { head, trailing_garbage: [7; 8] };
+        let c = unsafe { engine_config_from_c(&v2 as *const V2 as *const cg_engine_config) }.unwrap();
+        assert_eq!(c.runtime, RuntimeOptions::default());
+
+        let set = cg_engine_config {
+            step_backend: CG_BACKEND_TRACT,
+            decoder_backend: CG_BACKEND_NATIVE,
+            step_threads: 1,
+            decoder_threads: 2,
+            decode_group: CG_MAX_DECODE_GROUP,
+            overlap: CG_OVERLAP_OFF,
+            max_isa: CG_ISA_AVX2,
+            ..Default::default()
+        };
+        assert_eq!(
+            unsafe { engine_config_from_c(&set) }.unwrap().runtime,
+            RuntimeOptions {
+                step_backend: StepBackend::Tract,
+                decoder_backend: Some(DecoderBackend::Native),
+                step_threads: Some(1),
+                decoder_threads: Some(2),
+                decode_group: Some(8),
+                overlap: Some(false),
+                max_isa: Some(InstructionSet::Avx2),
+            }
+        );
+        let d = cg_engine_config::default();
+        for (bad, field) in [
+            (cg_engine_config { step_backend: 3, ..d }, "step_backend"),
+            (cg_engine_config { decoder_backend: 9, ..d }, "decoder_backend"),
+            (cg_engine_config { step_threads: 3, ..d }, "step_threads"),
+            (cg_engine_config { decoder_threads: u32::MAX, ..d }, "decoder_threads"),
+            (cg_engine_config { decode_group: CG_MAX_DECODE_GROUP + 1, ..d }, "decode_group"),
+            (cg_engine_config { overlap: 3, ..d }, "overlap"),
+            (cg_engine_config { max_isa: 4, ..d }, "max_isa"),
+            (cg_engine_config { reserved2: 1, ..d }, "reserved2"),
+        ] {
+            let f = unsafe { engine_config_from_c(&bad) }.unwrap_err();
+            assert_eq!(f.0, cg_status::CG_ERR_INVALID_ARGUMENT, "{field}");
+            let msg = unsafe { CStr::from_ptr(crate::ffi::cg_last_error()) }.to_string_lossy().into_owned();
+            assert!(msg.contains(&format!("cg_engine_config.{field} ")), "{field}: {msg}");
+        }
     }
 }

@@ -80,8 +80,8 @@ fn poll_with(
 /// Takes the next frame of the stream if one is ready. **Never blocks and never
 /// allocates**: call it every game tick. Returns `CG_OK` and writes `*out` (the caller owns
 /// the memory; nothing is written for any other status); `CG_PENDING` when no frame is
-/// ready yet; `CG_END` once the stream finished and every frame was delivered (the last
-/// frame had `is_last = 1`; further calls keep returning `CG_END`); `CG_CANCELLED` after
+/// ready yet; `CG_END` on the first call after the frame with `is_last = 1` (further
+/// calls keep returning `CG_END`, also after a `cg_cancel`); `CG_CANCELLED` after
 /// `cg_cancel` or engine destruction (undelivered frames are discarded and the stream's
 /// buffers are freed; further calls keep returning `CG_CANCELLED`); or the worker's error
 /// (e.g. `CG_ERR_INFERENCE`, message in `cg_last_error`) after the frames produced before
@@ -107,7 +107,9 @@ pub unsafe extern "C" fn cg_stream_wait(stream: *mut cg_stream, timeout_ms: u32,
 
 /// Asks the stream's worker to stop; it stops within one generator call (~8 ms with the
 /// default bundle on 2 cores) and releases its model state. From then on `cg_poll_frame`
-/// returns `CG_CANCELLED`. Never blocks. Idempotent (cancelling twice, or a finished
+/// returns `CG_CANCELLED` (undelivered frames are discarded), except on a stream that has
+/// already delivered its `is_last` frame or returned `CG_END` or its error: that result
+/// stays (a cancel after the end changes nothing). Never blocks. Idempotent (cancelling twice, or a finished
 /// stream, is `CG_OK`). The handle stays valid: destroy it with `cg_stream_destroy`. **Any
 /// thread**, also while another thread is inside `cg_poll_frame` or `cg_stream_wait` on the
 /// same stream (that call then returns `CG_CANCELLED`).

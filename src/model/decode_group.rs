@@ -13,20 +13,15 @@
 //! Default: 4 when the decoder is native and the step reads no more weights per token
 //! than the decoder (the default bundle: 10 MB against 19 MB). Measured on the 2-core
 //! machine (five interleaved rounds of `comgrasp bench --bundle models/default`), the
-//! stream's median real-time factor went 203x (1) -> 269x (4) -> 306x (8) (README,
-//! Performance, has the final binary's numbers). 4, not 8, because a cancel or
+//! stream's median real-time factor went 203x (1) -> 269x (4) -> 306x (8) (docs/performance.md
+//! has the final binary's numbers). 4, not 8, because a cancel or
 //! `cg_stream_destroy` waits for the call in progress (a G-token decode and G steps): ~8 ms
 //! at 4 and ~14 ms at 8 here (G x the median time per token), up to a whole frame of a
 //! 60 Hz game at 8. Otherwise 1: tract's graph decodes one token per run (nothing to
 //! gain), and a step much bigger than the decoder (the paper model's 1.8 GB) dominates each
 //! token, so grouping would gain little while a call would take G of those steps.
-//! `COMGRASP_DECODE_GROUP=1..8` overrides.
+//! `RuntimeOptions::decode_group` (1..=8) overrides.
 use super::{DecoderModel, StepModel, MAX_DECODE_GROUP};
-use crate::error::{Error, Result};
-
-/// Environment variable: tokens per decode after the first chunk, `1` to
-/// [`MAX_DECODE_GROUP`] (read once per engine).
-pub const DECODE_GROUP_ENV: &str = "COMGRASP_DECODE_GROUP";
 
 /// The default group when it pays (module doc).
 const DEFAULT_GROUP: usize = 4;
@@ -41,21 +36,19 @@ pub fn tokens_at(k: usize, group: usize) -> usize {
     }
 }
 
-/// Tokens per decode for these models (`COMGRASP_DECODE_GROUP`, else the module doc's
-/// rule).
-pub fn tokens_per_decode(step: &StepModel, decoder: &DecoderModel) -> Result<usize> {
-    match std::env::var(DECODE_GROUP_ENV).as_deref() {
-        Ok("") | Err(std::env::VarError::NotPresent) => {
-            let pays = match (step.native_weight_bytes(), decoder.native_threads_and_bytes()) {
-                (Some(step_bytes), Some((_, decoder_bytes))) => step_bytes <= decoder_bytes,
-                _ => false,
-            };
-            Ok(if pays { DEFAULT_GROUP } else { 1 })
-        }
-        Ok(v) => match v.parse::<usize>() {
-            Ok(g) if (1..=MAX_DECODE_GROUP).contains(&g) => Ok(g),
-            _ => Err(Error::InvalidArgument(format!("{DECODE_GROUP_ENV}={v:?}: expected 1 to {MAX_DECODE_GROUP}"))),
-        },
-        Err(e) => Err(Error::InvalidArgument(format!("{DECODE_GROUP_ENV}: {e}"))),
+/// Tokens per decode for these models: `option` (`RuntimeOptions::decode_group`, clamped
+/// to 1 ..= [`MAX_DECODE_GROUP`]) when set, else the module doc's rule.
+pub fn tokens_per_decode(step: &StepModel, decoder: &DecoderModel, option: Option<usize>) -> usize {
+    if let Some(g) = option {
+        return g.clamp(1, MAX_DECODE_GROUP);
+    }
+    let pays = match (step.native_weight_bytes(), decoder.native_threads_and_bytes()) {
+        (Some(step_bytes), Some((_, decoder_bytes))) => step_bytes <= decoder_bytes,
+        _ => false,
+    };
+    if pays {
+        DEFAULT_GROUP
+    } else {
+        1
     }
 }

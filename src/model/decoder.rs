@@ -10,9 +10,8 @@
 //! * **tract** on `decoder.onnx` (export/decoder_graph.py), which recomputes the K-token
 //!   window per chunk; the reference the parity tests compare with.
 //!
-//! The native path is used when available; the environment variable `COMGRASP_DECODER`
-//! (`tract` or `native`, read at load) forces one, and [`DecoderModel::load_backend`]
-//! chooses explicitly.
+//! The native path is used when available; `RuntimeOptions::decoder_backend` forces one,
+//! and [`DecoderModel::load_backend`] takes just the backend.
 use std::sync::Arc;
 
 use parking_lot::Mutex;
@@ -22,45 +21,14 @@ use super::graph::{self, Plan, PlanState};
 use super::native::decoder::{NativeDecoder, NativeState, MAX_GROUP};
 use crate::bundle::manifest::{Manifest, FRAME_DIM, MANIFEST_FILE, N_STREAMS};
 use crate::bundle::BundleSource;
+use crate::config::RuntimeOptions;
 use crate::error::{Error, Result};
 
-/// Environment variable that forces the decoder implementation: `tract` or `native`
-/// (unset or empty: native when the bundle has native weights, else tract).
-pub const DECODER_ENV: &str = "COMGRASP_DECODER";
-
 /// Most tokens one [`DecoderModel::decode_group`] takes.
-pub const MAX_DECODE_GROUP: usize = MAX_GROUP;
+pub const MAX_DECODE_GROUP: usize = crate::config::MAX_DECODE_GROUP;
+const _: () = assert!(MAX_DECODE_GROUP == MAX_GROUP);
 
-/// Which implementation runs a [`DecoderModel`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum DecoderBackend {
-    /// `decoder.onnx` in tract.
-    Tract,
-    /// The incremental Rust decoder on the `decoder.native` weights.
-    Native,
-}
-
-impl DecoderBackend {
-    /// `"tract"` or `"native"` (the values `COMGRASP_DECODER` takes).
-    pub fn name(self) -> &'static str {
-        match self {
-            DecoderBackend::Tract => "tract",
-            DecoderBackend::Native => "native",
-        }
-    }
-
-    /// The backend `COMGRASP_DECODER` asks for (`None`: unset or empty, i.e. automatic).
-    pub fn from_env() -> Result<Option<DecoderBackend>> {
-        match std::env::var(DECODER_ENV) {
-            Err(std::env::VarError::NotPresent) => Ok(None),
-            Ok(v) if v.is_empty() => Ok(None),
-            Ok(v) if v.eq_ignore_ascii_case("tract") => Ok(Some(DecoderBackend::Tract)),
-            Ok(v) if v.eq_ignore_ascii_case("native") => Ok(Some(DecoderBackend::Native)),
-            Ok(v) => Err(Error::InvalidArgument(format!("{DECODER_ENV}={v:?}: expected \"tract\" or \"native\""))),
-            Err(e) => Err(Error::InvalidArgument(format!("{DECODER_ENV}: {e}"))),
-        }
-    }
-}
+pub use crate::config::DecoderBackend;
 
 /// The loaded decoder; shared by all streams of an engine.
 pub struct DecoderModel {
@@ -126,24 +94,19 @@ impl std::fmt::Debug for DecoderState {
 }
 
 impl DecoderModel {
-    /// Loads the decoder: native when the bundle has `decoder.native` weights, else
-    /// `decoder.file` in tract, unless `COMGRASP_DECODER` says otherwise. The manifest was
-    /// verified (shapes and initial state).
-    pub fn load(src: &BundleSource, m: &Manifest) -> Result<DecoderModel> {
-        DecoderModel::load_backend(src, m, DecoderBackend::from_env()?)
-    }
-
-    /// Loads the decoder with the given backend (`None`: native when available). Asking for
-    /// `Native` from a bundle without `decoder.native` is an `Error::Bundle`.
-    pub fn load_backend(src: &BundleSource, m: &Manifest, backend: Option<DecoderBackend>) -> Result<DecoderModel> {
+    /// Loads the decoder as `options` say (`decoder_backend`, `None`: native when the
+    /// bundle has `decoder.native` weights, else `decoder.file` in tract; `decoder_threads`).
+    /// Asking for `Native` from a bundle without `decoder.native` is an `Error::Bundle`. The
+    /// manifest was verified (shapes and initial state).
+    pub fn load(src: &BundleSource, m: &Manifest, options: &RuntimeOptions) -> Result<DecoderModel> {
         let d = &m.decoder;
-        let native = match (backend, &d.native) {
+        let native = match (options.decoder_backend, &d.native) {
             (Some(DecoderBackend::Tract), _) | (None, None) => None,
             (_, Some(spec)) => Some(spec),
             (Some(DecoderBackend::Native), None) => {
                 return Err(Error::bundle(
                     src.path_of(MANIFEST_FILE),
-                    format!("{DECODER_ENV}=native, but the manifest has no decoder.native weights"),
+                    "the decoder backend is native, but the manifest has no decoder.native weights",
                 ));
             }
         };
@@ -151,7 +114,7 @@ impl DecoderModel {
             Some(spec) => {
                 // decoder.onnx stays the bundle's reference graph: it must still match its manifest.
                 graph::check(src, &d.file, &d.inputs, &d.outputs)?;
-                Imp::Native(Arc::new(NativeDecoder::load(src, m, spec)?))
+                Imp::Native(Arc::new(NativeDecoder::load(src, m, spec, options.decoder_threads)?))
             }
             None => Imp::Tract(TractDecoder::load(src, m)?),
         };
@@ -161,6 +124,11 @@ impl DecoderModel {
             codebook: m.codebook_sizes(),
             imp,
         })
+    }
+
+    /// [`load`](Self::load) with `backend` and the other options automatic.
+    pub fn load_backend(src: &BundleSource, m: &Manifest, backend: Option<DecoderBackend>) -> Result<DecoderModel> {
+        DecoderModel::load(src, m, &RuntimeOptions { decoder_backend: backend, ..RuntimeOptions::default() })
     }
 
     /// The implementation in use.

@@ -1,14 +1,22 @@
-//! The bundle's two token-level networks, run with tract: the 4-stream Transformer step
-//! with a Rust-owned KV cache ([`StepModel`] / [`StepState`]) and the streaming VQ decoder
-//! ([`DecoderModel`] / [`DecoderState`]). A model is loaded once per bundle and shared by
+//! The models of a loaded [`Bundle`]: the text encoder ([`text`]), the 4-stream
+//! Transformer step with a Rust-owned KV cache ([`StepModel`] / [`StepState`]) and the
+//! streaming VQ decoder ([`DecoderModel`] / [`DecoderState`]), each native or in tract. A model is loaded once per bundle and shared by
 //! every stream; each stream owns its states. [`overlap`] runs a stream's decode of
 //! chunk k and its step k+1 at once; [`decode_group`] says how many tokens one decode takes.
 pub mod decode_group;
 mod decoder;
 pub(crate) mod graph;
+mod loaded;
 pub(crate) mod native;
 pub mod overlap;
 mod step;
+pub mod text;
 
-pub use decoder::{DecoderBackend, DecoderModel, DecoderState, DECODER_ENV, MAX_DECODE_GROUP};
-pub use step::{StepBackend, StepModel, StepState, STEP_ENV};
+pub use decoder::{DecoderBackend, DecoderModel, DecoderState, MAX_DECODE_GROUP};
+pub use loaded::Bundle;
+pub use step::{StepBackend, StepModel, StepState};
+
+/// Lowers the native kernels' instruction set, process-wide (`RuntimeOptions::max_isa`).
+pub fn cap_instruction_set(cap: crate::config::InstructionSet) {
+    native::kernels::cap_isa(cap)
+}

@@ -12,29 +12,23 @@
 //!
 //! It pays when the step is no bigger than the decoder (the default bundle: 10 MB of step
 //! weights, 19 MB of decoder weights); a step much bigger than the decoder (the paper
-//! model's 1.8 GB) is faster on its own team, one after the other. `COMGRASP_OVERLAP=0|1`
-//! overrides the choice.
+//! model's 1.8 GB) is faster on its own team, one after the other.
+//! `RuntimeOptions::overlap` overrides the choice.
 use super::{DecoderModel, DecoderState, StepModel, StepState};
 use crate::bundle::N_STREAMS;
 use crate::error::{Error, Result};
 
-/// Environment variable: `1` overlaps whenever both models are native and the decoder has
-/// a second thread, `0` never (read once per engine).
-pub const OVERLAP_ENV: &str = "COMGRASP_OVERLAP";
-
-/// Whether [`decode_and_step`] should overlap for these models (`COMGRASP_OVERLAP`, else the
-/// rule of the module doc).
-pub fn overlaps(step: &StepModel, decoder: &DecoderModel) -> Result<bool> {
+/// Whether [`decode_and_step`] should overlap for these models: `option`
+/// (`RuntimeOptions::overlap`: `Some(true)` whenever both models are native and the decoder
+/// has a second thread, `Some(false)` never), else the rule of the module doc.
+pub fn overlaps(step: &StepModel, decoder: &DecoderModel, option: Option<bool>) -> bool {
     let possible = match (step.native_weight_bytes(), decoder.native_threads_and_bytes()) {
         (Some(step_bytes), Some((2, decoder_bytes))) => Some(step_bytes <= decoder_bytes),
         _ => None,
     };
-    match std::env::var(OVERLAP_ENV).as_deref() {
-        Ok("0") => Ok(false),
-        Ok("1") => Ok(possible.is_some()),
-        Ok("") | Err(std::env::VarError::NotPresent) => Ok(possible.unwrap_or(false)),
-        Ok(v) => Err(Error::InvalidArgument(format!("{OVERLAP_ENV}={v:?}: expected 0 or 1"))),
-        Err(e) => Err(Error::InvalidArgument(format!("{OVERLAP_ENV}: {e}"))),
+    match option {
+        Some(on) => on && possible.is_some(),
+        None => possible.unwrap_or(false),
     }
 }
 

@@ -17,9 +17,9 @@
 //!   of them and drops its references when the run ends, so they are updated in place.
 //!   tract still allocates its own intermediates (and the 12 output tensors) inside a run.
 //!
-//! `COMGRASP_STEP=native|tract|auto` (read when a bundle is loaded; default `auto` = native
-//! when the bundle has native weights) forces one, e.g. to benchmark both;
-//! [`StepModel::load_with`] takes the choice as an argument.
+//! `RuntimeOptions::step_backend` (default `Auto` = native when the bundle has native
+//! weights) forces one, e.g. to benchmark both; [`StepModel::load_with`] takes just the
+//! backend.
 use std::sync::Arc;
 
 use parking_lot::Mutex;
@@ -30,47 +30,10 @@ use super::graph::{self, Plan, PlanState};
 use super::native::step::{NativeStep, NativeStepState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
 use crate::bundle::BundleSource;
+use crate::config::RuntimeOptions;
 use crate::error::{Error, Result};
 
-/// The environment variable that picks the step implementation at load.
-pub const STEP_ENV: &str = "COMGRASP_STEP";
-
-/// Which implementation runs the step.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum StepBackend {
-    /// Native when the bundle has `transformer.native`, tract otherwise.
-    Auto,
-    /// The Rust kernels (`model::native`); an error at load if the bundle has no native weights.
-    Native,
-    /// The ONNX graph in tract.
-    Tract,
-}
-
-impl StepBackend {
-    /// The choice of [`STEP_ENV`]: unset or empty is `Auto`; anything but
-    /// `auto`/`native`/`tract` is an `InvalidArgument`.
-    pub fn from_env() -> Result<StepBackend> {
-        match std::env::var(STEP_ENV) {
-            Err(std::env::VarError::NotPresent) => Ok(StepBackend::Auto),
-            Ok(v) => match v.trim() {
-                "" | "auto" => Ok(StepBackend::Auto),
-                "native" => Ok(StepBackend::Native),
-                "tract" => Ok(StepBackend::Tract),
-                other => Err(Error::InvalidArgument(format!("{STEP_ENV}={other:?}: expected native, tract or auto"))),
-            },
-            Err(e) => Err(Error::InvalidArgument(format!("{STEP_ENV}: {e}"))),
-        }
-    }
-
-    /// `"native"` / `"tract"` / `"auto"`.
-    pub fn name(self) -> &'static str {
-        match self {
-            StepBackend::Auto => "auto",
-            StepBackend::Native => "native",
-            StepBackend::Tract => "tract",
-        }
-    }
-}
+pub use crate::config::StepBackend;
 
 const TOKENS: usize = 0;
 const POS: usize = 1;
@@ -142,30 +105,25 @@ impl std::fmt::Debug for StepModel {
 }
 
 impl StepModel {
-    /// Loads the step of a verified manifest with the implementation [`STEP_ENV`] picks
-    /// (native when the bundle has native weights, unless the variable says otherwise).
-    pub fn load(src: &BundleSource, m: &Manifest) -> Result<StepModel> {
-        StepModel::load_with(src, m, StepBackend::from_env()?)
-    }
-
-    /// Loads the step with the given implementation (`Auto`: native when the bundle has
-    /// `transformer.native`). Either way `transformer.file` is checked against the manifest.
-    pub fn load_with(src: &BundleSource, m: &Manifest, backend: StepBackend) -> Result<StepModel> {
+    /// Loads the step of a verified manifest as `options` say (`step_backend`: `Auto` is
+    /// native when the bundle has `transformer.native`; `step_threads`). Either way
+    /// `transformer.file` is checked against the manifest.
+    pub fn load(src: &BundleSource, m: &Manifest, options: &RuntimeOptions) -> Result<StepModel> {
         let t = &m.transformer;
-        let native = match (backend, &t.native) {
+        let native = match (options.step_backend, &t.native) {
             (StepBackend::Tract, _) | (StepBackend::Auto, None) => None,
             (_, Some(spec)) => Some(spec),
             (StepBackend::Native, None) => {
                 return Err(Error::bundle(
                     src.path_of(crate::bundle::manifest::MANIFEST_FILE),
-                    format!("{STEP_ENV}=native, but the bundle has no transformer.native weights"),
+                    "the step backend is native, but the bundle has no transformer.native weights",
                 ));
             }
         };
         let imp = match native {
             Some(spec) => {
                 graph::check(src, &t.file, &t.inputs, &t.outputs)?;
-                Imp::Native(Box::new(NativeStep::load(src, m, spec)?))
+                Imp::Native(Box::new(NativeStep::load(src, m, spec, options.step_threads)?))
             }
             None => {
                 let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
@@ -191,6 +149,11 @@ impl StepModel {
             vocab: m.vocab_sizes(),
             d_text: t.d_text,
         })
+    }
+
+    /// [`load`](Self::load) with `backend` and the other options automatic.
+    pub fn load_with(src: &BundleSource, m: &Manifest, backend: StepBackend) -> Result<StepModel> {
+        StepModel::load(src, m, &RuntimeOptions { step_backend: backend, ..RuntimeOptions::default() })
     }
 
     /// The implementation that runs the step: `Native` or `Tract` (never `Auto`).

@@ -12,6 +12,7 @@ use super::node::{create_node, open_services, shm_error, EventService, FrameServ
 use super::records::*;
 use crate::error::Result;
 use crate::frame::cg_frame;
+use crate::stream::{StreamOutcome, StreamSink};
 
 /// Counters of an engine's shared-memory publisher since the engine was created
 /// (`cg_engine_publisher_stats`). Fixed layout.
@@ -147,21 +148,27 @@ impl StreamPublication {
         event.set_text(text);
         StreamPublication { publisher, event }
     }
+}
 
-    pub(crate) fn started(&mut self) {
+/// The engine attaches it to each stream of a publishing engine.
+impl StreamSink for StreamPublication {
+    fn started(&mut self) {
         self.publisher.reclaim_dead();
         self.event.kind = CG_STREAM_EVENT_STARTED;
         self.publisher.publish_event(&self.event);
     }
 
-    pub(crate) fn frame(&mut self, frame: &cg_frame) {
+    fn frame(&mut self, frame: &cg_frame) {
         self.publisher.publish_frame(frame);
         self.event.frame_count += 1;
     }
 
-    /// `kind` is `CG_STREAM_EVENT_ENDED`, `_CANCELLED` or `_FAILED`.
-    pub(crate) fn finished(&mut self, kind: u32) {
-        self.event.kind = kind;
+    fn finished(&mut self, outcome: StreamOutcome) {
+        self.event.kind = match outcome {
+            StreamOutcome::Ended => CG_STREAM_EVENT_ENDED,
+            StreamOutcome::Cancelled => CG_STREAM_EVENT_CANCELLED,
+            StreamOutcome::Failed => CG_STREAM_EVENT_FAILED,
+        };
         self.publisher.publish_event(&self.event);
     }
 }

@@ -4,6 +4,7 @@
 //! Prompt words (any order, unknown words ignored):
 //! `chunks=N` (default 4), `frames=N` per chunk (default 16), `delay_ms=N` before each
 //! chunk, `fail_at=K` (chunk K returns an inference error), `panic_at=K` (chunk K panics),
+//! `drop_delay_ms=N` (dropping the source, i.e. freeing its model state, takes N ms),
 //! `factory_panic` (the factory itself panics), `factory_fail` (the factory returns an error).
 #![allow(dead_code)]
 
@@ -22,6 +23,7 @@ pub struct Script {
     pub chunks: u64,
     pub frames: u64,
     pub delay_ms: u64,
+    pub drop_delay_ms: u64,
     pub fail_at: Option<u64>,
     pub panic_at: Option<u64>,
 }
@@ -36,6 +38,7 @@ impl Script {
                 "chunks" => s.chunks = n.unwrap(),
                 "frames" => s.frames = n.unwrap(),
                 "delay_ms" => s.delay_ms = n.unwrap(),
+                "drop_delay_ms" => s.drop_delay_ms = n.unwrap(),
                 "fail_at" => s.fail_at = n,
                 "panic_at" => s.panic_at = n,
                 _ => {}
@@ -61,6 +64,7 @@ pub struct ScriptedSource {
 
 impl Drop for ScriptedSource {
     fn drop(&mut self) {
+        std::thread::sleep(Duration::from_millis(self.script.drop_delay_ms));
         self.counters.sources_alive.fetch_sub(1, Ordering::SeqCst);
     }
 }

@@ -43,6 +43,14 @@ int main(void) {
     OFF(cg_engine_config, max_streams);
     OFF(cg_engine_config, reserved);
     OFF(cg_engine_config, publish_name);
+    OFF(cg_engine_config, step_backend);
+    OFF(cg_engine_config, decoder_backend);
+    OFF(cg_engine_config, step_threads);
+    OFF(cg_engine_config, decoder_threads);
+    OFF(cg_engine_config, decode_group);
+    OFF(cg_engine_config, overlap);
+    OFF(cg_engine_config, max_isa);
+    OFF(cg_engine_config, reserved2);
 
     SIZE(cg_stream_config);
     OFF(cg_stream_config, struct_size);

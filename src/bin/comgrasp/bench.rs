@@ -58,24 +58,27 @@ use std::time::{Duration, Instant};
 
 use comgrasp::assemble::FrameAssembler;
 use comgrasp::bundle::manifest::FRAME_DIM;
-use comgrasp::bundle::{Bundle, N_STREAMS};
+use comgrasp::bundle::N_STREAMS;
+use comgrasp::config::RuntimeOptions;
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
 use comgrasp::model::{decode_group, MAX_DECODE_GROUP};
 use comgrasp::sampler::{SamplingParams, TokenSampler};
+use comgrasp::Bundle;
 use comgrasp::{ChunkSource, CoordinateSystem, Engine, EngineConfig, Frame, PollResult, StreamConfig};
 use serde_json::{json, Value};
 use sha2::{Digest, Sha256};
 
 pub const HELP: &str = "\
-usage: comgrasp bench --bundle DIR [options]
+usage: comgrasp bench [--bundle DIR] [options]
 
 Measures load time, text embedding, token step (real KV cache), decoder chunk, end-to-end
 streams (time to first frame, frames/s, real-time factor), poll latency, peak RSS and
 memory read bandwidth on one bundle, and prints the generated tokens so other runtimes
 can be checked against them.
 
-  --bundle DIR          model bundle directory
+  --bundle DIR          model bundle directory (default: COMGRASP_BUNDLE, else the
+                        default bundle embedded in the library, like generate)
   --prompt TEXT         prompt (default \"A woman drinks from the mug.\")
   --seed N              sampler seed (default: the bundle's)
   --steps N             token steps per sequence, End forbidden before and forced after
@@ -99,7 +102,8 @@ const POLL_BATCH: usize = 64;
 
 #[derive(Debug)]
 struct Options {
-    bundle: PathBuf,
+    /// `None`: the engine's default (COMGRASP_BUNDLE or the embedded bundle).
+    bundle: Option<PathBuf>,
     prompt: String,
     seed: Option<u64>,
     steps: Option<usize>,
@@ -132,7 +136,7 @@ pub fn run(args: &[String]) -> Result<(), String> {
 
 fn parse(args: &[String]) -> Result<Options, String> {
     let mut o = Options {
-        bundle: PathBuf::new(),
+        bundle: None,
         prompt: DEFAULT_PROMPT.into(),
         seed: None,
         steps: None,
@@ -146,7 +150,6 @@ fn parse(args: &[String]) -> Result<Options, String> {
         bandwidth_mib: 512,
         json: false,
     };
-    let mut bundle = None;
     let mut it = args.iter();
     while let Some(arg) = it.next() {
         let (name, inline) = match arg.split_once('=') {
@@ -181,7 +184,7 @@ fn parse(args: &[String]) -> Result<Options, String> {
             None => it.next().cloned().ok_or_else(|| format!("{name} needs a value"))?,
         };
         match name {
-            "--bundle" => bundle = Some(PathBuf::from(v)),
+            "--bundle" => o.bundle = Some(PathBuf::from(v)),
             "--prompt" => o.prompt = v,
             "--seed" => o.seed = Some(number(name, &v)?),
             "--steps" => o.steps = Some(number(name, &v)?),
@@ -198,7 +201,6 @@ fn parse(args: &[String]) -> Result<Options, String> {
             _ => unreachable!("checked against KNOWN"),
         }
     }
-    o.bundle = bundle.ok_or("--bundle DIR is required")?;
     if o.threads == 0 {
         return Err("--threads must be at least 1".into());
     }
@@ -238,16 +240,20 @@ fn ms(d: Duration) -> f64 {
 
 // ------------------------------------------------------------------------------ threads
 
-/// `--threads` also sets the native kernels' threads (they take 1 or 2), unless their
-/// variables are set; returns what each will use ("auto": its default). Called before any
-/// model loads (they read the variables at load).
-fn set_native_threads(o: &Options) -> [String; 2] {
-    ["COMGRASP_STEP_THREADS", "COMGRASP_DECODER_THREADS"].map(|var| {
-        if o.threads_given && std::env::var_os(var).is_none() {
-            std::env::set_var(var, o.threads.min(2).to_string());
-        }
-        std::env::var(var).unwrap_or_else(|_| "auto".into())
-    })
+/// The runtime options: the `COMGRASP_*` variables (`RuntimeOptions::from_env`), where
+/// `--threads` also sets the native kernels' threads (they take 1 or 2) unless their
+/// variables do.
+fn runtime_options(o: &Options) -> Result<RuntimeOptions, String> {
+    let mut r = RuntimeOptions::from_env().map_err(|e| e.to_string())?;
+    if o.threads_given {
+        r.step_threads = r.step_threads.or(Some(o.threads.min(2)));
+        r.decoder_threads = r.decoder_threads.or(Some(o.threads.min(2)));
+    }
+    Ok(r)
+}
+
+fn threads_name(t: Option<usize>) -> String {
+    t.map_or_else(|| "auto".into(), |n| n.to_string())
 }
 
 /// Installs tract's N-thread matmul executor; returns the thread count tract will use.
@@ -382,15 +388,23 @@ struct StepWeights {
 /// DOUBLE, BFLOAT16); int64/int32 initializers are shapes and indices.
 const WEIGHT_DTYPES: [i32; 6] = [1, 2, 3, 10, 11, 16];
 
-fn step_weights(o: &Options, m: &comgrasp::bundle::manifest::Manifest) -> Result<StepWeights, String> {
+/// `step_onnx`: the step graph's bytes, `None` when the bundle has none (the embedded
+/// default keeps only the native weights): the graph's figures then come from those.
+fn step_weights(step_onnx: Option<&[u8]>, m: &comgrasp::bundle::manifest::Manifest) -> Result<StepWeights, String> {
     use comgrasp::bundle::manifest::NativeDtype;
     use tract_onnx::prelude::Framework;
 
     // Decodes the .onnx protobuf only (external data is not read), after the bundle is dropped.
-    let path = o.bundle.join(&m.transformer.file);
-    let proto = tract_onnx::onnx().proto_model_for_path(&path).map_err(|e| format!("{}: {e:#}", path.display()))?;
+    let proto = match step_onnx {
+        Some(bytes) => Some(
+            tract_onnx::onnx()
+                .proto_model_for_read(&mut &bytes[..])
+                .map_err(|e| format!("{}: {e:#}", m.transformer.file))?,
+        ),
+        None => None,
+    };
     let (mut fp32, mut int8_elems) = (0u64, 0u64);
-    for t in proto.graph.iter().flat_map(|g| &g.initializer) {
+    for t in proto.iter().flat_map(|p| &p.graph).flat_map(|g| &g.initializer) {
         if WEIGHT_DTYPES.contains(&t.data_type) {
             let n = t.dims.iter().map(|&d| d.max(0) as u64).product::<u64>();
             fp32 += 4 * n;
@@ -409,6 +423,12 @@ fn step_weights(o: &Options, m: &comgrasp::bundle::manifest::Manifest) -> Result
                     NativeDtype::Int8 => n + 4 * t.shape.first().copied().unwrap_or(1) as u64,
                     NativeDtype::Float32 => 4 * n,
                 };
+                if proto.is_none() && t.dtype == NativeDtype::Int8 {
+                    int8_elems += n;
+                }
+            }
+            if proto.is_none() {
+                fp32 = f;
             }
             (Some(bytes), Some(f))
         }
@@ -421,31 +441,30 @@ fn step_weights(o: &Options, m: &comgrasp::bundle::manifest::Manifest) -> Result
 /// it: ("tract" | "native", same). `COMGRASP_STEP` / `COMGRASP_DECODER` choose at load
 /// (unset: native when the bundle has native weights); a path that was asked for but did
 /// not run is an error, so no benchmark row is labelled with a path that did not run.
-fn engine_paths(bundle: &Bundle) -> Result<(String, String), String> {
-    let step = bundle.step.backend().name().to_string();
-    let decoder = format!("{:?}", bundle.decoder.backend()).to_lowercase();
-    for (var, ran) in [("COMGRASP_STEP", &step), ("COMGRASP_DECODER", &decoder)] {
-        if let Ok(v) = std::env::var(var) {
-            let v = v.trim().to_lowercase();
-            if !v.is_empty() && v != "auto" && v != *ran {
-                return Err(format!("{var}={v} was asked for but the {ran} path was loaded"));
-            }
+fn engine_paths(bundle: &Bundle, r: &RuntimeOptions) -> Result<(String, String), String> {
+    let step = bundle.step.backend().name();
+    let decoder = bundle.decoder.backend().name();
+    let asked = [r.step_backend.name(), r.decoder_backend.map_or("auto", |b| b.name())];
+    for ((var, ran), asked) in [("COMGRASP_STEP", step), ("COMGRASP_DECODER", decoder)].into_iter().zip(asked) {
+        if asked != "auto" && asked != ran {
+            return Err(format!("{var}={asked} was asked for but the {ran} path was loaded"));
         }
     }
-    Ok((step, decoder))
+    Ok((step.to_string(), decoder.to_string()))
 }
 
 fn bench(o: &Options) -> Result<Value, String> {
     let err = |e: comgrasp::Error| e.to_string();
     let (tract_threads, thread_note) = set_tract_threads(o.threads);
-    let native_threads = set_native_threads(o);
+    let runtime = runtime_options(o)?;
+    let native_threads = [threads_name(runtime.step_threads), threads_name(runtime.decoder_threads)];
     let rss_before = rss();
 
     // 1. load
     let t = Instant::now();
-    let bundle = Bundle::load(&o.bundle).map_err(err)?;
+    let bundle = comgrasp::Bundle::select(o.bundle.as_deref(), &runtime).map_err(err)?;
     let load_ms = ms(t.elapsed());
-    let (step_path, decoder_path) = engine_paths(&bundle)?;
+    let (step_path, decoder_path) = engine_paths(&bundle, &runtime)?;
     let native_reported = bundle.step.native_weight_bytes().map(|b| b as u64);
     let rss_loaded = rss();
     let m = &bundle.manifest;
@@ -523,7 +542,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     }
     let decode_faults = minor_faults() - faults0;
     // the same tokens as a stream decodes them: the first alone, then in groups
-    let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder).map_err(err)?;
+    let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder, runtime.decode_group);
     ds.reset().map_err(err)?;
     let mut grouped = vec![0f32; MAX_DECODE_GROUP * chunk.len()];
     let mut group_ms_per_token = Vec::with_capacity(steps);
@@ -545,13 +564,14 @@ fn bench(o: &Options) -> Result<Value, String> {
     }
     drop(ds);
     let config = EngineConfig {
-        bundle_path: Some(o.bundle.clone()),
+        bundle_path: o.bundle.clone(),
         coordinate_system: CoordinateSystem::CG_COORDS_NATIVE,
         enable_fk: false,
         ring_capacity: (steps * f + 16).max(256),
         max_streams: 2,
         default_stream: StreamConfig::default(),
         publish_name: None,
+        runtime,
     };
     let assembler = FrameAssembler::new(
         &m.normalization.mean,
@@ -705,9 +725,16 @@ fn bench(o: &Options) -> Result<Value, String> {
     let fps = m.fps;
     let manifest = m.clone();
     let files_bytes = m.files.values().map(|e| e.bytes).sum::<u64>();
+    let step_onnx = if bundle.origin().omits(&manifest.transformer.file) {
+        None
+    } else {
+        Some(bundle.file_bytes(&manifest.transformer.file).map_err(err)?)
+    };
+    let origin = bundle.origin().root();
     drop(bundle);
     let t = &manifest.transformer;
-    let w = step_weights(o, &manifest)?;
+    let w = step_weights(step_onnx.as_deref(), &manifest)?;
+    drop(step_onnx);
     let model = json!({
         "step_graph_bytes": step_bytes, "kv_cache_bytes": cache_bytes,
         "weights": {
@@ -764,7 +791,7 @@ fn bench(o: &Options) -> Result<Value, String> {
     Ok(json!({
         "runtime": format!("comgrasp (step: {step_path}, decoder: {decoder_path}; tract-onnx 0.23)"),
         "engine_path": {"step": step_path, "decoder": decoder_path, "overlap": overlap, "decode_group": group},
-        "bundle": o.bundle.display().to_string(),
+        "bundle": origin.display().to_string(),
         "machine": {"cpu": cpu_model(), "logical_cpus": std::thread::available_parallelism().map(|n| n.get()).ok()},
         "threads": {"requested": o.threads, "tract": tract_threads, "note": thread_note,
                     "native_step": native_threads[0], "native_decoder": native_threads[1]},
@@ -940,12 +967,12 @@ mod tests {
     #[test]
     fn parses_options() {
         let o = parse(&args(&["--bundle", "b", "--steps=5", "--json", "--prompt", "x y", "--threads", "2"])).unwrap();
-        assert_eq!(o.bundle, PathBuf::from("b"));
+        assert_eq!(o.bundle, Some(PathBuf::from("b")));
         assert_eq!(o.steps, Some(5));
         assert!(o.json);
         assert_eq!(o.prompt, "x y");
         assert_eq!(o.threads, 2);
-        assert!(parse(&args(&["--steps", "5"])).is_err(), "bundle required");
+        assert_eq!(parse(&args(&["--steps", "5"])).unwrap().bundle, None, "the engine's default bundle");
         assert!(parse(&args(&["--bundle", "b", "--nope"])).is_err());
         assert!(parse(&args(&["--bundle", "b", "--steps", "0"])).is_err());
         assert!(parse(&args(&["--bundle", "b", "--seed"])).is_err());

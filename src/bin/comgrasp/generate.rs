@@ -74,6 +74,8 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
         coordinate_system: opts.coords,
         // The preview draws the skeleton from the engine's own joint positions.
         enable_fk: opts.fk || opts.preview.is_some(),
+        // The CLI is where the COMGRASP_* runtime variables are read (the library never does).
+        runtime: comgrasp::config::RuntimeOptions::from_env().map_err(engine_failure)?,
         ..EngineConfig::default()
     })
     .map_err(engine_failure)?;
@@ -133,13 +135,14 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
         wrote.push(note);
     }
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let motion_s = frames.len() as f64 / fps;
     let mut line = format!(
-        "{} frames, {:.2} s of motion at {fps} fps; first frame {} after start, generation {:.1} ms, \
-         bundle load {:.1} ms, total {:.1} ms",
+        "{} frames, {motion_s:.2} s of motion at {fps} fps; first frame {} after start, generation {:.1} ms \
+         ({:.0}x real time), bundle load {:.1} ms, total {:.1} ms",
         frames.len(),
-        frames.len() as f64 / fps,
         first_frame.map_or("none".into(), |d| format!("{:.1} ms", ms(d))),
         ms(generation),
+        motion_s / generation.as_secs_f64(),
         ms(load),
         ms(t0.elapsed()),
     );

@@ -4,8 +4,9 @@
 //! A frame's rotations are `S R Sᵀ` and its positions `c S p` (src/assemble.rs); the rest
 //! joints and the object's mesh vertices must get the same `c S` for the frames to pose
 //! them correctly, so the conversion happens once here and nowhere else.
-use comgrasp::bundle::{Bundle, ObjectEntry};
+use comgrasp::bundle::ObjectEntry;
 use comgrasp::skeleton::mat_vec;
+use comgrasp::Bundle;
 use comgrasp::CoordinateSystem;
 
 use crate::obj;

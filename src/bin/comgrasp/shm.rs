@@ -127,6 +127,7 @@ pub fn publish(args: &[String]) -> Result<(), Failure> {
         bundle_path: o.str("--bundle").map(PathBuf::from),
         ring_capacity: o.num("--ring", 256).map_err(usage)?,
         publish_name: (!o.flag("--no-publish")).then_some(name),
+        runtime: comgrasp::config::RuntimeOptions::from_env().map_err(run_err)?,
         ..Default::default()
     })
     .map_err(run_err)?;
@@ -345,7 +346,11 @@ pub fn bench(args: &[String]) -> Result<(), Failure> {
 
     println!("# producer: generation time per frame, {runs} interleaved runs each");
     let name = format!("shm-bench-{pid}-engine");
-    let mut base = EngineConfig { bundle_path: o.str("--bundle").map(PathBuf::from), ..Default::default() };
+    let mut base = EngineConfig {
+        bundle_path: o.str("--bundle").map(PathBuf::from),
+        runtime: comgrasp::config::RuntimeOptions::from_env().map_err(run_err)?,
+        ..Default::default()
+    };
     let plain = Engine::new(base.clone()).map_err(run_err)?;
     base.publish_name = Some(name.clone());
     let publishing = Engine::new(base).map_err(run_err)?;

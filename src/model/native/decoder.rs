@@ -32,15 +32,13 @@ use std::time::Instant;
 use super::arena::{Arena, Wm};
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
-use super::helper_thread::{threads_from_env, Helper, Job};
+use super::helper_thread::{Helper, Job};
 use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
 use crate::bundle::BundleSource;
+use crate::config::two_threads;
 use crate::error::{Error, Result};
 
-/// Environment variable: threads one native decode uses, `1` or `2` (default: 2 when the
-/// machine has two or more cores and the model is big enough for the hand-over to pay).
-pub(crate) const THREADS_ENV: &str = "COMGRASP_DECODER_THREADS";
 /// Below this many weights (all components) one thread is faster than two (the hand-over
 /// costs tens of microseconds).
 const SPLIT_MIN_WEIGHTS: usize = 1 << 20;
@@ -398,7 +396,13 @@ impl Component {
 
 impl NativeDecoder {
     /// Loads `decoder.native`; the manifest was verified (components, K, initial state).
-    pub(crate) fn load(src: &BundleSource, m: &Manifest, spec: &NativeSpec) -> Result<NativeDecoder> {
+    /// `threads`: `RuntimeOptions::decoder_threads` (`None`: two when it pays).
+    pub(crate) fn load(
+        src: &BundleSource,
+        m: &Manifest,
+        spec: &NativeSpec,
+        threads: Option<usize>,
+    ) -> Result<NativeDecoder> {
         let dir = src.path_of(&spec.dir);
         let d = &m.decoder;
         let frames = d.frames_per_token;
@@ -443,7 +447,7 @@ impl NativeDecoder {
                 ));
             }
         }
-        let helper = start_helper(&comps)?;
+        let helper = start_helper(&comps, threads);
         arena.trim();
         let cost_ns = std::array::from_fn(|_| AtomicU64::new(0));
         let mut dec =
@@ -559,13 +563,13 @@ impl NativeDecoder {
     }
 }
 
-/// The helper thread, if decodes should use two threads (`COMGRASP_DECODER_THREADS`, else:
-/// two or more cores and a model big enough for the hand-over to pay).
-fn start_helper(comps: &[Component]) -> Result<Option<Helper>> {
+/// The helper thread, if decodes should use two threads (`threads`, else: two or more
+/// cores and a model big enough for the hand-over to pay).
+fn start_helper(comps: &[Component], threads: Option<usize>) -> Option<Helper> {
     let total: usize = comps.iter().flat_map(|c| c.matrices()).map(|m| m.rows * m.cols).sum();
-    if threads_from_env(THREADS_ENV, total >= SPLIT_MIN_WEIGHTS)? != 2 {
-        return Ok(None);
+    if !two_threads(threads, total >= SPLIT_MIN_WEIGHTS) {
+        return None;
     }
     // no thread to be had: decode on the caller's alone
-    Ok(Helper::start().ok())
+    Helper::start().ok()
 }

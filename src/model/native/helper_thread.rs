@@ -41,22 +41,6 @@ pub(crate) struct Job {
 // conflicting way until the job is done (see `Helper::run_split`).
 unsafe impl Send for Job {}
 
-/// Threads a native computation should use: the environment variable `var` (`1` or `2`;
-/// anything else is an `InvalidArgument`), else 2 when the machine has two or more cores
-/// and `pays` (the work is big enough for the hand-overs to pay).
-pub(crate) fn threads_from_env(var: &str, pays: bool) -> crate::error::Result<usize> {
-    use crate::error::Error;
-    match std::env::var(var).as_deref() {
-        Ok("1") => Ok(1),
-        Ok("2") => Ok(2),
-        Ok("") | Err(std::env::VarError::NotPresent) => {
-            Ok(if pays && std::thread::available_parallelism().map_or(1, |n| n.get()) >= 2 { 2 } else { 1 })
-        }
-        Ok(v) => Err(Error::InvalidArgument(format!("{var}={v:?}: expected 1 or 2"))),
-        Err(e) => Err(Error::InvalidArgument(format!("{var}: {e}"))),
-    }
-}
-
 #[derive(Default)]
 struct Slot {
     job: Option<Job>,

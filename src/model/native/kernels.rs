@@ -2,8 +2,8 @@
 //! dot products, LayerNorm, GELU (erf), softmax.
 //!
 //! On x86-64 the hot loops have AVX2+FMA and AVX-512F bodies chosen at run time
-//! (`is_x86_feature_detected!`, once per process; `COMGRASP_NATIVE_ISA=portable|avx2|avx512`
-//! caps the choice, for benchmarks and tests); elsewhere, or without those features, the
+//! (`is_x86_feature_detected!`, once per process; `RuntimeOptions::max_isa` caps the
+//! choice, process-wide, for benchmarks and tests); elsewhere, or without those features, the
 //! portable loops run (8 independent partial sums, which the compiler vectorizes). int8
 //! rows are converted to f32 in registers (`q as f32 * scale`, the scale applied once per
 //! row), so arithmetic stays f32 as in the ONNX graphs while the weights cost a quarter of
@@ -24,44 +24,64 @@ pub(crate) enum Isa {
     Avx512 = 3,
 }
 
-static ISA: AtomicU8 = AtomicU8::new(0);
+/// What the CPU supports (0: not detected yet).
+static DETECTED: AtomicU8 = AtomicU8::new(0);
+/// The cap engines asked for (`RuntimeOptions::max_isa`); only ever lowered.
+static CAP: AtomicU8 = AtomicU8::new(Isa::Avx512 as u8);
 
-/// The instruction set the kernels use in this process (detected once).
-pub(crate) fn isa() -> Isa {
-    match ISA.load(Ordering::Relaxed) {
+fn from_u8(v: u8) -> Isa {
+    match v {
         1 => Isa::Portable,
         2 => Isa::Avx2,
-        3 => Isa::Avx512,
-        _ => {
+        _ => Isa::Avx512,
+    }
+}
+
+/// The instruction set the kernels use now: the best the CPU has, under the cap.
+pub(crate) fn isa() -> Isa {
+    detected().min(from_u8(CAP.load(Ordering::Relaxed)))
+}
+
+/// Lowers the process-wide cap to `cap` (never raises it): the kernels are shared code, so
+/// an engine's `max_isa` applies to every engine of the process from then on. A call in
+/// flight keeps the instruction set it started with, which the CPU still supports.
+pub(crate) fn cap_isa(cap: crate::config::InstructionSet) {
+    use crate::config::InstructionSet;
+    let cap = match cap {
+        InstructionSet::Portable => Isa::Portable,
+        InstructionSet::Avx2 => Isa::Avx2,
+        InstructionSet::Avx512 => Isa::Avx512,
+    };
+    CAP.fetch_min(cap as u8, Ordering::Relaxed);
+}
+
+/// The best instruction set the CPU supports (detected once).
+fn detected() -> Isa {
+    match DETECTED.load(Ordering::Relaxed) {
+        0 => {
             let isa = detect();
-            ISA.store(isa as u8, Ordering::Relaxed);
+            DETECTED.store(isa as u8, Ordering::Relaxed);
             isa
         }
+        v => from_u8(v),
     }
 }
 
 fn detect() -> Isa {
-    let cap = match std::env::var("COMGRASP_NATIVE_ISA").as_deref() {
-        Ok("portable") => Isa::Portable,
-        Ok("avx2") => Isa::Avx2,
-        _ => Isa::Avx512,
-    };
     #[cfg(target_arch = "x86_64")]
     {
         let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
         let avx512 = avx2 && is_x86_feature_detected!("avx512f");
-        let best = if avx512 {
+        if avx512 {
             Isa::Avx512
         } else if avx2 {
             Isa::Avx2
         } else {
             Isa::Portable
-        };
-        best.min(cap)
+        }
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = cap;
         Isa::Portable
     }
 }
@@ -534,10 +554,10 @@ pub(crate) fn gemv_rows(m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Ra
     gemv_with(isa(), m, x, bias, rows, y)
 }
 
-/// [`gemv_rows`] with the given instruction set (which must be supported: `isa <= isa()`).
+/// [`gemv_rows`] with the given instruction set (which the CPU must support).
 fn gemv_with(isa: Isa, m: MatRef<'_>, x: &[f32], bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
     assert!(
-        x.len() == m.cols() && rows.end <= m.rows() && y.len() == rows.len() && isa <= self::isa(),
+        x.len() == m.cols() && rows.end <= m.rows() && y.len() == rows.len() && isa <= detected(),
         "gemv: {}x{} matrix, x {}, rows {rows:?}, y {}",
         m.rows(),
         m.cols(),
@@ -596,11 +616,7 @@ fn gemm_with(isa: Isa, m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>,
     let cols = m.cols();
     let part = rows.len();
     assert!(
-        (1..=4).contains(&n)
-            && x.len() == n * cols
-            && rows.end <= m.rows()
-            && y.len() == n * part
-            && isa <= self::isa(),
+        (1..=4).contains(&n) && x.len() == n * cols && rows.end <= m.rows() && y.len() == n * part && isa <= detected(),
         "gemm: {}x{cols} matrix, n {n}, x {}, rows {rows:?}, y {}",
         m.rows(),
         x.len(),

@@ -42,19 +42,16 @@
 use std::ops::Range;
 
 use super::arena::{Arena, Wm};
-use super::helper_thread::{threads_from_env, Helper, Member, Phase};
+use super::helper_thread::{Helper, Member, Phase};
 use super::kernels::{add_assign, dot, gelu_erf, gemm_rows, gemv_rows, layer_norm, layer_norm_rows, softmax};
 use super::weights::{Matrix, Tensors};
 use crate::bundle::manifest::{Manifest, NativeSpec, N_STREAMS};
 use crate::bundle::BundleSource;
+use crate::config::two_threads;
 use crate::error::{Error, Result};
 
 const LN_EPS: f32 = 1e-5;
 
-/// Environment variable: threads one native step uses, `1` or `2` (read at load; default:
-/// 2 when the machine has two or more cores and the model reads at least
-/// [`SPLIT_MIN_BYTES`] per step).
-pub(crate) const THREADS_ENV: &str = "COMGRASP_STEP_THREADS";
 /// Below this many weight bytes per step one thread is faster than two (the module doc's
 /// measurements: models/tiny's 0.5 MB lose, 0.3 MB models of default's shape gain, so the
 /// line is drawn conservatively).
@@ -194,7 +191,13 @@ struct Own {
 impl NativeStep {
     /// Loads every tensor of `spec`, checking it against the manifest's sizes; any missing,
     /// extra, misshapen, mistyped or non-finite tensor is an `Error::Bundle`.
-    pub(crate) fn load(src: &BundleSource, m: &Manifest, spec: &NativeSpec) -> Result<NativeStep> {
+    /// `threads`: `RuntimeOptions::step_threads` (`None`: two when it pays).
+    pub(crate) fn load(
+        src: &BundleSource,
+        m: &Manifest,
+        spec: &NativeSpec,
+        threads: Option<usize>,
+    ) -> Result<NativeStep> {
         let t = &m.transformer;
         let tensors = Tensors::new(src, spec);
         let err = |msg: String| Error::bundle(src.path_of(&spec.dir), msg);
@@ -338,7 +341,7 @@ impl NativeStep {
         }
         arena.trim();
         let mut step = NativeStep::assemble(arena, d, streams, coord);
-        step.set_threads(threads_from_env(THREADS_ENV, step.bytes >= SPLIT_MIN_BYTES)?);
+        step.set_threads(if two_threads(threads, step.bytes >= SPLIT_MIN_BYTES) { 2 } else { 1 });
         Ok(step)
     }
 

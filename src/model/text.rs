@@ -49,10 +49,10 @@ use tract_onnx::prelude::{
 };
 use tract_onnx::tract_hir::infer::Factoid;
 
+use super::graph::{self, Plan};
 use crate::bundle::manifest::{Dtype, EosSelection, Manifest, Pooling, TextEncoderSpec};
 use crate::bundle::BundleSource;
 use crate::error::{Error, Result};
-use crate::model::graph::{self, Plan};
 
 /// Longest prompt accepted, in UTF-8 bytes.
 pub const MAX_TEXT_BYTES: usize = 4096;
