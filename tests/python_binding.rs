@@ -37,6 +37,7 @@ fn python_binding_passes_its_tests_against_the_library() {
         "test_layout_matches_c",
         "test_stream_to_end",
         "test_errors",
+        "test_runtime_options_change_how_not_what",
         "test_cancel",
         "test_cancel_from_another_thread",
         "test_shm_subscriber_receives_the_polled_frames",
@@ -44,7 +45,7 @@ fn python_binding_passes_its_tests_against_the_library() {
     ] {
         assert!(stdout.lines().any(|l| l == format!("ok {t}")), "no `ok {t}` in:\n{stdout}");
     }
-    check_closing_line(&stdout, 11);
+    check_closing_line(&stdout, 12);
 }
 
 #[test]
