@@ -141,8 +141,7 @@ fn forced_end_greedy_and_max_len() {
 #[test]
 fn concurrent_streams_are_deterministic_and_cancellable() {
     let e = std::sync::Arc::new(engine(true));
-    let mut cfg = cg_stream_config::default();
-    cfg.seed = 1234;
+    let mut cfg = cg_stream_config { seed: 1234, ..Default::default() };
     cfg.use_defaults &= !CG_USE_DEFAULT_SEED;
     let runs: Vec<_> = (0..4)
         .map(|_| {

@@ -26,8 +26,7 @@ fn frames_arrive_in_order_then_end() {
     let (n, status) = drain_checked(s, id);
     assert_eq!((n, status), (80, cg_status::CG_END));
     // END is sticky, and polling after it is not an error.
-    let mut f = Frame::default();
-    f.frame_index = 12345;
+    let mut f = Frame { frame_index: 12345, ..Default::default() };
     for _ in 0..3 {
         assert_eq!(unsafe { cg_poll_frame(s, &mut f) }, cg_status::CG_END);
         assert_eq!(unsafe { cg_stream_wait(s, 10, &mut f) }, cg_status::CG_END);

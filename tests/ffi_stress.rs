@@ -44,7 +44,7 @@ fn full_ring_makes_the_worker_wait_without_losing_frames() {
                 assert_eq!(f.root_translation[0], n as f32);
                 assert_eq!(f.is_last == 1, n == 40 * 16 - 1);
                 n += 1;
-                if n % 97 == 0 {
+                if n.is_multiple_of(97) {
                     std::thread::sleep(Duration::from_millis(2));
                 }
             }

@@ -10,7 +10,7 @@
 //! * Whole streams with overlap on and off and every decode group give identical frames,
 //!   including `is_last`, for sampled End (inside a group too) and the forced End of
 //!   `max_len`.
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -30,7 +30,7 @@ fn default_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default")
 }
 
-fn load(dir: &PathBuf) -> Arc<Bundle> {
+fn load(dir: &Path) -> Arc<Bundle> {
     Bundle::load(dir).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()))
 }
 
@@ -149,7 +149,7 @@ fn end_cases() -> [StreamConfig; 3] {
 /// Asserts one stream's frames are whole chunks with exactly the final frame marked last;
 /// returns the number of tokens.
 fn tokens_of(frames: &[Frame], fpt: usize) -> usize {
-    assert!(!frames.is_empty() && frames.len() % fpt == 0, "{} frames", frames.len());
+    assert!(!frames.is_empty() && frames.len().is_multiple_of(fpt), "{} frames", frames.len());
     let last: Vec<usize> = frames.iter().enumerate().filter(|(_, f)| f.is_last != 0).map(|(i, _)| i).collect();
     assert_eq!(last, vec![frames.len() - 1], "exactly the final frame is marked last");
     frames.len() / fpt
@@ -185,7 +185,7 @@ fn streams_give_the_same_frames_for_every_decode_group() {
             }
             // after the first chunk, the groups cover tokens 1.., so a sequence of n tokens
             // ends inside a group when n - 1 is not a multiple of it
-            ends_inside_a_group |= opts.max_len.is_none() && group > 1 && (n - 1) % group != 0;
+            ends_inside_a_group |= opts.max_len.is_none() && group > 1 && !(n - 1).is_multiple_of(group);
         }
     }
     assert!(ends_inside_a_group, "no case had its sampled End inside a group");

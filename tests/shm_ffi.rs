@@ -166,7 +166,7 @@ fn misuse_gives_clear_errors() {
         }
         let long = CString::new("n".repeat(10_000)).unwrap();
         assert_eq!(cg_subscriber_open(long.as_ptr(), null(), &mut sub), cg_status::CG_ERR_INVALID_ARGUMENT);
-        assert_eq!(cg_subscriber_open(b"\xff\xfe\0".as_ptr().cast(), null(), &mut sub), cg_status::CG_ERR_INVALID_UTF8);
+        assert_eq!(cg_subscriber_open(c"\xff\xfe".as_ptr(), null(), &mut sub), cg_status::CG_ERR_INVALID_UTF8);
         let mut cfg = cg_subscriber_config { struct_size: 0, buffer_frames: 0, reserved: 0 };
         assert_eq!(cg_subscriber_config_init(null_mut()), cg_status::CG_ERR_NULL_POINTER);
         assert_eq!(

@@ -437,9 +437,8 @@ mod tests {
 
     #[test]
     fn old_and_new_struct_sizes() {
-        let mut c = cg_stream_config::default();
-        c.use_defaults = CG_USE_DEFAULT_ALL & !CG_USE_DEFAULT_SEED;
-        c.seed = 7;
+        let mut c =
+            cg_stream_config { use_defaults: CG_USE_DEFAULT_ALL & !CG_USE_DEFAULT_SEED, seed: 7, ..Default::default() };
         let s = unsafe { stream_config_from_c(&c) }.unwrap();
         assert_eq!(s, StreamConfig { seed: Some(7), ..Default::default() });
         c.struct_size = 8;
@@ -471,8 +470,7 @@ mod tests {
         let v1 = V1 { struct_size: 32, coordinate_system: 0, rest: [0; 3], trailing_garbage: 0xdead_beef };
         let c = unsafe { engine_config_from_c(&v1 as *const V1 as *const cg_engine_config) }.unwrap();
         assert_eq!(c.publish_name, None);
-        let mut named = cg_engine_config::default();
-        named.publish_name = c"game".as_ptr();
+        let mut named = cg_engine_config { publish_name: c"game".as_ptr(), ..Default::default() };
         assert_eq!(unsafe { engine_config_from_c(&named) }.unwrap().publish_name.as_deref(), Some("game"));
         // Init never writes past the host's struct: a v1-sized host keeps its next bytes.
         let mut host = V1 { struct_size: 0, coordinate_system: 9, rest: [7; 3], trailing_garbage: 0x1234 };

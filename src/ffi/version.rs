@@ -34,5 +34,5 @@ pub extern "C" fn cg_version_string() -> *const c_char {
 /// struct size (C# `Marshal.SizeOf<CgFrame>()`) to detect a layout mismatch. Any thread.
 #[no_mangle]
 pub extern "C" fn cg_frame_size() -> usize {
-    boundary_value("cg_frame_size", || std::mem::size_of::<cg_frame>())
+    boundary_value("cg_frame_size", std::mem::size_of::<cg_frame>)
 }

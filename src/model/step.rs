@@ -53,6 +53,9 @@ pub struct StepModel {
     d_text: usize,
 }
 
+// One per loaded model: a couple of hundred bytes inline is nothing, and boxing the tract
+// side would only add an indirection.
+#[allow(clippy::large_enum_variant)]
 enum Imp {
     Tract(TractStep),
     Native(Box<NativeStep>),
@@ -76,6 +79,8 @@ pub struct StepState {
     filled: usize,
 }
 
+// One per stream, made once (see `Imp`).
+#[allow(clippy::large_enum_variant)]
 enum StateImp {
     Tract {
         run: PlanState,

@@ -533,7 +533,9 @@ fn generalize_reshapes(proto: &mut pb::ModelProto, t: i64) -> std::result::Resul
         if !tp.int64_data.is_empty() {
             return Some(tp.int64_data.clone());
         }
-        (tp.raw_data.len() % 8 == 0)
+        tp.raw_data
+            .len()
+            .is_multiple_of(8)
             .then(|| tp.raw_data.chunks_exact(8).map(|c| i64::from_le_bytes(c.try_into().unwrap_or([0; 8]))).collect())
     };
     let mut names = Vec::new();

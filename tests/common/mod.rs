@@ -72,13 +72,14 @@ impl Drop for ScriptedSource {
 /// The frame a scripted stream emits at `index`: values derived from the index, so a test
 /// can check content as well as order.
 pub fn expected_frame(stream_id: u64, index: u64, is_last: bool) -> Frame {
-    let mut f = Frame::default();
-    f.stream_id = stream_id;
-    f.frame_index = index;
-    f.time_s = index as f64 / 30.0;
-    f.root_translation = [index as f32, 1.0, 2.0];
-    f.is_last = is_last as u8;
-    f
+    Frame {
+        stream_id,
+        frame_index: index,
+        time_s: index as f64 / 30.0,
+        root_translation: [index as f32, 1.0, 2.0],
+        is_last: is_last as u8,
+        ..Default::default()
+    }
 }
 
 impl ChunkSource for ScriptedSource {

@@ -316,14 +316,14 @@ impl NativeStep {
             let mut inp = Vec::new();
             let mut out = Vec::new();
             let mut norm = Vec::new();
-            for s in 0..N_STREAMS {
+            for (s, &width) in widths.iter().enumerate() {
                 for x in ["inp", "out", "norm"] {
                     note(n(&format!("{x}.{s}.weight")));
                     note(n(&format!("{x}.{s}.bias")));
                 }
-                inp.push(Linear::load(&tensors, &mut arena, &n(&format!("inp.{s}")), cw, widths[s], true)?);
-                out.push(Linear::load(&tensors, &mut arena, &n(&format!("out.{s}")), widths[s], cw, true)?);
-                norm.push(Norm::load(&tensors, &n(&format!("norm.{s}")), widths[s])?);
+                inp.push(Linear::load(&tensors, &mut arena, &n(&format!("inp.{s}")), cw, width, true)?);
+                out.push(Linear::load(&tensors, &mut arena, &n(&format!("out.{s}")), width, cw, true)?);
+                norm.push(Norm::load(&tensors, &n(&format!("norm.{s}")), width)?);
             }
             coord.push(Coord {
                 inp,
