@@ -29,7 +29,7 @@
 #                 run (src/model/step.rs, decoder.rs). tract must run; native needs the
 #                 bundle's native weights (transformer.native / decoder.native), and a
 #                 path that cannot run or that the loaded models do not confirm
-#                 (`engine_paths` in src/bin/comgrasp/bench.rs) is reported as not run.
+#                 (`engine_paths` in cli/src/bench.rs) is reported as not run.
 #   THREADS       thread counts (default 1): the engine's --threads (the native step and
 #                 decoder use min(N, 2); tract needs the multithread-mm feature to use more
 #                 than 1, see FEATURES), onnxruntime's intra-op threads and

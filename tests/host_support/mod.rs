@@ -12,8 +12,14 @@ use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+/// The repository root: the library crate's directory, the parent of the cli/ member's.
 pub fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR"));
+    if dir.join("models").is_dir() {
+        dir
+    } else {
+        dir.parent().expect("cli/ has a parent")
+    }
 }
 
 /// The small random-weight bundle.

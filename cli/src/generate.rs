@@ -15,31 +15,71 @@ use crate::png::Image;
 use crate::scene::Scene;
 use crate::{gltf, preview, Failure};
 
-pub const HELP: &str = "\
-usage: comgrasp generate [--bundle DIR] --text PROMPT [options]
+/// `comgrasp generate`: generates one motion and writes every frame to a file, an animated
+/// glTF and/or a PNG strip of key frames (without any of them only the summary is printed).
+#[derive(clap::Args)]
+pub struct Args {
+    /// Model bundle directory (e.g. models/tiny); default: the COMGRASP_BUNDLE environment
+    /// variable, else the bundle built into the library.
+    #[arg(long, value_name = "DIR")]
+    bundle: Option<PathBuf>,
+    /// What to do, e.g. "A woman drinks from the mug".
+    #[arg(long, value_name = "PROMPT")]
+    text: String,
+    /// FILE.json (an array of frame objects) or FILE.npz (numpy arrays).
+    #[arg(long, value_name = "FILE")]
+    out: Option<String>,
+    /// FILE.glb: animated glTF 2.0 binary (a skinned stand-in body on the SMPL-X skeleton, the
+    /// object the prompt names, one animation); implies --coords gltf.
+    #[arg(long, value_name = "FILE")]
+    glb: Option<String>,
+    /// FILE.png: a strip of 6 key frames (skeleton, object, contact).
+    #[arg(long, value_name = "FILE")]
+    preview: Option<String>,
+    /// Sampler seed (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// Softmax temperature, >= 0; 0 = greedy (default: the bundle's).
+    #[arg(long, value_name = "T", allow_negative_numbers = true)]
+    temperature: Option<f64>,
+    /// Sample among the K most likely tokens; 0 = all (default: the bundle's).
+    #[arg(long, value_name = "K")]
+    top_k: Option<u32>,
+    /// No end before N token steps of 16 frames (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    min_len: Option<u32>,
+    /// End at N token steps at the latest (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    max_len: Option<u32>,
+    /// Coordinate system of the frames: native (z up, metres), gltf (y up), unity (y up,
+    /// left-handed) or unreal (z up, left-handed, centimetres); default native, and gltf with
+    /// --glb (another system conflicts with --glb).
+    #[arg(long, value_name = "SYSTEM", ignore_case = true)]
+    coords: Option<Coords>,
+    /// Also compute the 55 world joint positions (joint_positions).
+    #[arg(long)]
+    fk: bool,
+}
 
-Generates one motion and writes every frame to a file, an animated glTF and/or a
-PNG strip of key frames.
+/// `--coords` values.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Coords {
+    Native,
+    Gltf,
+    Unity,
+    Unreal,
+}
 
-  --bundle DIR          model bundle directory (e.g. models/tiny); default: the
-                        COMGRASP_BUNDLE environment variable, else the built-in bundle
-  --text PROMPT         what to do, e.g. \"A woman drinks from the mug\"
-  --out FILE            FILE.json (array of frame objects) or FILE.npz (numpy arrays)
-  --glb FILE            FILE.glb: animated glTF 2.0 binary (skinned stand-in body on the
-                        SMPL-X skeleton, the object the prompt names, one animation);
-                        implies --coords gltf
-  --preview FILE        FILE.png: strip of 6 key frames (skeleton, object, contact)
-                        (without --out, --glb or --preview only the summary is printed)
-  --seed N              sampler seed (default: the bundle's)
-  --temperature T       softmax temperature, >= 0; 0 = greedy (default: the bundle's)
-  --top-k K             sample among the K most likely tokens; 0 = all (default: the bundle's)
-  --min-len N           no end before N token steps of 16 frames (default: the bundle's)
-  --max-len N           end at N token steps at the latest (default: the bundle's)
-  --coords SYSTEM       native (z up, metres), gltf (y up), unity (y up, left-handed)
-                        or unreal (z up, left-handed, centimetres); default native,
-                        and gltf with --glb (another system conflicts with --glb)
-  --fk                  also compute the 55 world joint positions (joint_positions)
-  -h, --help            this text";
+impl From<Coords> for CoordinateSystem {
+    fn from(c: Coords) -> CoordinateSystem {
+        match c {
+            Coords::Native => CoordinateSystem::CG_COORDS_NATIVE,
+            Coords::Gltf => CoordinateSystem::CG_COORDS_GLTF,
+            Coords::Unity => CoordinateSystem::CG_COORDS_UNITY,
+            Coords::Unreal => CoordinateSystem::CG_COORDS_UNREAL,
+        }
+    }
+}
 
 /// The parsed command line.
 struct Options {
@@ -60,13 +100,8 @@ enum Format {
     Npz,
 }
 
-pub fn run(args: &[String]) -> Result<(), Failure> {
-    if args.iter().any(|a| a == "-h" || a == "--help") {
-        println!("{HELP}");
-        return Ok(());
-    }
-    let opts =
-        parse(args).map_err(|m| Failure::Usage(format!("generate: {m}\nRun `comgrasp generate --help` for usage.")))?;
+pub fn run(args: Args) -> Result<(), Failure> {
+    let opts = options(args).map_err(|m| Failure::Usage(format!("generate: {m}")))?;
     let t0 = Instant::now();
 
     let engine = Engine::new(EngineConfig {
@@ -125,7 +160,8 @@ pub fn run(args: &[String]) -> Result<(), Failure> {
     }
     if let (Some(path), Some(scene)) = (&opts.preview, &scene) {
         let p = preview::render(scene, &frames).map_err(|e| Failure::Run(format!("preview: {e}")))?;
-        write_file(path, &p.image.encode())?;
+        let png = p.image.encode().map_err(|e| Failure::Run(format!("cannot encode {}: {e}", path.display())))?;
+        write_file(path, &png)?;
         let Image { width, height, .. } = p.image;
         let keys: Vec<String> = p.key_frames.iter().map(usize::to_string).collect();
         let mut note = format!("preview {} ({width}x{height}, frames {})", path.display(), keys.join(","));
@@ -171,72 +207,17 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
     std::fs::write(path, bytes).map_err(|e| Failure::Run(format!("cannot write {}: {e}", path.display())))
 }
 
-fn parse(args: &[String]) -> Result<Options, String> {
-    let (mut bundle, mut text, mut out, mut glb, mut preview) = (None, None, None, None, None);
-    let mut stream = StreamConfig::default();
-    let mut coords = None;
-    let mut fk = false;
-    let mut it = args.iter();
-    while let Some(arg) = it.next() {
-        // Accept both `--name value` and `--name=value`.
-        let (name, inline) = match arg.split_once('=') {
-            Some((n, v)) if n.starts_with("--") => (n, Some(v.to_string())),
-            _ => (arg.as_str(), None),
-        };
-        if name == "--fk" {
-            if inline.is_some() {
-                return Err("--fk takes no value".into());
-            }
-            fk = true;
-            continue;
-        }
-        if !name.starts_with("--") {
-            return Err(format!("unexpected argument {arg:?}"));
-        }
-        let known = [
-            "--bundle",
-            "--text",
-            "--out",
-            "--glb",
-            "--preview",
-            "--seed",
-            "--temperature",
-            "--top-k",
-            "--min-len",
-            "--max-len",
-            "--coords",
-        ];
-        if !known.contains(&name) {
-            return Err(format!("unknown option {name}"));
-        }
-        let value = match inline {
-            Some(v) => v,
-            None => it.next().cloned().ok_or_else(|| format!("{name} needs a value"))?,
-        };
-        match name {
-            "--bundle" => bundle = Some(PathBuf::from(value)),
-            "--text" => text = Some(value),
-            "--out" => out = Some(value),
-            "--glb" => glb = Some(value),
-            "--preview" => preview = Some(value),
-            "--seed" => stream.seed = Some(number(name, &value)?),
-            "--temperature" => stream.temperature = Some(number(name, &value)?),
-            "--top-k" => stream.top_k = Some(number(name, &value)?),
-            "--min-len" => stream.min_len = Some(number(name, &value)?),
-            "--max-len" => stream.max_len = Some(number(name, &value)?),
-            "--coords" => {
-                coords = Some(match value.to_ascii_lowercase().as_str() {
-                    "native" => CoordinateSystem::CG_COORDS_NATIVE,
-                    "gltf" => CoordinateSystem::CG_COORDS_GLTF,
-                    "unity" => CoordinateSystem::CG_COORDS_UNITY,
-                    "unreal" => CoordinateSystem::CG_COORDS_UNREAL,
-                    _ => return Err(format!("--coords must be native, gltf, unity or unreal, got {value:?}")),
-                })
-            }
-            _ => unreachable!("checked against `known`"),
-        }
-    }
-    let text = text.ok_or("--text PROMPT is required")?;
+/// The checks clap cannot make: output names and directories, --glb against --coords.
+fn options(a: Args) -> Result<Options, String> {
+    let stream = StreamConfig {
+        seed: a.seed,
+        temperature: a.temperature,
+        top_k: a.top_k,
+        min_len: a.min_len,
+        max_len: a.max_len,
+    };
+    let (bundle, text, out, glb, preview, fk) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk);
+    let coords = a.coords.map(CoordinateSystem::from);
     // Decide formats and check directories before generating, so a typo does not cost a
     // whole run.
     let out = match out {
@@ -290,10 +271,6 @@ fn output_path(option: &str, p: &str, exts: &[&str]) -> Result<(PathBuf, String)
         });
     }
     Ok((path, ext))
-}
-
-fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {
-    value.trim().parse().map_err(|_| format!("{name}: {value:?} is not a valid number here"))
 }
 
 fn write(path: &Path, format: Format, frames: &[Frame], fps: f64, fk: bool) -> std::io::Result<()> {

@@ -69,62 +69,68 @@ use comgrasp::{ChunkSource, CoordinateSystem, Engine, EngineConfig, Frame, PollR
 use serde_json::{json, Value};
 use sha2::{Digest, Sha256};
 
-pub const HELP: &str = "\
-usage: comgrasp bench [--bundle DIR] [options]
-
-Measures load time, text embedding, token step (real KV cache), decoder chunk, end-to-end
-streams (time to first frame, frames/s, real-time factor), poll latency, peak RSS and
-memory read bandwidth on one bundle, and prints the generated tokens so other runtimes
-can be checked against them.
-
-  --bundle DIR          model bundle directory (default: COMGRASP_BUNDLE, else the
-                        default bundle embedded in the library, like generate)
-  --prompt TEXT         prompt (default \"A woman drinks from the mug.\")
-  --seed N              sampler seed (default: the bundle's)
-  --steps N             token steps per sequence, End forbidden before and forced after
-                        (default: the bundle's L_max)
-  --warmup N            untimed steps before the timed ones (default 3)
-  --threads N           tract matmul threads (needs the multithread-mm feature; default 1);
-                        also the native step's and decoder's threads (1 or 2) unless
-                        COMGRASP_STEP_THREADS / COMGRASP_DECODER_THREADS are set
-                        (without --threads: their defaults, 2 on 2+ cores for big models)
-  --temperature T       sampling temperature (default: the bundle's)
-  --top-k K             top-k (default: the bundle's)
-  --stream-runs N       end-to-end streams to time (default 3)
-  --text-runs N         text embeddings to time (default 10)
-  --bandwidth-mib N     buffer of the bandwidth probe, 0 = skip (default 512)
-  --json                print one JSON object instead of the report
-  -h, --help            this text";
-
 const DEFAULT_PROMPT: &str = "A woman drinks from the mug.";
 /// Polls per timed batch in the poll-latency measurement.
 const POLL_BATCH: usize = 64;
 
-#[derive(Debug)]
-struct Options {
-    /// `None`: the engine's default (COMGRASP_BUNDLE or the embedded bundle).
+/// `comgrasp bench`: measures load time, text embedding, token step (real KV cache), decoder
+/// chunk, end-to-end streams (time to first frame, frames/s, real-time factor), poll latency,
+/// peak RSS and memory read bandwidth on one bundle, and prints the generated tokens so other
+/// runtimes can be checked against them.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Model bundle directory (default: COMGRASP_BUNDLE, else the default bundle embedded in
+    /// the library, like generate).
+    #[arg(long, value_name = "DIR")]
     bundle: Option<PathBuf>,
+    /// The prompt.
+    #[arg(long, value_name = "TEXT", default_value = DEFAULT_PROMPT)]
     prompt: String,
+    /// Sampler seed (default: the bundle's).
+    #[arg(long, value_name = "N")]
     seed: Option<u64>,
+    /// Token steps per sequence, End forbidden before and forced after (default: the
+    /// bundle's L_max).
+    #[arg(long, value_name = "N", value_parser = at_least_one)]
     steps: Option<usize>,
+    /// Untimed steps before the timed ones.
+    #[arg(long, value_name = "N", default_value_t = 3)]
     warmup: usize,
-    threads: usize,
-    /// `--threads` was given: it then also sets the native kernels' threads.
-    threads_given: bool,
+    /// tract matmul threads (needs the multithread-mm feature; default 1); also the native
+    /// step's and decoder's threads (1 or 2) unless COMGRASP_STEP_THREADS /
+    /// COMGRASP_DECODER_THREADS are set (without --threads: their defaults, 2 on 2+ cores for
+    /// big models).
+    #[arg(long, value_name = "N", value_parser = at_least_one)]
+    threads: Option<usize>,
+    /// Sampling temperature (default: the bundle's).
+    #[arg(long, value_name = "T")]
     temperature: Option<f64>,
+    /// Top-k (default: the bundle's).
+    #[arg(long, value_name = "K")]
     top_k: Option<u32>,
+    /// End-to-end streams to time.
+    #[arg(long, value_name = "N", default_value_t = 3, value_parser = at_least_one)]
     stream_runs: usize,
+    /// Text embeddings to time.
+    #[arg(long, value_name = "N", default_value_t = 10, value_parser = at_least_one)]
     text_runs: usize,
+    /// Buffer of the bandwidth probe in MiB, 0 = skip.
+    #[arg(long, value_name = "N", default_value_t = 512)]
     bandwidth_mib: usize,
+    /// Print one JSON object instead of the report.
+    #[arg(long)]
     json: bool,
 }
 
-pub fn run(args: &[String]) -> Result<(), String> {
-    if args.iter().any(|a| a == "-h" || a == "--help") {
-        println!("{HELP}");
-        return Ok(());
+/// A count that must be at least 1.
+fn at_least_one(v: &str) -> Result<usize, String> {
+    match v.trim().parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("{v:?} is not a whole number >= 1")),
     }
-    let opts = parse(args).map_err(|m| format!("bench: {m}\nRun `comgrasp bench --help` for usage."))?;
+}
+
+pub fn run(opts: Args) -> Result<(), String> {
     let report = bench(&opts).map_err(|e| format!("bench: {e}"))?;
     if opts.json {
         println!("{}", serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?);
@@ -132,89 +138,6 @@ pub fn run(args: &[String]) -> Result<(), String> {
         print_report(&report);
     }
     Ok(())
-}
-
-fn parse(args: &[String]) -> Result<Options, String> {
-    let mut o = Options {
-        bundle: None,
-        prompt: DEFAULT_PROMPT.into(),
-        seed: None,
-        steps: None,
-        warmup: 3,
-        threads: 1,
-        threads_given: false,
-        temperature: None,
-        top_k: None,
-        stream_runs: 3,
-        text_runs: 10,
-        bandwidth_mib: 512,
-        json: false,
-    };
-    let mut it = args.iter();
-    while let Some(arg) = it.next() {
-        let (name, inline) = match arg.split_once('=') {
-            Some((n, v)) if n.starts_with("--") => (n, Some(v.to_string())),
-            _ => (arg.as_str(), None),
-        };
-        if name == "--json" {
-            if inline.is_some() {
-                return Err("--json takes no value".into());
-            }
-            o.json = true;
-            continue;
-        }
-        const KNOWN: [&str; 11] = [
-            "--bundle",
-            "--prompt",
-            "--seed",
-            "--steps",
-            "--warmup",
-            "--threads",
-            "--temperature",
-            "--top-k",
-            "--stream-runs",
-            "--text-runs",
-            "--bandwidth-mib",
-        ];
-        if !KNOWN.contains(&name) {
-            return Err(format!("unknown option {name:?}"));
-        }
-        let v = match inline {
-            Some(v) => v,
-            None => it.next().cloned().ok_or_else(|| format!("{name} needs a value"))?,
-        };
-        match name {
-            "--bundle" => o.bundle = Some(PathBuf::from(v)),
-            "--prompt" => o.prompt = v,
-            "--seed" => o.seed = Some(number(name, &v)?),
-            "--steps" => o.steps = Some(number(name, &v)?),
-            "--warmup" => o.warmup = number(name, &v)?,
-            "--threads" => {
-                o.threads = number(name, &v)?;
-                o.threads_given = true;
-            }
-            "--temperature" => o.temperature = Some(number(name, &v)?),
-            "--top-k" => o.top_k = Some(number(name, &v)?),
-            "--stream-runs" => o.stream_runs = number(name, &v)?,
-            "--text-runs" => o.text_runs = number(name, &v)?,
-            "--bandwidth-mib" => o.bandwidth_mib = number(name, &v)?,
-            _ => unreachable!("checked against KNOWN"),
-        }
-    }
-    if o.threads == 0 {
-        return Err("--threads must be at least 1".into());
-    }
-    if o.steps == Some(0) {
-        return Err("--steps must be at least 1".into());
-    }
-    if o.stream_runs == 0 || o.text_runs == 0 {
-        return Err("--stream-runs and --text-runs must be at least 1".into());
-    }
-    Ok(o)
-}
-
-fn number<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, String> {
-    value.trim().parse().map_err(|_| format!("{name}: {value:?} is not a valid number here"))
 }
 
 // ------------------------------------------------------------------------------ statistics
@@ -243,11 +166,11 @@ fn ms(d: Duration) -> f64 {
 /// The runtime options: the `COMGRASP_*` variables (`RuntimeOptions::from_env`), where
 /// `--threads` also sets the native kernels' threads (they take 1 or 2) unless their
 /// variables do.
-fn runtime_options(o: &Options) -> Result<RuntimeOptions, String> {
+fn runtime_options(o: &Args) -> Result<RuntimeOptions, String> {
     let mut r = RuntimeOptions::from_env().map_err(|e| e.to_string())?;
-    if o.threads_given {
-        r.step_threads = r.step_threads.or(Some(o.threads.min(2)));
-        r.decoder_threads = r.decoder_threads.or(Some(o.threads.min(2)));
+    if let Some(threads) = o.threads {
+        r.step_threads = r.step_threads.or(Some(threads.min(2)));
+        r.decoder_threads = r.decoder_threads.or(Some(threads.min(2)));
     }
     Ok(r)
 }
@@ -453,9 +376,9 @@ fn engine_paths(bundle: &Bundle, r: &RuntimeOptions) -> Result<(String, String),
     Ok((step.to_string(), decoder.to_string()))
 }
 
-fn bench(o: &Options) -> Result<Value, String> {
+fn bench(o: &Args) -> Result<Value, String> {
     let err = |e: comgrasp::Error| e.to_string();
-    let (tract_threads, thread_note) = set_tract_threads(o.threads);
+    let (tract_threads, thread_note) = set_tract_threads(o.threads.unwrap_or(1));
     let runtime = runtime_options(o)?;
     let native_threads = [threads_name(runtime.step_threads), threads_name(runtime.decoder_threads)];
     let rss_before = rss();
@@ -754,9 +677,9 @@ fn bench(o: &Options) -> Result<Value, String> {
         let buf: Vec<u64> = (0..n as u64).collect();
         let (b1, m1) = read_bandwidth(&buf, 1, 5);
         let (b2, m2) = read_bandwidth(&buf, 2, 5);
-        let (br, _) = if o.threads > 2 {
-            read_bandwidth(&buf, o.threads, 5)
-        } else if o.threads == 2 {
+        let (br, _) = if o.threads.unwrap_or(1) > 2 {
+            read_bandwidth(&buf, o.threads.unwrap_or(1), 5)
+        } else if o.threads == Some(2) {
             (b2, m2)
         } else {
             (b1, m1)
@@ -960,22 +883,31 @@ fn print_report(r: &Value) {
 mod tests {
     use super::*;
 
-    fn args(a: &[&str]) -> Vec<String> {
-        a.iter().map(|s| s.to_string()).collect()
+    fn parse(a: &[&str]) -> Result<Args, clap::Error> {
+        #[derive(clap::Parser)]
+        struct Bench {
+            #[command(flatten)]
+            args: Args,
+        }
+        use clap::Parser;
+        Bench::try_parse_from(std::iter::once("bench").chain(a.iter().copied())).map(|b| b.args)
     }
 
     #[test]
     fn parses_options() {
-        let o = parse(&args(&["--bundle", "b", "--steps=5", "--json", "--prompt", "x y", "--threads", "2"])).unwrap();
+        let o = parse(&["--bundle", "b", "--steps=5", "--json", "--prompt", "x y", "--threads", "2"]).unwrap();
         assert_eq!(o.bundle, Some(PathBuf::from("b")));
         assert_eq!(o.steps, Some(5));
         assert!(o.json);
         assert_eq!(o.prompt, "x y");
-        assert_eq!(o.threads, 2);
-        assert_eq!(parse(&args(&["--steps", "5"])).unwrap().bundle, None, "the engine's default bundle");
-        assert!(parse(&args(&["--bundle", "b", "--nope"])).is_err());
-        assert!(parse(&args(&["--bundle", "b", "--steps", "0"])).is_err());
-        assert!(parse(&args(&["--bundle", "b", "--seed"])).is_err());
+        assert_eq!(o.threads, Some(2));
+        let d = parse(&["--steps", "5"]).unwrap();
+        assert_eq!(d.bundle, None, "the engine's default bundle");
+        assert_eq!((d.prompt.as_str(), d.warmup, d.stream_runs, d.threads), (DEFAULT_PROMPT, 3, 3, None));
+        assert!(parse(&["--bundle", "b", "--nope"]).is_err());
+        assert!(parse(&["--bundle", "b", "--steps", "0"]).is_err());
+        assert!(parse(&["--stream-runs", "0"]).is_err());
+        assert!(parse(&["--bundle", "b", "--seed"]).is_err());
     }
 
     #[test]

@@ -13,7 +13,8 @@ fn comgrasp(args: &[&str]) -> Output {
 }
 
 fn tiny() -> String {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("models/tiny").to_string_lossy().into_owned()
+    // The repository root is this crate's (cli/) parent.
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/tiny").to_string_lossy().into_owned()
 }
 
 fn tmp(name: &str) -> PathBuf {
@@ -158,14 +159,18 @@ fn bad_command_lines_fail_cleanly() {
     let t = tiny.as_str();
     // (arguments, exit code, text the message must contain)
     let cases: &[(&[&str], i32, &str)] = &[
-        (&[], 2, "no command given"),
-        (&["dance"], 2, "unknown command \"dance\""),
-        (&["generate"], 2, "--text PROMPT is required"),
-        (&["generate", "--bundle", t], 2, "--text PROMPT is required"),
-        (&["generate", "--bundle", t, "--text"], 2, "--text needs a value"),
-        (&["generate", "--bundle", t, "--text", "hi", "--seed", "many"], 2, "--seed"),
-        (&["generate", "--bundle", t, "--text", "hi", "--coords", "blender"], 2, "--coords must be"),
-        (&["generate", "--bundle", t, "--text", "hi", "--wobble"], 2, "unknown option --wobble"),
+        // clap's messages (exit code 2, usage on stderr)
+        (&[], 2, "Usage: comgrasp <COMMAND>"),
+        (&["dance"], 2, "unrecognized subcommand 'dance'"),
+        (&["generate"], 2, "--text <PROMPT>"),
+        (&["generate", "--bundle", t], 2, "the following required arguments were not provided"),
+        (&["generate", "--bundle", t, "--text"], 2, "a value is required for '--text <PROMPT>'"),
+        (&["generate", "--bundle", t, "--text", "hi", "--seed", "many"], 2, "invalid value 'many' for '--seed <N>'"),
+        (&["generate", "--bundle", t, "--text", "hi", "--coords", "blender"], 2, "possible values: native, gltf"),
+        (&["generate", "--bundle", t, "--text", "hi", "--wobble"], 2, "unexpected argument '--wobble'"),
+        (&["bench", "--stream-runs", "0"], 2, "--stream-runs"),
+        (&["publish", "--text", "hi"], 2, "--name <NAME>"),
+        // the command's own checks and the engine's (also exit code 2)
         (&["generate", "--bundle", t, "--text", "hi", "--out", "m.csv"], 2, "must end in .json or .npz"),
         (&["generate", "--bundle", t, "--text", "hi", "--out", "/nonexistent/m.json"], 2, "does not exist"),
         (&["generate", "--bundle", t, "--text", "hi", "--temperature", "-1"], 2, "temperature"),
@@ -204,7 +209,15 @@ fn help_and_version() {
     }
     let o = comgrasp(&["--version"]);
     assert!(o.status.success());
-    assert!(text(&o.stdout).starts_with(&format!("comgrasp {}", env!("CARGO_PKG_VERSION"))));
+    let version = text(&o.stdout);
+    assert_eq!(
+        version.trim(),
+        format!("comgrasp {} (C ABI {})", env!("CARGO_PKG_VERSION"), comgrasp::ffi::CG_ABI_VERSION)
+    );
+    for command in ["bench", "publish", "subscribe", "shm-bench"] {
+        let o = comgrasp(&[command, "--help"]);
+        assert!(o.status.success() && text(&o.stdout).contains("Usage: comgrasp"), "{command} --help");
+    }
 }
 
 #[cfg(unix)]
@@ -215,5 +228,5 @@ fn non_utf8_argument_is_an_error_not_a_panic() {
     let o = Command::new(env!("CARGO_BIN_EXE_comgrasp")).args(["generate", "--text"]).arg(bad).output().unwrap();
     let stderr = text(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{stderr}");
-    assert!(stderr.contains("not valid UTF-8") && !stderr.contains("panicked"), "{stderr}");
+    assert!(stderr.contains("invalid UTF-8") && !stderr.contains("panicked"), "{stderr}");
 }

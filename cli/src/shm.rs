@@ -11,47 +11,95 @@ use std::time::{Duration, Instant};
 use comgrasp::shm::{cg_stream_event, FramePublisher, FrameSubscriber, CG_MAX_SUBSCRIBER_BUFFER};
 use comgrasp::{Engine, EngineConfig, Frame, PollResult, StreamConfig};
 
-use crate::opts::Opts;
 use crate::Failure;
 
-pub const PUBLISH_HELP: &str = "\
-usage: comgrasp publish --name NAME --text PROMPT [options]
+/// `comgrasp publish`: runs one generation in an engine that also publishes every frame over
+/// iceoryx2 shared memory on comgrasp/NAME/frames (and stream events on comgrasp/NAME/events),
+/// while this process polls the frames like a host would.
+#[derive(clap::Args)]
+pub struct PublishArgs {
+    /// Publish name (ASCII letters, digits, _ - .).
+    #[arg(long, value_name = "NAME")]
+    name: String,
+    /// The prompt.
+    #[arg(long, value_name = "PROMPT")]
+    text: String,
+    /// Model bundle (default: COMGRASP_BUNDLE, else the built-in one).
+    #[arg(long, value_name = "DIR")]
+    bundle: Option<PathBuf>,
+    /// Sampler seed (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    seed: Option<u64>,
+    /// No end before N token steps (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    min_len: Option<u32>,
+    /// End at N token steps at the latest (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    max_len: Option<u32>,
+    /// Wait (up to 30 s) until N subscribers are connected first.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    wait_subscribers: u64,
+    /// Sleep MS between polls, like a game tick (default: wait for frames).
+    #[arg(long, value_name = "MS", default_value_t = 0)]
+    poll_interval_ms: u64,
+    /// Frames the stream buffers before its worker waits.
+    #[arg(long, value_name = "N", default_value_t = 256)]
+    ring: usize,
+    /// Write the bytes of every polled cg_frame to FILE.
+    #[arg(long, value_name = "FILE")]
+    raw: Option<String>,
+    /// The same run without shared memory (for comparisons).
+    #[arg(long)]
+    no_publish: bool,
+}
 
-Runs one generation in an engine that also publishes every frame over iceoryx2 shared
-memory on comgrasp/NAME/frames (and stream events on comgrasp/NAME/events), while this
-process polls the frames like a host would.
+/// `comgrasp subscribe`: reads the frames an engine publishes under NAME (in any process).
+/// Prints `ready` once subscribed, one line per stream event and a summary line.
+#[derive(clap::Args)]
+pub struct SubscribeArgs {
+    /// The publish name.
+    #[arg(long, value_name = "NAME")]
+    name: String,
+    /// Write the bytes of every received cg_frame to FILE.
+    #[arg(long, value_name = "FILE")]
+    raw: Option<String>,
+    /// Stop after K frames with is_last = 1.
+    #[arg(long, value_name = "K", default_value_t = 1)]
+    streams: u64,
+    /// Give up after T seconds (exit code 3).
+    #[arg(long, value_name = "T", default_value_t = 60.0)]
+    timeout_s: f64,
+    /// Frames kept between reads, 1..=256.
+    #[arg(long, value_name = "N", default_value_t = CG_MAX_SUBSCRIBER_BUFFER)]
+    buffer: usize,
+    /// Sleep D microseconds after every frame (a slow consumer).
+    #[arg(long, value_name = "D", default_value_t = 0)]
+    read_delay_us: u64,
+    /// Report publish-to-receive latency (needs frames whose time_s is a CLOCK_MONOTONIC
+    /// stamp, as shm-bench sends).
+    #[arg(long)]
+    latency: bool,
+}
 
-  --name NAME             publish name (ASCII letters, digits, _ - .)
-  --text PROMPT           the prompt
-  --bundle DIR            model bundle (default: COMGRASP_BUNDLE, else the built-in one)
-  --seed N --min-len N --max-len N   sampling settings (default: the bundle's)
-  --wait-subscribers N    wait (up to 30 s) until N subscribers are connected first
-  --poll-interval-ms MS   sleep MS between polls, like a game tick (default: wait for frames)
-  --ring N                frames the stream buffers before its worker waits (default 256)
-  --raw FILE              write the bytes of every polled cg_frame to FILE
-  --no-publish            the same run without shared memory (for comparisons)";
-
-pub const SUBSCRIBE_HELP: &str = "\
-usage: comgrasp subscribe --name NAME [options]
-
-Reads the frames an engine publishes under NAME (in any process). Prints `ready` once
-subscribed, one line per stream event and a summary line.
-
-  --raw FILE            write the bytes of every received cg_frame to FILE
-  --streams K           stop after K frames with is_last = 1 (default 1)
-  --timeout-s T         give up after T seconds (exit code 3; default 60)
-  --buffer N            frames kept between reads, 1..=256 (default 256)
-  --read-delay-us D     sleep D microseconds after every frame (a slow consumer)
-  --latency             report publish-to-receive latency (needs frames whose time_s
-                        is a CLOCK_MONOTONIC stamp, as shm-bench sends)";
-
-pub const BENCH_HELP: &str = "\
-usage: comgrasp shm-bench [--frames N] [--subscribers LIST] [--bundle DIR] [--runs R]
-
-Measures publishing: (1) synthetic frames published as fast as possible with each number
-of subscriber processes in LIST (default 1,4): frames/s, received, dropped, latency;
-(2) the engine's generation time per frame with and without publishing (R interleaved
-runs each, default 5, one subscriber attached), and their ratio.";
+/// `comgrasp shm-bench`: (1) synthetic frames published as fast as possible with each number
+/// of subscriber processes in LIST: frames/s, received, dropped, latency; (2) the engine's
+/// generation time per frame with and without publishing (R interleaved runs each, one
+/// subscriber attached), and their ratio.
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Synthetic frames per subscriber count.
+    #[arg(long, value_name = "N", default_value_t = 200_000)]
+    frames: u64,
+    /// Subscriber process counts, comma-separated.
+    #[arg(long, value_name = "LIST", value_delimiter = ',', default_value = "1,4")]
+    subscribers: Vec<usize>,
+    /// Model bundle (default: COMGRASP_BUNDLE, else the built-in one).
+    #[arg(long, value_name = "DIR")]
+    bundle: Option<PathBuf>,
+    /// Interleaved runs with and without publishing.
+    #[arg(long, value_name = "R", default_value_t = 5)]
+    runs: usize,
+}
 
 /// `comgrasp shm-clean`: reclaims what killed processes left in shared memory.
 pub fn clean() -> Result<(), Failure> {
@@ -61,10 +109,6 @@ pub fn clean() -> Result<(), Failure> {
         return Err(run_err("some dead nodes could not be cleaned (permissions? run as their user)"));
     }
     Ok(())
-}
-
-fn usage(e: String) -> Failure {
-    Failure::Usage(e)
 }
 
 fn run_err(e: impl std::fmt::Display) -> Failure {
@@ -90,48 +134,20 @@ fn create_raw(path: Option<&str>) -> Result<Option<BufWriter<File>>, Failure> {
         .transpose()
 }
 
-pub fn publish(args: &[String]) -> Result<(), Failure> {
-    if args.iter().any(|a| a == "-h" || a == "--help") {
-        println!("{PUBLISH_HELP}");
-        return Ok(());
-    }
-    let o = Opts::parse(
-        "publish",
-        args,
-        &[
-            "--name",
-            "--text",
-            "--bundle",
-            "--seed",
-            "--min-len",
-            "--max-len",
-            "--wait-subscribers",
-            "--poll-interval-ms",
-            "--ring",
-            "--raw",
-        ],
-        &["--no-publish"],
-    )
-    .map_err(usage)?;
-    let name = o.required("--name").map_err(usage)?.to_string();
-    let text = o.required("--text").map_err(usage)?.to_string();
-    let stream = StreamConfig {
-        seed: o.str("--seed").map(|_| o.num("--seed", 0u64)).transpose().map_err(usage)?,
-        min_len: o.str("--min-len").map(|_| o.num("--min-len", 0u32)).transpose().map_err(usage)?,
-        max_len: o.str("--max-len").map(|_| o.num("--max-len", 0u32)).transpose().map_err(usage)?,
-        ..Default::default()
-    };
-    let wait_subscribers: u64 = o.num("--wait-subscribers", 0).map_err(usage)?;
-    let interval = Duration::from_millis(o.num("--poll-interval-ms", 0).map_err(usage)?);
+pub fn publish(o: PublishArgs) -> Result<(), Failure> {
+    let (name, text) = (o.name, o.text);
+    let stream = StreamConfig { seed: o.seed, min_len: o.min_len, max_len: o.max_len, ..Default::default() };
+    let wait_subscribers = o.wait_subscribers;
+    let interval = Duration::from_millis(o.poll_interval_ms);
     let engine = Engine::new(EngineConfig {
-        bundle_path: o.str("--bundle").map(PathBuf::from),
-        ring_capacity: o.num("--ring", 256).map_err(usage)?,
-        publish_name: (!o.flag("--no-publish")).then_some(name),
+        bundle_path: o.bundle,
+        ring_capacity: o.ring,
+        publish_name: (!o.no_publish).then_some(name),
         runtime: comgrasp::config::RuntimeOptions::from_env().map_err(run_err)?,
         ..Default::default()
     })
     .map_err(run_err)?;
-    let mut raw = create_raw(o.str("--raw"))?;
+    let mut raw = create_raw(o.raw.as_deref())?;
 
     let deadline = Instant::now() + Duration::from_secs(30);
     while engine.publisher_stats().map_or(0, |s| s.subscribers) < wait_subscribers {
@@ -185,26 +201,15 @@ pub fn publish(args: &[String]) -> Result<(), Failure> {
     Ok(())
 }
 
-pub fn subscribe(args: &[String]) -> Result<(), Failure> {
-    if args.iter().any(|a| a == "-h" || a == "--help") {
-        println!("{SUBSCRIBE_HELP}");
-        return Ok(());
-    }
-    let o = Opts::parse(
-        "subscribe",
-        args,
-        &["--name", "--raw", "--streams", "--timeout-s", "--buffer", "--read-delay-us"],
-        &["--latency"],
-    )
-    .map_err(usage)?;
-    let name = o.required("--name").map_err(usage)?;
-    let streams: u64 = o.num("--streams", 1).map_err(usage)?;
-    let timeout = Duration::from_secs_f64(o.num("--timeout-s", 60.0).map_err(usage)?);
-    let delay = Duration::from_micros(o.num("--read-delay-us", 0).map_err(usage)?);
-    let latency = o.flag("--latency");
-    let mut sub =
-        FrameSubscriber::open(name, o.num("--buffer", CG_MAX_SUBSCRIBER_BUFFER).map_err(usage)?).map_err(run_err)?;
-    let mut raw = create_raw(o.str("--raw"))?;
+pub fn subscribe(o: SubscribeArgs) -> Result<(), Failure> {
+    let name = o.name.as_str();
+    let streams = o.streams;
+    let timeout = Duration::try_from_secs_f64(o.timeout_s)
+        .map_err(|_| Failure::Usage(format!("subscribe: --timeout-s {} is not a duration", o.timeout_s)))?;
+    let delay = Duration::from_micros(o.read_delay_us);
+    let latency = o.latency;
+    let mut sub = FrameSubscriber::open(name, o.buffer).map_err(run_err)?;
+    let mut raw = create_raw(o.raw.as_deref())?;
     println!("ready");
     let _ = std::io::stdout().flush();
 
@@ -293,20 +298,8 @@ fn field(line: &str, key: &str) -> f64 {
     line.split_whitespace().skip_while(|w| *w != key).nth(1).and_then(|v| v.parse().ok()).unwrap_or(f64::NAN)
 }
 
-pub fn bench(args: &[String]) -> Result<(), Failure> {
-    if args.iter().any(|a| a == "-h" || a == "--help") {
-        println!("{BENCH_HELP}");
-        return Ok(());
-    }
-    let o = Opts::parse("shm-bench", args, &["--frames", "--subscribers", "--bundle", "--runs"], &[]).map_err(usage)?;
-    let n: u64 = o.num("--frames", 200_000).map_err(usage)?;
-    let runs: usize = o.num("--runs", 5).map_err(usage)?;
-    let counts: Vec<usize> = o
-        .str("--subscribers")
-        .unwrap_or("1,4")
-        .split(',')
-        .map(|s| s.trim().parse().map_err(|_| usage(format!("shm-bench: bad --subscribers {s:?}"))))
-        .collect::<Result<_, _>>()?;
+pub fn bench(o: BenchArgs) -> Result<(), Failure> {
+    let (n, runs, counts) = (o.frames, o.runs, o.subscribers);
     let pid = std::process::id();
 
     println!(
@@ -347,7 +340,7 @@ pub fn bench(args: &[String]) -> Result<(), Failure> {
     println!("# producer: generation time per frame, {runs} interleaved runs each");
     let name = format!("shm-bench-{pid}-engine");
     let mut base = EngineConfig {
-        bundle_path: o.str("--bundle").map(PathBuf::from),
+        bundle_path: o.bundle,
         runtime: comgrasp::config::RuntimeOptions::from_env().map_err(run_err)?,
         ..Default::default()
     };

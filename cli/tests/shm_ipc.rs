@@ -4,6 +4,7 @@
 //! `cg_subscriber_*`, compiled here), each in its own process.
 #![cfg(unix)]
 
+#[path = "../../tests/host_support/mod.rs"]
 mod host_support;
 
 use std::io::{BufRead, BufReader};

@@ -346,7 +346,7 @@ mod tests {
         use crate::obj::Mesh;
         use crate::scene::SceneObject;
         use comgrasp::CoordinateSystem;
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/tiny/manifest.json");
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/tiny/manifest.json");
         let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
         let sk = &m["skeleton"];
         let rest: Vec<[f64; 3]> = sk["rest_joints"]
@@ -383,7 +383,7 @@ mod tests {
         let p = render(&scene, &[f, f]).unwrap();
         assert_eq!((p.image.width, p.image.height, p.key_frames.clone()), (2 * PANEL_WIDTH, PANEL_HEIGHT, vec![0, 1]));
         if let Ok(dir) = std::env::var("COMGRASP_PREVIEW_DUMP") {
-            std::fs::write(format!("{dir}/standing.png"), p.image.encode()).unwrap();
+            std::fs::write(format!("{dir}/standing.png"), p.image.encode().unwrap()).unwrap();
         }
         let rows = |c: [u8; 3]| -> Vec<usize> {
             (0..PANEL_HEIGHT as usize)

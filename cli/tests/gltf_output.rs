@@ -1,9 +1,8 @@
 //! `comgrasp generate --glb/--preview` on the tiny bundle, checked from the outside:
 //! the Khronos glTF validator accepts the glb with no error and no warning; the glb read
 //! back (a small reader here) and evaluated at every frame reproduces the engine's own
-//! forward kinematics from a separate `--coords gltf --fk` run; the PNG is well-formed
-//! (chunk CRCs, a zlib stream that inflates to the image size with the right Adler-32)
-//! and not blank; bad output paths fail with a message instead of a panic.
+//! forward kinematics from a separate `--coords gltf --fk` run; the PNG decodes (the `png`
+//! crate checks CRCs, the zlib stream and its Adler-32) to six panels, none blank; bad output paths fail with a message instead of a panic.
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -20,8 +19,9 @@ fn comgrasp(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_comgrasp")).args(args).output().expect("run comgrasp")
 }
 
+/// The repository root (this crate is its cli/ member).
 fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("cli/ has a parent")
 }
 
 fn tiny() -> String {
@@ -346,145 +346,22 @@ fn glb_skeleton_and_object_reproduce_the_engine_frames() {
 }
 
 // ---------------------------------------------------------------------------------------
-// PNG: chunk structure, CRCs and a minimal inflate (stored and fixed-Huffman blocks,
-// which is what the writer emits).
-
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in bytes {
-        c ^= b as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-        }
-    }
-    !c
-}
-
-struct Bits<'a> {
-    data: &'a [u8],
-    at: usize,
-}
-
-impl Bits<'_> {
-    fn bit(&mut self) -> u32 {
-        let b = (self.data[self.at / 8] >> (self.at % 8)) & 1;
-        self.at += 1;
-        b as u32
-    }
-
-    fn bits(&mut self, n: u32) -> u32 {
-        (0..n).fold(0, |v, i| v | (self.bit() << i))
-    }
-
-    /// A Huffman code is stored most significant bit first.
-    fn fixed_litlen(&mut self) -> u32 {
-        let mut code = 0;
-        for len in 1..=9 {
-            code = (code << 1) | self.bit();
-            match (len, code) {
-                (7, 0..=23) => return 256 + code,
-                (8, 0x30..=0xBF) => return code - 0x30,
-                (8, 0xC0..=0xC7) => return 280 + code - 0xC0,
-                (9, 0x190..=0x1FF) => return 144 + code - 0x190,
-                _ => {}
-            }
-        }
-        panic!("invalid fixed Huffman code at bit {}", self.at);
-    }
-}
-
-fn inflate(data: &[u8]) -> Vec<u8> {
-    const LEN_BASE: [usize; 29] = [
-        3, 4, 5, 6, 7, 8, 9, 10, 11, 13, 15, 17, 19, 23, 27, 31, 35, 43, 51, 59, 67, 83, 99, 115, 131, 163, 195, 227,
-        258,
-    ];
-    const LEN_EXTRA: [u32; 29] =
-        [0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4, 5, 5, 5, 5, 0];
-    const DIST_BASE: [usize; 30] = [
-        1, 2, 3, 4, 5, 7, 9, 13, 17, 25, 33, 49, 65, 97, 129, 193, 257, 385, 513, 769, 1025, 1537, 2049, 3073, 4097,
-        6145, 8193, 12289, 16385, 24577,
-    ];
-    const DIST_EXTRA: [u32; 30] =
-        [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9, 10, 10, 11, 11, 12, 12, 13, 13];
-    let mut b = Bits { data, at: 0 };
-    let mut out: Vec<u8> = Vec::new();
-    loop {
-        let last = b.bit();
-        match b.bits(2) {
-            0 => {
-                b.at = b.at.next_multiple_of(8);
-                let len = b.bits(16) as usize;
-                assert_eq!(b.bits(16) as usize, !len & 0xFFFF, "stored block NLEN");
-                out.extend_from_slice(&data[b.at / 8..b.at / 8 + len]);
-                b.at += 8 * len;
-            }
-            1 => loop {
-                let sym = b.fixed_litlen();
-                match sym {
-                    0..=255 => out.push(sym as u8),
-                    256 => break,
-                    _ => {
-                        let i = (sym - 257) as usize;
-                        let len = LEN_BASE[i] + b.bits(LEN_EXTRA[i]) as usize;
-                        let d = (0..5).fold(0, |c, _| (c << 1) | b.bit()) as usize;
-                        let dist = DIST_BASE[d] + b.bits(DIST_EXTRA[d]) as usize;
-                        assert!(dist <= out.len(), "distance {dist} before the start");
-                        for _ in 0..len {
-                            out.push(out[out.len() - dist]);
-                        }
-                    }
-                }
-            },
-            t => panic!("block type {t}: the writer emits only stored or fixed-Huffman blocks"),
-        }
-        if last == 1 {
-            return out;
-        }
-    }
-}
+// PNG: decoded by the `png` crate (chunk CRCs, zlib stream and Adler-32 checked there).
 
 #[test]
 fn preview_png_is_well_formed_and_not_blank() {
-    let png = &generated().png;
-    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
-    let mut at = 8;
-    let mut chunks: Vec<(String, &[u8])> = Vec::new();
-    while at < png.len() {
-        let len = u32::from_be_bytes(png[at..at + 4].try_into().unwrap()) as usize;
-        let body = &png[at + 4..at + 8 + len];
-        let crc = u32::from_be_bytes(png[at + 8 + len..at + 12 + len].try_into().unwrap());
-        let kind = String::from_utf8_lossy(&body[..4]).into_owned();
-        assert_eq!(crc, crc32(body), "CRC of chunk {kind}");
-        chunks.push((kind, &body[4..]));
-        at += 12 + len;
-    }
-    assert_eq!(at, png.len());
-    assert_eq!(chunks.first().unwrap().0, "IHDR");
-    assert_eq!(chunks.last().unwrap(), &("IEND".to_string(), &[][..]));
-    let ihdr = chunks[0].1;
-    let (w, h) = (
-        u32::from_be_bytes(ihdr[0..4].try_into().unwrap()) as usize,
-        u32::from_be_bytes(ihdr[4..8].try_into().unwrap()) as usize,
-    );
+    let bytes = &generated().png;
+    let mut reader = png::Decoder::new(std::io::Cursor::new(&bytes[..])).read_info().expect("a valid PNG header");
+    let mut rgb = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut rgb).expect("valid image data");
+    let (w, h) = (info.width as usize, info.height as usize);
     assert_eq!((w, h), (6 * 256, 320), "six 256×320 panels");
-    assert_eq!(&ihdr[8..], [8, 2, 0, 0, 0], "8-bit RGB, no interlace");
-
-    let z: Vec<u8> = chunks.iter().filter(|(k, _)| k == "IDAT").flat_map(|(_, d)| d.iter().copied()).collect();
-    assert_eq!(((z[0] as u32) << 8 | z[1] as u32) % 31, 0, "zlib header check");
-    assert_eq!(z[0] & 0x0F, 8, "deflate");
-    let raw = inflate(&z[2..z.len() - 4]);
-    assert_eq!(raw.len(), h * (1 + 3 * w), "inflated size = scanlines");
-    let (mut a, mut s) = (1u32, 0u32);
-    for &x in &raw {
-        a = (a + x as u32) % 65_521;
-        s = (s + a) % 65_521;
-    }
-    assert_eq!(u32::from_be_bytes(z[z.len() - 4..].try_into().unwrap()), (s << 16) | a, "Adler-32");
+    assert_eq!((info.color_type, info.bit_depth), (png::ColorType::Rgb, png::BitDepth::Eight), "8-bit RGB");
+    assert_eq!(info.buffer_size(), 3 * w * h);
+    reader.finish().expect("a complete file (IEND)");
 
     // Not blank: plenty of pixels differ from the background (top-left pixel), in several colours.
-    let rows: Vec<&[u8]> = raw.chunks_exact(1 + 3 * w).collect();
-    assert!(rows.iter().all(|r| r[0] == 0), "filter type None on every scanline");
-    let pixels: Vec<[u8; 3]> = rows.iter().flat_map(|r| r[1..].chunks_exact(3).map(|p| [p[0], p[1], p[2]])).collect();
+    let pixels: Vec<[u8; 3]> = rgb[..3 * w * h].chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
     let background = pixels[0];
     let drawn = pixels.iter().filter(|&&p| p != background).count();
     let mut colours = pixels.clone();
@@ -530,7 +407,7 @@ fn bad_output_paths_fail_cleanly() {
         ([&gen[..], &["--glb", "m.gltf"]].concat(), 2, "must end in .glb".into()),
         ([&gen[..], &["--preview", "m.jpg"]].concat(), 2, "must end in .png".into()),
         ([&gen[..], &["--glb", "m.glb", "--coords", "unity"]].concat(), 2, "conflicts with --coords unity".into()),
-        ([&gen[..], &["--glb"]].concat(), 2, "--glb needs a value".into()),
+        ([&gen[..], &["--glb"]].concat(), 2, "a value is required for '--glb <FILE>'".into()),
     ];
     for (args, code, needle) in &cases {
         let o = comgrasp(args);
