@@ -144,6 +144,11 @@ impl Pipeline {
         codes.iter().zip(&self.end_ids).any(|(c, e)| c == e)
     }
 
+    /// The frame assembler every stream of this pipeline uses.
+    pub fn assembler(&self) -> &FrameAssembler {
+        &self.assembler
+    }
+
     /// Whether streams run step k+1 with the decode of chunk k (`model::overlap`).
     pub fn overlap(&self) -> bool {
         self.overlap

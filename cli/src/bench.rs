@@ -56,7 +56,6 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use comgrasp::assemble::FrameAssembler;
 use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::bundle::N_STREAMS;
 use comgrasp::config::RuntimeOptions;
@@ -496,16 +495,9 @@ fn bench(o: &Args) -> Result<Value, String> {
         publish_name: None,
         runtime,
     };
-    let assembler = FrameAssembler::new(
-        &m.normalization.mean,
-        &m.normalization.std,
-        &m.skeleton.parents,
-        &m.skeleton.rest_joints,
-        config.coordinate_system,
-        config.enable_fk,
-        m.fps,
-    )
-    .map_err(err)?;
+    // The streams' own pipeline (5. below), so the expected frames are assembled exactly as theirs.
+    let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), &config).map_err(err)?);
+    let assembler = pipeline.assembler();
     let n_frames = steps * f;
     let mut expected = vec![Frame::default(); n_frames];
     let mut assemble_us = Vec::with_capacity(steps);
@@ -526,7 +518,6 @@ fn bench(o: &Args) -> Result<Value, String> {
     }
 
     // 5. end-to-end streams on the same loaded bundle
-    let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), &config).map_err(err)?);
     let overlap = pipeline.overlap();
     let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| {
         Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?) as Box<dyn ChunkSource>)
