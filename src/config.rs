@@ -1,7 +1,8 @@
-//! How an engine runs its models: backends, thread counts, decode grouping, overlap and the
-//! instruction-set cap ([`RuntimeOptions`], a field of `EngineConfig`; C: the `runtime_*`
-//! fields of `cg_engine_config`). The bottom floor: it imports nothing from the crate but
-//! the error type.
+//! Typed configuration, plain data: the engine's ([`EngineConfig`]), a stream's
+//! ([`StreamConfig`]) and how an engine runs its models ([`RuntimeOptions`]: backends, thread
+//! counts, decode grouping, overlap and the instruction-set cap; C: the fields after
+//! `publish_name` in `cg_engine_config`), with their limits. The bottom floor: it imports
+//! only the error type and the coordinate systems of [`crate::frame`].
 //!
 //! Every option defaults to "automatic", the choice that is fastest on the bundle and
 //! machine (each consumer documents its rule). The library itself never reads the
