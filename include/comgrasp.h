@@ -24,6 +24,43 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
+// Frames a raw contact flag must stay on before a grasp starts.
+#define ON_FRAMES 2
+
+// Frames a raw contact flag must stay off before a held object is let go.
+#define OFF_FRAMES 4
+
+// Mean speed of the reach correction's blend-in, m/s (bounded by the frame counts below).
+#define REACH_SPEED 0.6
+
+// Speed at which a correction fades once the object is held or let go, m/s.
+#define FADE_SPEED 0.3
+
+// A grasp whose wrist target lies beyond this share of the arm's length is not made.
+#define REACH_LIMIT 0.98
+
+// Shortest wrist-to-centre distance of a grasp beyond the object's smallest half extent
+// (the palm's thickness and the wrist-to-palm offset), m.
+#define GRIP_MIN 0.04
+
+// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
+#define GRIP_MARGIN 0.10
+
+// Largest forward bow of the spine the reach may add, radians (split over the three
+// spine joints; the legs and pelvis never move).
+#define MAX_BOW 0.6
+
+// Horizontal radius around the object's start within which it lands back on the support
+// it started on (SynthGrasp's table is 1.2 m × 0.8 m), m.
+#define SUPPORT_RADIUS 0.4
+
+// An object let go at most this far below the top of the support it started on is set
+// onto it (a hand that put it down into the table), m.
+#define SUPPORT_DEPTH 0.1
+
+// Height of the ground in the native world (z up), m.
+#define GROUND_Z 0.0
+
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -95,6 +132,13 @@
 
 // All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
 #define CG_USE_DEFAULT_ALL 31
+
+// Set in `cg_stream_config.flags`: frames are the model's raw output, without the
+// contact-consistency stage (the object may float or drift, a hand may hold empty air).
+#define CG_STREAM_RAW_OUTPUT (1 << 0)
+
+// All `CG_STREAM_*` flags this library knows.
+#define CG_STREAM_FLAGS_ALL CG_STREAM_RAW_OUTPUT
 
 // Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
 // signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
@@ -264,8 +308,9 @@ typedef struct cg_stream_config {
   uint32_t min_len;
   // End is forced at this many token steps; 1..=the bundle's L_max.
   uint32_t max_len;
-  // Reserved, must be 0.
-  uint32_t reserved;
+  // Bitmask of `CG_STREAM_*` flags; 0 = the defaults (the contact-consistency stage on).
+  // Unknown bits are `CG_ERR_INVALID_ARGUMENT`. (Named `reserved`, must-be-0, before.)
+  uint32_t flags;
 } cg_stream_config;
 
 // One frame of generated motion. All positions in the engine's coordinate system

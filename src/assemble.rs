@@ -229,29 +229,47 @@ impl FrameAssembler {
         }
     }
 
-    /// Fills `out` from one normalized frame (335 features, as the decoder emits them).
-    /// Every field of `out` is written. No allocation.
+    /// Fills `out` from one normalized frame (335 features, as the decoder emits them): the
+    /// model's raw output, [`Self::decode`] then [`Self::emit`]. Every field of `out` is
+    /// written. No allocation.
     ///
     /// Panics if `normalized.len() != 335` (a caller bug: the decoder's frame width is
     /// checked when the bundle is loaded).
     pub fn assemble(&self, normalized: &[f32], stream_id: u64, frame_index: u64, is_last: bool, out: &mut Frame) {
+        let mut pose = Pose::default();
+        self.decode(normalized, &mut pose);
+        self.emit(&pose, stream_id, frame_index, is_last, out);
+    }
+
+    /// One normalized frame → its [`Pose`] in the native world (de-normalized, 6D turned
+    /// into rotation matrices). No allocation.
+    pub fn decode(&self, normalized: &[f32], pose: &mut Pose) {
         let mut f = [0.0f32; FRAME_DIM];
         self.denormalize(normalized, &mut f);
-        let b = &self.basis;
-
-        // Local rotations of all 55 joints (0 = the root's global rotation).
-        let mut local = [IDENTITY; CG_NUM_JOINTS];
-        for (j, l) in local.iter_mut().enumerate() {
-            if let Some(col) = rot6d_column(j) {
-                *l = rot6d(&f, col);
-            }
+        for (j, l) in pose.local.iter_mut().enumerate() {
+            *l = match rot6d_column(j) {
+                Some(col) => rot6d(&f, col),
+                None => IDENTITY,
+            };
         }
+        pose.pelvis = vec3(&f, ROOT_TRANSL);
+        pose.object_rotation = rot6d(&f, OBJECT_ROT6D);
+        pose.object_translation = vec3(&f, OBJECT_TRANSL);
+        pose.object_centre = vec3(&f, OBJECT_CENTRE);
+        pose.wrist_to_object = [vec3(&f, LWRIST_TO_OBJECT), vec3(&f, RWRIST_TO_OBJECT)];
+        pose.contact_probability = [f[CONTACT_CHANNELS[0]], f[CONTACT_CHANNELS[1]]];
+        pose.contact = pose.contact_probability.map(|v| v > CONTACT_THRESHOLD);
+    }
 
+    /// A native-world [`Pose`] → the C frame in the engine's coordinate system (basis change,
+    /// quaternions, FK when enabled). Every field of `out` is written. No allocation.
+    pub fn emit(&self, pose: &Pose, stream_id: u64, frame_index: u64, is_last: bool, out: &mut Frame) {
+        let b = &self.basis;
+        let local = &pose.local;
         out.stream_id = stream_id;
         out.frame_index = frame_index;
         out.time_s = frame_index as f64 / self.fps;
-        let pelvis = vec3(&f, ROOT_TRANSL);
-        out.root_translation = b.point(&pelvis);
+        out.root_translation = b.point(&pose.pelvis);
         out.root_rotation = b.rotation(&local[0]);
         for i in 0..CG_BODY_JOINTS {
             out.body_rotations[i] = b.rotation(&local[1 + i]);
@@ -260,20 +278,19 @@ impl FrameAssembler {
             out.left_hand_rotations[i] = b.rotation(&local[LHAND_FIRST_JOINT + i]);
             out.right_hand_rotations[i] = b.rotation(&local[RHAND_FIRST_JOINT + i]);
         }
-        out.object_translation = b.point(&vec3(&f, OBJECT_TRANSL));
-        out.object_rotation = b.rotation(&rot6d(&f, OBJECT_ROT6D));
-        out.object_centre = b.point(&vec3(&f, OBJECT_CENTRE));
-        out.left_wrist_to_object = b.point(&vec3(&f, LWRIST_TO_OBJECT));
-        out.right_wrist_to_object = b.point(&vec3(&f, RWRIST_TO_OBJECT));
-        let p = [f[CONTACT_CHANNELS[0]], f[CONTACT_CHANNELS[1]]];
-        out.contact_probability = p;
-        out.contact = p.map(|v| u8::from(v > CONTACT_THRESHOLD));
+        out.object_translation = b.point(&pose.object_translation);
+        out.object_rotation = b.rotation(&pose.object_rotation);
+        out.object_centre = b.point(&pose.object_centre);
+        out.left_wrist_to_object = b.point(&pose.wrist_to_object[0]);
+        out.right_wrist_to_object = b.point(&pose.wrist_to_object[1]);
+        out.contact_probability = pose.contact_probability;
+        out.contact = pose.contact.map(u8::from);
         out.is_last = u8::from(is_last);
         out.reserved = [0; 4];
         if self.with_fk {
             let mut global = [IDENTITY; CG_NUM_JOINTS];
             let mut pos = [[0.0f64; 3]; CG_NUM_JOINTS];
-            self.skeleton.forward(&local, pelvis, &mut global, &mut pos);
+            self.skeleton.forward(local, pose.pelvis, &mut global, &mut pos);
             for (o, p) in out.joint_positions.iter_mut().zip(pos.iter()) {
                 *o = b.point(p);
             }
@@ -281,6 +298,41 @@ impl FrameAssembler {
         } else {
             out.joint_positions = [[0.0; 3]; CG_NUM_JOINTS];
             out.has_joint_positions = 0;
+        }
+    }
+}
+
+/// One frame in the native world (z up, metres), between decoding and the basis change:
+/// what the contact stage (`crate::contact`) reads and corrects.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    /// Local rotations of the 55 joints (0 = the root's global rotation; jaw and eyes identity).
+    pub local: [Mat3; CG_NUM_JOINTS],
+    /// World position of the pelvis.
+    pub pelvis: Vec3,
+    pub object_rotation: Mat3,
+    pub object_translation: Vec3,
+    /// World position of the object's bounding-box centre.
+    pub object_centre: Vec3,
+    /// Wrist position minus the object centre, [left, right].
+    pub wrist_to_object: [Vec3; 2],
+    /// Contact probability per hand, in [0, 1].
+    pub contact_probability: [f32; 2],
+    /// Contact flag per hand.
+    pub contact: [bool; 2],
+}
+
+impl Default for Pose {
+    fn default() -> Self {
+        Pose {
+            local: [IDENTITY; CG_NUM_JOINTS],
+            pelvis: [0.0; 3],
+            object_rotation: IDENTITY,
+            object_translation: [0.0; 3],
+            object_centre: [0.0; 3],
+            wrist_to_object: [[0.0; 3]; 2],
+            contact_probability: [0.0; 2],
+            contact: [false; 2],
         }
     }
 }

@@ -308,6 +308,9 @@ pub struct StreamConfig {
     pub min_len: Option<u32>,
     /// End is forced at this many token steps (each step = 16 frames).
     pub max_len: Option<u32>,
+    /// `Some(true)`: frames are the model's raw output, without the contact-consistency
+    /// stage (`crate::contact`). Unset = false: the stage is on.
+    pub raw_output: Option<bool>,
 }
 
 impl StreamConfig {
@@ -319,6 +322,7 @@ impl StreamConfig {
             top_k: self.top_k.or(fallback.top_k),
             min_len: self.min_len.or(fallback.min_len),
             max_len: self.max_len.or(fallback.max_len),
+            raw_output: self.raw_output.or(fallback.raw_output),
         }
     }
 

@@ -42,7 +42,9 @@
 //!   frames and ends directly (poll reports End without any frame).
 use std::sync::Arc;
 
-use crate::assemble::FrameAssembler;
+use crate::assemble::{FrameAssembler, Pose};
+use crate::bundle::choose_object;
+use crate::contact::{ContactStage, ObjectShape};
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
 use crate::error::{Error, Result};
@@ -199,6 +201,8 @@ pub struct Generator {
     ahead_end: bool,
     next_frame: u64,
     done: bool,
+    /// The contact-consistency stage (None: the raw model output was asked for).
+    contact: Option<ContactStage>,
 }
 
 impl Generator {
@@ -221,6 +225,15 @@ impl Generator {
             return Err(Error::InvalidArgument("max_len must be at least 1".into()));
         }
         let pad_usize = pipe.pad_ids.map(|p| p as usize);
+        let contact = if c.raw_output.unwrap_or(false) {
+            None
+        } else {
+            // The catalogue is never empty (bundle verification).
+            let objects = &b.manifest.objects;
+            let (index, _) = choose_object(objects, req.text)
+                .ok_or_else(|| Error::InvalidArgument("the bundle's object catalogue is empty".into()))?;
+            Some(ContactStage::new(ObjectShape::from_entry(&objects[index]), b.manifest.fps))
+        };
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
         Ok(Generator {
             stream_id: req.stream_id,
@@ -236,6 +249,7 @@ impl Generator {
             ahead_end: false,
             next_frame: 0,
             done: false,
+            contact,
             sampler,
             pipe,
         })
@@ -369,7 +383,13 @@ impl ChunkSource for Generator {
             let mut frame = Frame::default();
             let last_of_chunk = i + 1 == n;
             let is_last = last_of_chunk && last == Some(true);
-            self.pipe.assembler.assemble(feats, self.stream_id, self.next_frame, is_last, &mut frame);
+            let assembler = &self.pipe.assembler;
+            let mut pose = Pose::default();
+            assembler.decode(feats, &mut pose);
+            if let Some(stage) = &mut self.contact {
+                stage.apply(assembler.skeleton(), &mut pose);
+            }
+            assembler.emit(&pose, self.stream_id, self.next_frame, is_last, &mut frame);
             self.next_frame += 1;
             if last_of_chunk && last.is_none() {
                 self.held = Some(frame);

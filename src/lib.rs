@@ -8,7 +8,8 @@
 //! 2. [`bundle`]: a bundle's files, manifest and verification, from a directory or the
 //!    default embedded in the library (feature `embedded-default`); files only;
 //! 3. [`sampler`] (the cross-language deterministic sampler), [`skeleton`] (FK) and
-//!    [`assemble`] (335-D features -> frames);
+//!    [`assemble`] (335-D features -> frames), then [`contact`] (the contact-consistency
+//!    stage: debounced grasps, reach IK, an object that obeys the hands);
 //! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
 //!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract; graph rewrites
 //!    in `model::graph` only);
@@ -34,6 +35,8 @@ pub mod sampler;
 pub mod skeleton;
 #[doc(hidden)]
 pub mod assemble;
+#[doc(hidden)]
+pub mod contact;
 #[doc(hidden)]
 pub mod model;
 #[doc(hidden)]

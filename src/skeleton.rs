@@ -55,12 +55,70 @@ pub fn det(a: &Mat3) -> f64 {
         + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
 }
 
-fn dot(a: &Vec3, b: &Vec3) -> f64 {
+pub fn dot(a: &Vec3, b: &Vec3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-fn cross(a: &Vec3, b: &Vec3) -> Vec3 {
+pub fn cross(a: &Vec3, b: &Vec3) -> Vec3 {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+pub fn add(a: &Vec3, b: &Vec3) -> Vec3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+pub fn sub(a: &Vec3, b: &Vec3) -> Vec3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub fn scale(a: &Vec3, k: f64) -> Vec3 {
+    [a[0] * k, a[1] * k, a[2] * k]
+}
+
+pub fn norm(a: &Vec3) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// Rotation by `angle` radians about the unit `axis` (Rodrigues).
+pub fn axis_angle(axis: &Vec3, angle: f64) -> Mat3 {
+    let (s, c) = angle.sin_cos();
+    let t = 1.0 - c;
+    let [x, y, z] = *axis;
+    [
+        [t * x * x + c, t * x * y - s * z, t * x * z + s * y],
+        [t * x * y + s * z, t * y * y + c, t * y * z - s * x],
+        [t * x * z - s * y, t * y * z + s * x, t * z * z + c],
+    ]
+}
+
+/// A unit vector orthogonal to the unit `v`.
+pub fn orthogonal(v: &Vec3) -> Vec3 {
+    let i = (0..3).min_by(|&i, &j| v[i].abs().total_cmp(&v[j].abs())).unwrap_or(0);
+    let mut e = [0.0; 3];
+    e[i] = 1.0;
+    let c = cross(v, &e);
+    let n = norm(&c);
+    [c[0] / n, c[1] / n, c[2] / n]
+}
+
+/// The smallest rotation turning the direction of `a` into the direction of `b` (identity
+/// when either is zero).
+pub fn rotation_between(a: &Vec3, b: &Vec3) -> Mat3 {
+    let (na, nb) = (norm(a), norm(b));
+    if !(na > NORM_EPS && nb > NORM_EPS) {
+        return IDENTITY;
+    }
+    let (a, b) = (scale(a, 1.0 / na), scale(b, 1.0 / nb));
+    let axis = cross(&a, &b);
+    let s = norm(&axis);
+    let c = dot(&a, &b);
+    if s > 1e-12 {
+        axis_angle(&scale(&axis, 1.0 / s), s.atan2(c))
+    } else if c > 0.0 {
+        IDENTITY
+    } else {
+        axis_angle(&orthogonal(&a), std::f64::consts::PI)
+    }
 }
 
 /// Below this norm a 6D column is degenerate (torch `F.normalize`'s eps).
@@ -87,13 +145,7 @@ pub fn rot6d_to_matrix(d: &[f64; 6]) -> Mat3 {
     let b2 = if n2 > NORM_EPS && n2.is_finite() {
         [r[0] / n2, r[1] / n2, r[2] / n2]
     } else {
-        // Any unit vector orthogonal to b1: cross with the axis b1 is least aligned with.
-        let i = (0..3).min_by(|&i, &j| b1[i].abs().total_cmp(&b1[j].abs())).unwrap_or(0);
-        let mut e = [0.0; 3];
-        e[i] = 1.0;
-        let c = cross(&b1, &e);
-        let n = dot(&c, &c).sqrt();
-        [c[0] / n, c[1] / n, c[2] / n]
+        orthogonal(&b1)
     };
     let b3 = cross(&b1, &b2);
     [b1, b2, b3]

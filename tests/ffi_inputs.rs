@@ -127,7 +127,7 @@ fn stream_config_validation() {
         top_k: 0,
         min_len: 0,
         max_len: 0,
-        reserved: 0,
+        flags: 0,
     };
     unsafe {
         assert_eq!(cg_stream_config_init(&mut cfg), cg_status::CG_OK);
@@ -170,7 +170,7 @@ fn stream_config_validation() {
         assert_eq!(cg_start(e.handle, c"x".as_ptr(), &newer.base, &mut s), cg_status::CG_OK);
         cg_stream_destroy(s);
         cfg = cg_stream_config::default();
-        cfg.reserved = 1;
+        cfg.flags = 1 << 7; // not a CG_STREAM_* flag
         assert_eq!(cg_start(e.handle, c"x".as_ptr(), &cfg, &mut s), cg_status::CG_ERR_INVALID_ARGUMENT);
     }
     e.destroy();

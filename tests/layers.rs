@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 /// Bottom up; a module may use those before it.
-const FLOORS: [&str; 13] = [
+const FLOORS: [&str; 14] = [
     "error",
     "frame",
     "config",
@@ -13,6 +13,7 @@ const FLOORS: [&str; 13] = [
     "sampler",
     "skeleton",
     "assemble",
+    "contact",
     "model",
     "generator",
     "stream",

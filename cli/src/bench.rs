@@ -529,6 +529,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         top_k: Some(top_k),
         min_len: Some(steps as u32),
         max_len: Some(steps as u32),
+        raw_output: None,
     };
     let mut ttff_ms = Vec::new();
     let mut total_ms = Vec::new();

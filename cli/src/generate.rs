@@ -59,6 +59,10 @@ pub struct Args {
     /// Also compute the 55 world joint positions (joint_positions).
     #[arg(long)]
     fk: bool,
+    /// The model's raw output: no contact-consistency stage (the object may float or drift,
+    /// a hand may close on empty air).
+    #[arg(long)]
+    raw: bool,
 }
 
 /// `--coords` values.
@@ -215,6 +219,7 @@ fn options(a: Args) -> Result<Options, String> {
         top_k: a.top_k,
         min_len: a.min_len,
         max_len: a.max_len,
+        raw_output: a.raw.then_some(true),
     };
     let (bundle, text, out, glb, preview, fk) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk);
     let coords = a.coords.map(CoordinateSystem::from);

@@ -403,13 +403,14 @@ fn stream_config(inp: &mut Input) -> Padded<cg_stream_config> {
     c.top_k = u32::from(inp.u8());
     c.min_len = u32::from(inp.u8() % 8);
     c.max_len = u32::from(inp.u8() % 8);
-    c.reserved = u32::from(inp.u8() % 8 == 0);
+    // flags: 0, the raw-output flag, or an unknown bit
+    c.flags = [0, 0, 0, CG_STREAM_RAW_OUTPUT, 1 << 9][usize::from(inp.u8() % 5)];
     Padded { value: c, tail: [0; 64] }
 }
 
 /// Whether the library must accept this stream config (mirrors the documented rules).
 fn stream_config_ok(c: &cg_stream_config) -> bool {
-    if (c.struct_size as usize) < size_of::<cg_stream_config>() || c.reserved != 0 {
+    if (c.struct_size as usize) < size_of::<cg_stream_config>() || c.flags & !CG_STREAM_FLAGS_ALL != 0 {
         return false;
     }
     let set = |bit: u32| c.use_defaults & bit == 0;

@@ -374,3 +374,66 @@ impl Manifest {
             .or_else(|| self.objects.iter().find(|o| o.aliases.iter().any(|a| a.eq_ignore_ascii_case(name))))
     }
 }
+
+/// The catalogue object the prompt names: the longest name or alias that occurs in the
+/// lower-cased prompt starting at a word boundary ("a coffee mug" prefers "coffee mug"
+/// over "mug"; "cubes" still finds "cube", "smuggle" does not find "mug"). Without any
+/// match, the first object and `None`. `None` overall only for an empty catalogue.
+pub fn choose_object(objects: &[ObjectEntry], prompt: &str) -> Option<(usize, Option<String>)> {
+    let prompt = prompt.to_lowercase();
+    let mut best: Option<(usize, &str)> = None;
+    for (i, o) in objects.iter().enumerate() {
+        for name in std::iter::once(&o.name).chain(&o.aliases) {
+            let name = name.trim();
+            if name.is_empty() || !occurs_at_word_start(&prompt, &name.to_lowercase()) {
+                continue;
+            }
+            if best.is_none_or(|(_, b)| name.len() > b.len()) {
+                best = Some((i, name));
+            }
+        }
+    }
+    match best {
+        Some((i, name)) => Some((i, Some(name.to_string()))),
+        None => (!objects.is_empty()).then_some((0, None)),
+    }
+}
+
+fn occurs_at_word_start(haystack: &str, needle: &str) -> bool {
+    haystack.match_indices(needle).any(|(at, _)| !haystack[..at].chars().next_back().is_some_and(char::is_alphanumeric))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(name: &str, aliases: &[&str]) -> ObjectEntry {
+        ObjectEntry {
+            name: name.into(),
+            aliases: aliases.iter().map(|a| a.to_string()).collect(),
+            mesh: format!("objects/{name}.obj"),
+            centre: [0.0; 3],
+            half_extents: [0.1; 3],
+        }
+    }
+
+    #[test]
+    fn the_longest_alias_at_a_word_start_wins() {
+        let cat = [
+            entry("mug", &["mug", "coffee mug", "cup of coffee"]),
+            entry("cubesmall", &["small cube", "cube", "block"]),
+            entry("waterbottle", &["water bottle", "bottle"]),
+        ];
+        let pick = |p: &str| choose_object(&cat, p).map(|(i, a)| (cat[i].name.as_str().to_owned(), a));
+        assert_eq!(pick("A woman drinks from the mug"), Some(("mug".into(), Some("mug".into()))));
+        assert_eq!(pick("Lift the SMALL CUBE."), Some(("cubesmall".into(), Some("small cube".into()))));
+        assert_eq!(
+            pick("pour from the water bottle into a mug"),
+            Some(("waterbottle".into(), Some("water bottle".into())))
+        );
+        assert_eq!(pick("stack the cubes"), Some(("cubesmall".into(), Some("cube".into()))));
+        assert_eq!(pick("he smuggles nothing"), Some(("mug".into(), None)));
+        assert_eq!(pick("wave"), Some(("mug".into(), None)));
+        assert_eq!(choose_object(&[], "mug"), None);
+    }
+}

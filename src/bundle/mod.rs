@@ -14,7 +14,7 @@ pub mod select;
 pub mod source;
 pub mod verify;
 
-pub use manifest::{Component, Manifest, ObjectEntry, N_STREAMS, STREAMS};
+pub use manifest::{choose_object, Component, Manifest, ObjectEntry, N_STREAMS, STREAMS};
 pub use source::BundleSource;
 
 #[allow(dead_code)]

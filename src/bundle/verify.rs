@@ -350,6 +350,8 @@ fn check_skeleton_objects_sampling(p: &Path, m: &Manifest) -> Result<()> {
         "skeleton: parents must put the root first (-1) and every parent before its children".into()
     })?;
     ensure(sk.rest_joints.iter().flatten().all(|v| v.is_finite()), p, || "skeleton rest_joints must be finite".into())?;
+    // The contact stage rests, carries and lands the prompt's object by its box.
+    ensure(!m.objects.is_empty(), p, || "objects: the catalogue needs at least one object".into())?;
     let mut names = BTreeSet::new();
     for o in &m.objects {
         ensure(!o.name.is_empty() && names.insert(o.name.as_str()), p, || {

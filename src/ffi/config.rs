@@ -118,6 +118,11 @@ pub const CG_USE_DEFAULT_MIN_LEN: u32 = 1 << 3;
 pub const CG_USE_DEFAULT_MAX_LEN: u32 = 1 << 4;
 /// All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
 pub const CG_USE_DEFAULT_ALL: u32 = 0x1f;
+/// Set in `cg_stream_config.flags`: frames are the model's raw output, without the
+/// contact-consistency stage (the object may float or drift, a hand may hold empty air).
+pub const CG_STREAM_RAW_OUTPUT: u32 = 1 << 0;
+/// All `CG_STREAM_*` flags this library knows.
+pub const CG_STREAM_FLAGS_ALL: u32 = CG_STREAM_RAW_OUTPUT;
 
 /// Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets
 /// `use_defaults = CG_USE_DEFAULT_ALL`); to override a field, set it AND clear its bit:
@@ -140,8 +145,9 @@ pub struct cg_stream_config {
     pub min_len: u32,
     /// End is forced at this many token steps; 1..=the bundle's L_max.
     pub max_len: u32,
-    /// Reserved, must be 0.
-    pub reserved: u32,
+    /// Bitmask of `CG_STREAM_*` flags; 0 = the defaults (the contact-consistency stage on).
+    /// Unknown bits are `CG_ERR_INVALID_ARGUMENT`. (Named `reserved`, must-be-0, before.)
+    pub flags: u32,
 }
 
 /// Size of the first published version of each struct: the smallest `struct_size`
@@ -184,7 +190,7 @@ impl Default for cg_stream_config {
             top_k: 0,
             min_len: 0,
             max_len: 0,
-            reserved: 0,
+            flags: 0,
         }
     }
 }
@@ -365,8 +371,11 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
     let raw = unsafe { read_versioned(cfg, STREAM_CONFIG_V1_SIZE, "cg_stream_config")? };
     // SAFETY: every field is an integer or a float: any bit pattern is valid.
     let c = unsafe { raw.assume_init() };
-    if c.reserved != 0 {
-        return Err(Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, "cg_stream_config.reserved must be 0"));
+    if c.flags & !CG_STREAM_FLAGS_ALL != 0 {
+        return Err(Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("cg_stream_config.flags: unknown bits {:#x}", c.flags & !CG_STREAM_FLAGS_ALL),
+        ));
     }
     let set = |bit: u32| c.use_defaults & bit == 0;
     Ok(StreamConfig {
@@ -375,6 +384,7 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
         top_k: set(CG_USE_DEFAULT_TOP_K).then_some(c.top_k),
         min_len: set(CG_USE_DEFAULT_MIN_LEN).then_some(c.min_len),
         max_len: set(CG_USE_DEFAULT_MAX_LEN).then_some(c.max_len),
+        raw_output: (c.flags & CG_STREAM_RAW_OUTPUT != 0).then_some(true),
     })
 }
 
@@ -441,6 +451,13 @@ mod tests {
             cg_stream_config { use_defaults: CG_USE_DEFAULT_ALL & !CG_USE_DEFAULT_SEED, seed: 7, ..Default::default() };
         let s = unsafe { stream_config_from_c(&c) }.unwrap();
         assert_eq!(s, StreamConfig { seed: Some(7), ..Default::default() });
+        c.flags = CG_STREAM_RAW_OUTPUT;
+        let s = unsafe { stream_config_from_c(&c) }.unwrap();
+        assert_eq!(s, StreamConfig { seed: Some(7), raw_output: Some(true), ..Default::default() });
+        c.flags = 1 << 5;
+        let e = unsafe { stream_config_from_c(&c) }.unwrap_err();
+        assert_eq!(e.0, cg_status::CG_ERR_INVALID_ARGUMENT);
+        c.flags = 0;
         c.struct_size = 8;
         assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
 

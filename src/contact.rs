@@ -1,0 +1,735 @@
+//! The contact-consistency stage: makes the object obey the hands while a stream's frames
+//! are assembled (docs/engine.md, "Contact consistency").
+//!
+//! A model never places a hand to the millimetre, so its raw object pose floats beside the
+//! hand, drifts while nobody holds it, and its hand may close on empty air. This stage
+//! keeps, per stream, a small state machine per hand and rewrites each frame's [`Pose`]:
+//!
+//! * **Contact, debounced.** A hand starts a grasp after its raw contact flag was on for
+//!   [`ON_FRAMES`] frames and lets go after it was off for [`OFF_FRAMES`]: a flag that
+//!   flickers for a frame or two changes nothing.
+//! * **Resting.** While no hand holds it, the object keeps its resting pose: the first
+//!   frame's (where the model put it, on its support), or where it was let go. Let go above
+//!   the support it started on (within [`SUPPORT_RADIUS`] of its start) or above the ground,
+//!   it falls under gravity and lands there; it never hangs in the air.
+//! * **Reach correction.** When a grasp starts, the wrist's target is the object's centre
+//!   plus the model's own wrist-to-object vector (its predicted grasp offset, clamped to
+//!   [`GRIP_MIN`]..half-diagonal + [`GRIP_MARGIN`]). Two-bone IK on the shoulder and elbow
+//!   blends the wrist onto it over a few frames; the wrist keeps its global rotation, so
+//!   the hand's orientation and the fingers are the model's. A target beyond
+//!   [`REACH_LIMIT`] of the arm's length is not grasped at all (the arm is never torn).
+//! * **Holding.** Once the wrist is on target the grasp is captured as the object's pose in
+//!   the wrist's frame, and the object follows the wrist rigidly. The correction then
+//!   fades at [`FADE_SPEED`] so the hand returns to the model's path, carrying the object.
+//!   Two holding hands give the blend of the two carried poses; whenever one hand lets go,
+//!   the other re-captures the grasp from the current pose, so a hand-over never jumps.
+//!
+//! The stage is causal (each frame is decided from the frames before it), allocation-free,
+//! and works in the native world before the basis change. Every field it writes agrees
+//! with the others: `contact` is the stage's holding state, the object centre follows the
+//! object pose and the catalogue's centre offset, and `wrist_to_object` is the FK wrist
+//! minus that centre.
+
+use crate::assemble::Pose;
+use crate::bundle::ObjectEntry;
+use crate::frame::CG_NUM_JOINTS;
+use crate::skeleton::{
+    add, axis_angle, cross, dot, mat_mul, mat_vec, norm, orthogonal, rotation_between, scale, sub, transpose, Mat3,
+    Skeleton, Vec3, IDENTITY,
+};
+
+/// Frames a raw contact flag must stay on before a grasp starts.
+pub const ON_FRAMES: u32 = 2;
+/// Frames a raw contact flag must stay off before a held object is let go.
+pub const OFF_FRAMES: u32 = 4;
+/// Mean speed of the reach correction's blend-in, m/s (bounded by the frame counts below).
+pub const REACH_SPEED: f64 = 0.6;
+const MIN_REACH_FRAMES: u32 = 4;
+const MAX_REACH_FRAMES: u32 = 30;
+/// Speed at which a correction fades once the object is held or let go, m/s.
+pub const FADE_SPEED: f64 = 0.3;
+/// A grasp whose wrist target lies beyond this share of the arm's length is not made.
+pub const REACH_LIMIT: f64 = 0.98;
+/// A reach that ends this far from its target (the body moved away) is abandoned, m.
+const REACH_MISS: f64 = 0.02;
+/// Shortest wrist-to-centre distance of a grasp beyond the object's smallest half extent
+/// (the palm's thickness and the wrist-to-palm offset), m.
+pub const GRIP_MIN: f64 = 0.04;
+/// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
+pub const GRIP_MARGIN: f64 = 0.10;
+/// Largest forward bow of the spine the reach may add, radians (split over the three
+/// spine joints; the legs and pelvis never move).
+pub const MAX_BOW: f64 = 0.6;
+/// The bow brings the target within this share of the arm's length.
+const BOW_REACH: f64 = 0.94;
+/// Speed at which the bow fades once a reach is over, rad/s.
+const BOW_FADE: f64 = 0.5;
+/// Spine joints that share the bow (SMPL-X spine1..3).
+const SPINE: [usize; 3] = [3, 6, 9];
+/// Horizontal radius around the object's start within which it lands back on the support
+/// it started on (SynthGrasp's table is 1.2 m × 0.8 m), m.
+pub const SUPPORT_RADIUS: f64 = 0.4;
+/// An object let go at most this far below the top of the support it started on is set
+/// onto it (a hand that put it down into the table), m.
+pub const SUPPORT_DEPTH: f64 = 0.1;
+/// Height of the ground in the native world (z up), m.
+pub const GROUND_Z: f64 = 0.0;
+const GRAVITY: f64 = 9.81;
+
+/// Collar, shoulder, elbow and wrist joints of the left and right arm (SMPL-X).
+const ARMS: [[usize; 4]; 2] = [[13, 16, 18, 20], [14, 17, 19, 21]];
+
+/// The object's box in its own frame: what the stage needs to rest it on a support.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ObjectShape {
+    /// Bounding-box centre in the object frame, m.
+    pub centre: Vec3,
+    /// Half extents of the bounding box along the object's axes, m.
+    pub half_extents: Vec3,
+}
+
+impl ObjectShape {
+    pub fn from_entry(e: &ObjectEntry) -> ObjectShape {
+        ObjectShape { centre: e.centre.map(f64::from), half_extents: e.half_extents.map(|v| f64::from(v.abs())) }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Phase {
+    Free,
+    /// The correction blends from `from` to the grip target over `frames` frames.
+    Reaching {
+        frame: u32,
+        frames: u32,
+        from: Vec3,
+        /// The bow when the reach started.
+        bow_from: f64,
+        /// Wrist minus object centre, in the object frame.
+        grip: Vec3,
+    },
+    Holding,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Hand {
+    /// Consecutive frames with the raw flag on / off.
+    on: u32,
+    off: u32,
+    phase: Phase,
+    /// World offset added to the model's wrist by IK.
+    correction: Vec3,
+    /// The object's pose in the wrist frame while holding.
+    rel_rot: Mat3,
+    rel_pos: Vec3,
+}
+
+const FREE_HAND: Hand =
+    Hand { on: 0, off: 0, phase: Phase::Free, correction: [0.0; 3], rel_rot: IDENTITY, rel_pos: [0.0; 3] };
+
+/// One stream's contact state. Feed it every frame in order ([`ContactStage::apply`]).
+#[derive(Clone, Debug)]
+pub struct ContactStage {
+    shape: ObjectShape,
+    dt: f64,
+    started: bool,
+    /// The object's current pose (origin), native world.
+    rot: Mat3,
+    pos: Vec3,
+    /// Downward speed of a falling object, m/s.
+    fall: f64,
+    support_z: f64,
+    support_xy: [f64; 2],
+    hands: [Hand; 2],
+    /// The spine's current bow (radians) and its horizontal axis.
+    bow: f64,
+    bow_axis: Vec3,
+}
+
+impl ContactStage {
+    /// `fps`: the bundle's frame rate (> 0, checked when the assembler is built).
+    pub fn new(shape: ObjectShape, fps: f64) -> ContactStage {
+        ContactStage {
+            shape,
+            dt: 1.0 / fps,
+            started: false,
+            rot: IDENTITY,
+            pos: [0.0; 3],
+            fall: 0.0,
+            support_z: GROUND_Z,
+            support_xy: [0.0; 2],
+            hands: [FREE_HAND; 2],
+            bow: 0.0,
+            bow_axis: [1.0, 0.0, 0.0],
+        }
+    }
+
+    fn centre(&self, rot: &Mat3, pos: &Vec3) -> Vec3 {
+        add(pos, &mat_vec(rot, &self.shape.centre))
+    }
+
+    /// Lowest point of the object's box.
+    fn bottom(&self, rot: &Mat3, pos: &Vec3) -> f64 {
+        let c = self.centre(rot, pos);
+        c[2] - (0..3).map(|k| rot[2][k].abs() * self.shape.half_extents[k]).sum::<f64>()
+    }
+
+    /// Rewrites one frame (the next of the stream) in place. No allocation.
+    pub fn apply(&mut self, skeleton: &Skeleton, pose: &mut Pose) {
+        let mut global = [IDENTITY; CG_NUM_JOINTS];
+        let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
+        skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+        if !self.started {
+            self.started = true;
+            self.rot = pose.object_rotation;
+            self.pos = pose.object_translation;
+            self.support_z = self.bottom(&self.rot, &self.pos);
+            let c = self.centre(&self.rot, &self.pos);
+            self.support_xy = [c[0], c[1]];
+        }
+
+        // Debounced intent: start grasps, abandon reaches whose flag went off.
+        for h in 0..2 {
+            let wrist = joints[ARMS[h][3]];
+            let arm = arm_length(skeleton, h);
+            let grip_target = |grip: &Vec3| add(&self.centre(&self.rot, &self.pos), &mat_vec(&self.rot, grip));
+            let hand = &self.hands[h];
+            let (mut on, mut off) = (hand.on, hand.off);
+            if pose.contact[h] {
+                on = on.saturating_add(1);
+                off = 0;
+            } else {
+                off = off.saturating_add(1);
+                on = 0;
+            }
+            let mut phase = hand.phase;
+            match phase {
+                Phase::Reaching { .. } if off >= OFF_FRAMES => phase = Phase::Free,
+                Phase::Free if on >= ON_FRAMES => {
+                    let grip = grip_offset(&pose.wrist_to_object[h], &self.shape, &self.rot, &wrist, &self.pos);
+                    let target = grip_target(&grip);
+                    if needed_bow(&joints, h, &target, REACH_LIMIT * arm).is_some() {
+                        let gap = norm(&sub(&target, &add(&wrist, &hand.correction)));
+                        let frames = ((gap / (REACH_SPEED * self.dt)).ceil() as u32).clamp(MIN_REACH_FRAMES, MAX_REACH_FRAMES);
+                        phase = Phase::Reaching { frame: 0, frames, from: hand.correction, bow_from: self.bow, grip };
+                    }
+                }
+                _ => {}
+            }
+            let hand = &mut self.hands[h];
+            (hand.on, hand.off, hand.phase) = (on, off, phase);
+        }
+
+        // The bow: the reaching hand that needs the most sets it, else it fades.
+        let mut bow: Option<(f64, Vec3)> = None;
+        for h in 0..2 {
+            let arm = arm_length(skeleton, h);
+            if let Phase::Reaching { frame, frames, bow_from, grip, .. } = &mut self.hands[h].phase {
+                *frame += 1;
+                let s = smoothstep(*frame as f64 / *frames as f64);
+                let target = add(&add(&self.pos, &mat_vec(&self.rot, &self.shape.centre)), &mat_vec(&self.rot, grip));
+                let (need, axis) = needed_bow(&joints, h, &target, BOW_REACH * arm).unwrap_or((MAX_BOW, bow_axis(&joints, &target)));
+                let angle = *bow_from + (need - *bow_from) * s;
+                if bow.is_none_or(|(a, _)| angle > a) {
+                    bow = Some((angle, axis));
+                }
+            }
+        }
+        match bow {
+            Some((angle, axis)) => (self.bow, self.bow_axis) = (angle, axis),
+            None => self.bow = (self.bow - BOW_FADE * self.dt).max(0.0),
+        }
+        if self.bow > 0.0 {
+            let step = axis_angle(&self.bow_axis, self.bow / SPINE.len() as f64);
+            for j in SPINE {
+                let gp = &global[skeleton.parents()[j] as usize];
+                pose.local[j] = mat_mul(&mat_mul(&transpose(gp), &mat_mul(&step, gp)), &pose.local[j]);
+            }
+            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+        }
+
+        // Corrections (from the bowed wrist) and IK.
+        let mut moved = false;
+        for h in 0..2 {
+            let wrist = joints[ARMS[h][3]];
+            let centre = self.centre(&self.rot, &self.pos);
+            let hand = &mut self.hands[h];
+            match &mut hand.phase {
+                Phase::Reaching { frame, frames, from, grip, .. } => {
+                    let s = smoothstep(*frame as f64 / *frames as f64);
+                    let to = sub(&add(&centre, &mat_vec(&self.rot, grip)), &wrist);
+                    hand.correction = add(&scale(from, 1.0 - s), &scale(&to, s));
+                }
+                _ => {
+                    let n = norm(&hand.correction);
+                    let step = FADE_SPEED * self.dt;
+                    hand.correction = if n > step { scale(&hand.correction, (n - step) / n) } else { [0.0; 3] };
+                }
+            }
+            if hand.correction != [0.0; 3] {
+                arm_ik(&mut pose.local, &global, &joints, h, &add(&wrist, &hand.correction));
+                moved = true;
+            }
+        }
+        if moved {
+            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+        }
+
+        // The object: carried by the holding hands, else resting or falling.
+        let carried: [Option<(Mat3, Vec3)>; 2] = std::array::from_fn(|h| {
+            let hand = &self.hands[h];
+            (hand.phase == Phase::Holding).then(|| {
+                let (g, p) = (&global[ARMS[h][3]], &joints[ARMS[h][3]]);
+                (mat_mul(g, &hand.rel_rot), add(p, &mat_vec(g, &hand.rel_pos)))
+            })
+        });
+        match carried {
+            [Some(a), Some(b)] => {
+                self.rot = blend_rotations(&a.0, &b.0);
+                self.pos = scale(&add(&a.1, &b.1), 0.5);
+                self.fall = 0.0;
+            }
+            [Some(a), None] | [None, Some(a)] => {
+                (self.rot, self.pos) = a;
+                self.fall = 0.0;
+            }
+            [None, None] => self.settle(),
+        }
+
+        // Let go, complete reaches (capture against this frame's object pose).
+        for h in 0..2 {
+            let hand = self.hands[h];
+            if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES {
+                self.hands[h].phase = Phase::Free;
+                let other = 1 - h;
+                if self.hands[other].phase == Phase::Holding {
+                    self.capture(other, &global, &joints);
+                }
+            }
+        }
+        for h in 0..2 {
+            if let Phase::Reaching { frame, frames, grip, .. } = self.hands[h].phase {
+                if frame >= frames {
+                    let centre = self.centre(&self.rot, &self.pos);
+                    let target = add(&centre, &mat_vec(&self.rot, &grip));
+                    if norm(&sub(&joints[ARMS[h][3]], &target)) <= REACH_MISS {
+                        self.capture(h, &global, &joints);
+                    } else {
+                        self.hands[h].phase = Phase::Free;
+                    }
+                }
+            }
+        }
+
+        // Write back: every field from the same geometry.
+        pose.object_rotation = self.rot;
+        pose.object_translation = self.pos;
+        pose.object_centre = self.centre(&self.rot, &self.pos);
+        for h in 0..2 {
+            pose.wrist_to_object[h] = sub(&joints[ARMS[h][3]], &pose.object_centre);
+            pose.contact[h] = self.hands[h].phase == Phase::Holding;
+        }
+    }
+
+    /// Hand `h` grasps: the object's current pose in its wrist frame.
+    fn capture(&mut self, h: usize, global: &[Mat3; CG_NUM_JOINTS], joints: &[Vec3; CG_NUM_JOINTS]) {
+        let gt = transpose(&global[ARMS[h][3]]);
+        let hand = &mut self.hands[h];
+        hand.rel_rot = mat_mul(&gt, &self.rot);
+        hand.rel_pos = mat_vec(&gt, &sub(&self.pos, &joints[ARMS[h][3]]));
+        hand.phase = Phase::Holding;
+    }
+
+    /// Unheld: the object falls onto its support (the one it started on when above it,
+    /// else the ground) and rests there. One let go a little below the start support's top
+    /// (set down into the table) rises onto it at [`FADE_SPEED`].
+    fn settle(&mut self) {
+        let bottom = self.bottom(&self.rot, &self.pos);
+        let c = self.centre(&self.rot, &self.pos);
+        let (dx, dy) = (c[0] - self.support_xy[0], c[1] - self.support_xy[1]);
+        let over_support = (dx * dx + dy * dy).sqrt() <= SUPPORT_RADIUS;
+        let on_start_support = over_support && bottom >= self.support_z - SUPPORT_DEPTH;
+        let floor = if on_start_support { self.support_z } else { GROUND_Z };
+        if bottom > floor {
+            self.fall += GRAVITY * self.dt;
+            self.pos[2] -= (self.fall * self.dt).min(bottom - floor);
+        } else {
+            self.fall = 0.0;
+            self.pos[2] += (FADE_SPEED * self.dt).min(floor - bottom);
+        }
+    }
+}
+
+fn smoothstep(t: f64) -> f64 {
+    let t = t.clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// The horizontal axis a bow toward `target` turns the spine about.
+fn bow_axis(joints: &[Vec3; CG_NUM_JOINTS], target: &Vec3) -> Vec3 {
+    let d = sub(target, &joints[SPINE[0]]);
+    let a = [-d[1], d[0], 0.0]; // up × d, up = +z
+    let n = norm(&a);
+    if n > 1e-9 {
+        scale(&a, 1.0 / n)
+    } else {
+        [1.0, 0.0, 0.0]
+    }
+}
+
+/// The smallest spine bow (and its axis) that brings arm `h`'s shoulder within `reach` of
+/// `target`; `None` when even [`MAX_BOW`] does not. `joints`: the unbowed pose's FK.
+fn needed_bow(joints: &[Vec3; CG_NUM_JOINTS], h: usize, target: &Vec3, reach: f64) -> Option<(f64, Vec3)> {
+    let axis = bow_axis(joints, target);
+    let shoulder = ARMS[h][1];
+    // Each spine joint turns what is above it by a third of the bow, about parallel axes:
+    // the shoulder ends at p3 + R (p6 - p3) + R² (p9 - p6) + R³ (shoulder - p9).
+    let gap = |bow: f64| {
+        let r = axis_angle(&axis, bow / SPINE.len() as f64);
+        let mut p = joints[SPINE[0]];
+        let mut turn = IDENTITY;
+        for (k, &j) in SPINE.iter().enumerate() {
+            turn = mat_mul(&r, &turn);
+            let next = if k + 1 < SPINE.len() { joints[SPINE[k + 1]] } else { joints[shoulder] };
+            p = add(&p, &mat_vec(&turn, &sub(&next, &joints[j])));
+        }
+        norm(&sub(target, &p))
+    };
+    if gap(0.0) <= reach {
+        return Some((0.0, axis));
+    }
+    if gap(MAX_BOW) > reach {
+        return None;
+    }
+    let (mut lo, mut hi) = (0.0, MAX_BOW);
+    for _ in 0..20 {
+        let mid = 0.5 * (lo + hi);
+        if gap(mid) <= reach {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    Some((hi, axis))
+}
+
+/// Shoulder-to-elbow plus elbow-to-wrist length of arm `h` on the rest skeleton.
+fn arm_length(skeleton: &Skeleton, h: usize) -> f64 {
+    let r = skeleton.rest_joints();
+    let [_, s, e, w] = ARMS[h];
+    norm(&sub(&r[e], &r[s])) + norm(&sub(&r[w], &r[e]))
+}
+
+/// The grasp's wrist offset from the object centre, in the object frame: the model's own
+/// wrist-to-object vector (its predicted grasp), its length clamped to what a hand around
+/// this object can have, and kept above the object's support.
+fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos: &Vec3) -> Vec3 {
+    let centre = add(pos, &mat_vec(rot, &shape.centre));
+    let mut v = *model;
+    if !(norm(&v) > 1e-6 && v.iter().all(|x| x.is_finite())) {
+        v = sub(wrist, &centre);
+    }
+    // A hand never reaches the object from below its support.
+    v[2] = v[2].max(0.0);
+    let n = norm(&v);
+    let v = if n > 1e-6 { v } else { [0.0, 0.0, 1.0] };
+    let n = norm(&v);
+    let he = &shape.half_extents;
+    let lo = he[0].min(he[1]).min(he[2]) + GRIP_MIN;
+    let hi = norm(he) + GRIP_MARGIN;
+    let len = n.clamp(lo, hi.max(lo));
+    mat_vec(&transpose(rot), &scale(&v, len / n))
+}
+
+/// Rotation halfway between `a` and `b` (normalized quaternion mean).
+fn blend_rotations(a: &Mat3, b: &Mat3) -> Mat3 {
+    use crate::skeleton::{matrix_to_quaternion, quaternion_to_matrix};
+    let (qa, qb) = (matrix_to_quaternion(a), matrix_to_quaternion(b));
+    let sign = if (0..4).map(|i| qa[i] * qb[i]).sum::<f64>() < 0.0 { -1.0 } else { 1.0 };
+    let q: [f64; 4] = std::array::from_fn(|i| qa[i] + sign * qb[i]);
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if n > 1e-12 {
+        quaternion_to_matrix(&q.map(|v| v / n))
+    } else {
+        *a
+    }
+}
+
+/// Two-bone IK on arm `h`: turns the elbow, then the shoulder, so the wrist lands on
+/// `target` (or as near as a slightly bent arm reaches). The wrist keeps its global
+/// rotation, so the hand's orientation and the fingers (local to the wrist) are unchanged.
+/// `global` / `joints` are the pose's FK before the change; `local` is rewritten for the
+/// shoulder, elbow and wrist only.
+pub fn arm_ik(
+    local: &mut [Mat3; CG_NUM_JOINTS],
+    global: &[Mat3; CG_NUM_JOINTS],
+    joints: &[Vec3; CG_NUM_JOINTS],
+    h: usize,
+    target: &Vec3,
+) {
+    let [c, s, e, w] = ARMS[h];
+    let (ps, pe, pw) = (joints[s], joints[e], joints[w]);
+    let u = sub(&pe, &ps);
+    let f = sub(&pw, &pe);
+    let (a, b) = (norm(&u), norm(&f));
+    if !(a > 1e-6 && b > 1e-6) || !target.iter().all(|v| v.is_finite()) {
+        return;
+    }
+    // Bend: the angle β between upper arm and forearm (0 = straight) sets |wrist - shoulder|.
+    let lo = (a - b).abs() + 1e-4;
+    let hi = (a + b) * 0.999;
+    let d = norm(&sub(target, &ps)).clamp(lo, hi);
+    let mut axis = cross(&u, &f);
+    let n = norm(&axis);
+    axis = if n > 1e-9 * a * b {
+        scale(&axis, 1.0 / n)
+    } else {
+        // A straight arm bends about an axis orthogonal to it and to the target.
+        let t = cross(&u, &sub(target, &ps));
+        if norm(&t) > 1e-9 {
+            scale(&t, 1.0 / norm(&t))
+        } else {
+            orthogonal(&scale(&u, 1.0 / a))
+        }
+    };
+    let beta = norm(&cross(&u, &f)).atan2(dot(&u, &f));
+    let cos_new = ((d * d - a * a - b * b) / (2.0 * a * b)).clamp(-1.0, 1.0);
+    let bend = axis_angle(&axis, cos_new.acos() - beta);
+    let wrist1 = add(&pe, &mat_vec(&bend, &f));
+    // Swing: the smallest shoulder rotation that points shoulder→wrist at the target.
+    let swing = rotation_between(&sub(&wrist1, &ps), &sub(target, &ps));
+    let gs = mat_mul(&swing, &global[s]);
+    let ge = mat_mul(&swing, &mat_mul(&bend, &global[e]));
+    local[s] = mat_mul(&transpose(&global[c]), &gs);
+    local[e] = mat_mul(&transpose(&gs), &ge);
+    local[w] = mat_mul(&transpose(&ge), &global[w]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::skeleton::SMPLX_PARENTS;
+
+    /// A rest skeleton with human proportions (native units: metres; arms along ±x).
+    pub(crate) fn human_rest() -> Vec<[f32; 3]> {
+        let mut r = vec![[0.0f32; 3]; CG_NUM_JOINTS];
+        let set = |r: &mut Vec<[f32; 3]>, j: usize, p: [f32; 3]| r[j] = p;
+        set(&mut r, 0, [0.0, 0.0, 0.0]);
+        set(&mut r, 3, [0.0, 0.0, 0.1]);
+        set(&mut r, 6, [0.0, 0.0, 0.25]);
+        set(&mut r, 9, [0.0, 0.0, 0.4]);
+        set(&mut r, 12, [0.0, 0.0, 0.55]);
+        set(&mut r, 15, [0.0, 0.0, 0.65]);
+        for (side, sign) in [(0usize, 1.0f32), (1, -1.0)] {
+            let [c, s, e, w] = ARMS[side];
+            set(&mut r, c, [sign * 0.08, 0.0, 0.5]);
+            set(&mut r, s, [sign * 0.18, 0.0, 0.5]);
+            set(&mut r, e, [sign * 0.46, 0.0, 0.5]);
+            set(&mut r, w, [sign * 0.72, 0.0, 0.5]);
+        }
+        // legs and fingers: anywhere below their parents
+        for j in [1, 2, 4, 5, 7, 8, 10, 11] {
+            let p = r[SMPLX_PARENTS[j] as usize];
+            r[j] = [p[0] + if j % 2 == 1 { 0.1 } else { -0.1 }, p[1], p[2] - 0.3];
+        }
+        for j in 22..CG_NUM_JOINTS {
+            let p = r[SMPLX_PARENTS[j] as usize];
+            r[j] = [p[0] * 1.02 + 0.01, p[1] + 0.01, p[2]];
+        }
+        r
+    }
+
+    fn skeleton() -> Skeleton {
+        Skeleton::new(&SMPLX_PARENTS, &human_rest()).unwrap()
+    }
+
+    fn fk(s: &Skeleton, pose: &Pose) -> ([Mat3; CG_NUM_JOINTS], [Vec3; CG_NUM_JOINTS]) {
+        let mut g = [IDENTITY; CG_NUM_JOINTS];
+        let mut p = [[0.0; 3]; CG_NUM_JOINTS];
+        s.forward(&pose.local, pose.pelvis, &mut g, &mut p);
+        (g, p)
+    }
+
+    fn dist(a: &Vec3, b: &Vec3) -> f64 {
+        norm(&sub(a, b))
+    }
+
+    #[test]
+    fn ik_reaches_keeps_the_hand_and_stays_within_the_arm() {
+        let s = skeleton();
+        let mut pose = Pose { pelvis: [0.0, 0.0, 1.0], ..Pose::default() };
+        pose.local[18] = axis_angle(&[0.0, 0.0, 1.0], 0.6); // a bent left elbow
+        pose.local[25] = axis_angle(&[1.0, 0.0, 0.0], 0.3); // a finger
+        let (g, p) = fk(&s, &pose);
+        let before = pose;
+        for target in [[0.4, 0.3, 1.3], [0.3, 0.35, 1.6], [0.2, 0.2, 1.2], [0.55, 0.1, 1.5]] {
+            let mut q = before;
+            arm_ik(&mut q.local, &g, &p, 0, &target);
+            let (g2, p2) = fk(&s, &q);
+            assert!(dist(&p2[20], &target) < 1e-9, "wrist {:?} target {target:?}", p2[20]);
+            // The hand's global rotation and the finger's local rotation are unchanged.
+            for i in 0..3 {
+                for k in 0..3 {
+                    assert!((g2[20][i][k] - g[20][i][k]).abs() < 1e-9);
+                }
+            }
+            assert_eq!(q.local[25], before.local[25]);
+            // Only the left shoulder, elbow and wrist changed.
+            for j in (0..CG_NUM_JOINTS).filter(|j| ![16, 18, 20].contains(j)) {
+                assert_eq!(q.local[j], before.local[j], "joint {j}");
+            }
+            // Bone lengths are the skeleton's (rotations stay rotations).
+            assert!((dist(&p2[18], &p2[16]) - 0.28).abs() < 1e-6);
+        }
+        // Beyond reach: the arm points at the target, nearly straight, never longer.
+        let mut q = before;
+        let far = [1.5, 0.5, 1.5];
+        arm_ik(&mut q.local, &g, &p, 0, &far);
+        let (_, p2) = fk(&s, &q);
+        let reach = dist(&p2[20], &p2[16]);
+        assert!(reach <= 0.54 + 1e-9 && reach > 0.53, "{reach}");
+        let (d1, d2) = (sub(&p2[20], &p2[16]), sub(&far, &p2[16]));
+        assert!(dot(&d1, &d2) / (norm(&d1) * norm(&d2)) > 1.0 - 1e-9);
+    }
+
+    /// A stream in which the right hand moves from `start` along `path(t)` with its raw
+    /// contact flag given by `contact(t)`, the model's object sitting at `object` (raw,
+    /// maybe drifting), its wrist-to-object channel pointing `grip` from the centre.
+    struct Script {
+        frames: usize,
+        wrist: Box<dyn Fn(usize) -> Vec3>,
+        contact: Box<dyn Fn(usize) -> [bool; 2]>,
+        object: Box<dyn Fn(usize) -> Vec3>,
+    }
+
+    fn run(script: &Script, left_wrist: Option<&dyn Fn(usize) -> Vec3>) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
+        let s = skeleton();
+        let mut stage = ContactStage::new(
+            ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05] },
+            30.0,
+        );
+        let mut out = Vec::new();
+        for t in 0..script.frames {
+            // The raw pose: arms put by IK where the script says (from the rest pose).
+            let mut pose = Pose { pelvis: [0.0, 0.0, 0.6], ..Pose::default() };
+            let (g, p) = fk(&s, &pose);
+            arm_ik(&mut pose.local, &g, &p, 1, &(script.wrist)(t));
+            if let Some(lw) = left_wrist {
+                let (g, p) = fk(&s, &pose);
+                arm_ik(&mut pose.local, &g, &p, 0, &lw(t));
+            }
+            pose.object_translation = (script.object)(t);
+            pose.object_centre = add(&pose.object_translation, &[0.0, 0.0, 0.01]);
+            pose.wrist_to_object = [[0.08, -0.02, 0.02], [0.0, -0.08, 0.02]];
+            pose.contact = (script.contact)(t);
+            pose.contact_probability = pose.contact.map(|c| if c { 0.9 } else { 0.1 });
+            stage.apply(&s, &mut pose);
+            let (_, p) = fk(&s, &pose);
+            out.push((pose, p));
+        }
+        out
+    }
+
+    const TABLE_OBJECT: Vec3 = [-0.3, 0.45, 0.84];
+
+    fn grasp_and_lift() -> Script {
+        Script {
+            frames: 150,
+            // The model's hand stops 12 cm short of the object, lifts 25 cm, then goes back down
+            // and away.
+            wrist: Box::new(|t| {
+                let t = t as f64;
+                let lift = if t < 60.0 { 0.0 } else if t < 90.0 { 0.25 * (t - 60.0) / 30.0 } else { 0.25 };
+                let back = if t > 110.0 { 0.25 * ((t - 110.0) / 15.0).min(1.0) } else { 0.0 };
+                [-0.3, 0.27, 0.9 + lift - back]
+            }),
+            contact: Box::new(|t| [false, (30..120).contains(&t) && t != 70 && t != 71]),
+            // the raw object drifts although the model holds it only from frame 30
+            object: Box::new(|t| add(&TABLE_OBJECT, &[0.001 * t as f64, 0.0, 0.0])),
+        }
+    }
+
+    #[test]
+    fn the_object_rests_until_grasped_follows_the_hand_and_lands() {
+        let frames = run(&grasp_and_lift(), None);
+        let start = frames[0].0.object_translation;
+        let mut grasped = None;
+        for (t, (pose, joints)) in frames.iter().enumerate() {
+            // Fields agree: wrist_to_object is the FK wrist minus the centre.
+            for (h, wrist) in [(0, 20), (1, 21)] {
+                assert!(dist(&pose.wrist_to_object[h], &sub(&joints[wrist], &pose.object_centre)) < 1e-9);
+            }
+            assert!(dist(&pose.object_centre, &add(&pose.object_translation, &[0.0, 0.0, 0.01])) < 1e-12);
+            if pose.contact[1] && grasped.is_none() {
+                grasped = Some(t);
+            }
+            if grasped.is_none() {
+                // Unheld: not a millimetre of drift (the raw object drifts 1 mm a frame).
+                assert_eq!(pose.object_translation, start, "frame {t}");
+            }
+        }
+        let t0 = grasped.expect("the right hand grasps");
+        // Grasp starts after ON_FRAMES and a short reach.
+        assert!(t0 > 31 && t0 < 31 + MAX_REACH_FRAMES as usize, "{t0}");
+        // While held the object keeps its grasp: the same pose in the wrist frame, and the
+        // wrist at the grip distance (the model's 8.2 cm vector) from the centre.
+        for (pose, _) in &frames[t0..118] {
+            assert!(pose.contact[1], "the flicker at 70-71 does not let go");
+            let d = norm(&pose.wrist_to_object[1]);
+            assert!((d - 0.0825).abs() < 2e-3, "wrist-centre {d}");
+        }
+        // Lifted with the hand (25 cm by the model's wrist, the correction fading).
+        let lifted = frames[100].0.object_translation[2] - start[2];
+        assert!(lifted > 0.2, "lifted {lifted}");
+        // After release the object falls onto the table top it started on and rests there.
+        let last = frames.last().unwrap().0;
+        assert!(!last.contact[1]);
+        assert!((last.object_translation[2] - start[2]).abs() < 1e-9, "landed at {:?}", last.object_translation);
+        // No frame moves the object faster than a falling one could (no jumps).
+        for w in frames.windows(2) {
+            let v = dist(&w[1].0.object_translation, &w[0].0.object_translation) * 30.0;
+            assert!(v < 3.5, "object speed {v} m/s");
+        }
+    }
+
+    #[test]
+    fn out_of_reach_is_not_grasped_and_the_arm_is_not_torn() {
+        let mut s = grasp_and_lift();
+        s.object = Box::new(|_| [-0.3, 1.4, 0.84]);
+        let frames = run(&s, None);
+        for (pose, joints) in &frames {
+            assert!(!pose.contact[1]);
+            assert_eq!(pose.object_translation, [-0.3, 1.4, 0.84]);
+            assert!(dist(&joints[19], &joints[17]) < 0.281 && dist(&joints[21], &joints[19]) < 0.261);
+        }
+    }
+
+    #[test]
+    fn a_hand_over_moves_the_object_without_a_jump() {
+        // Right hand grasps at frame 5; the left joins at 40; the right lets go at 80 and
+        // moves away; the left carries the object up.
+        const OBJECT: Vec3 = [0.0, 0.4, 0.84];
+        let s = Script {
+            frames: 130,
+            wrist: Box::new(|t| {
+                let k = ((t as f64 - 85.0) / 15.0).clamp(0.0, 1.0);
+                add(&scale(&[-0.05, 0.35, 0.92], 1.0 - k), &scale(&[-0.3, 0.2, 0.92], k))
+            }),
+            contact: Box::new(|t| [t >= 40, (5..80).contains(&t)]),
+            object: Box::new(|_| OBJECT),
+        };
+        let left = |t: usize| -> Vec3 {
+            let up = if t > 90 { 0.01 * (t - 90) as f64 } else { 0.0 };
+            [0.08, 0.37, 0.92 + up]
+        };
+        let frames = run(&s, Some(&left));
+        assert!(frames[60].0.contact == [true, true], "{:?}", frames[60].0.contact);
+        assert!(frames[100].0.contact == [true, false]);
+        for w in frames.windows(2) {
+            let v = dist(&w[1].0.object_translation, &w[0].0.object_translation) * 30.0;
+            assert!(v < 1.5, "object speed {v} m/s");
+        }
+        // The left hand carries it up: held 25+ cm above the table at the end.
+        let end = frames.last().unwrap().0;
+        assert!(end.object_translation[2] > OBJECT[2] + 0.2, "{:?}", end.object_translation);
+    }
+}
