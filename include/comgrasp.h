@@ -24,43 +24,6 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
-// Frames a raw contact flag must stay on before a grasp starts.
-#define ON_FRAMES 2
-
-// Frames a raw contact flag must stay off before a held object is let go.
-#define OFF_FRAMES 4
-
-// Mean speed of the reach correction's blend-in, m/s (bounded by the frame counts below).
-#define REACH_SPEED 0.6
-
-// Speed at which a correction fades once the object is held or let go, m/s.
-#define FADE_SPEED 0.3
-
-// A grasp whose wrist target lies beyond this share of the arm's length is not made.
-#define REACH_LIMIT 0.98
-
-// Shortest wrist-to-centre distance of a grasp beyond the object's smallest half extent
-// (the palm's thickness and the wrist-to-palm offset), m.
-#define GRIP_MIN 0.04
-
-// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
-#define GRIP_MARGIN 0.10
-
-// Largest forward bow of the spine the reach may add, radians (split over the three
-// spine joints; the legs and pelvis never move).
-#define MAX_BOW 0.6
-
-// Horizontal radius around the object's start within which it lands back on the support
-// it started on (SynthGrasp's table is 1.2 m × 0.8 m), m.
-#define SUPPORT_RADIUS 0.4
-
-// An object let go at most this far below the top of the support it started on is set
-// onto it (a hand that put it down into the table), m.
-#define SUPPORT_DEPTH 0.1
-
-// Height of the ground in the native world (z up), m.
-#define GROUND_Z 0.0
-
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -348,7 +311,8 @@ typedef struct cg_frame {
   float right_wrist_to_object[3];
   // Contact probability per hand [left, right], 0..1.
   float contact_probability[2];
-  // Contact flag per hand [left, right] (probability > 0.5), 0 or 1.
+  // Per hand [left, right]: 1 while the hand holds the object (the contact-consistency
+  // stage's debounced decision; with CG_STREAM_RAW_OUTPUT, probability > 0.5), else 0.
   uint8_t contact[2];
   // 1 on the last frame of the stream, else 0.
   uint8_t is_last;

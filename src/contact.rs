@@ -209,7 +209,8 @@ impl ContactStage {
                     let target = grip_target(&grip);
                     if needed_bow(&joints, h, &target, REACH_LIMIT * arm).is_some() {
                         let gap = norm(&sub(&target, &add(&wrist, &hand.correction)));
-                        let frames = ((gap / (REACH_SPEED * self.dt)).ceil() as u32).clamp(MIN_REACH_FRAMES, MAX_REACH_FRAMES);
+                        let frames =
+                            ((gap / (REACH_SPEED * self.dt)).ceil() as u32).clamp(MIN_REACH_FRAMES, MAX_REACH_FRAMES);
                         phase = Phase::Reaching { frame: 0, frames, from: hand.correction, bow_from: self.bow, grip };
                     }
                 }
@@ -227,7 +228,8 @@ impl ContactStage {
                 *frame += 1;
                 let s = smoothstep(*frame as f64 / *frames as f64);
                 let target = add(&add(&self.pos, &mat_vec(&self.rot, &self.shape.centre)), &mat_vec(&self.rot, grip));
-                let (need, axis) = needed_bow(&joints, h, &target, BOW_REACH * arm).unwrap_or((MAX_BOW, bow_axis(&joints, &target)));
+                let (need, axis) =
+                    needed_bow(&joints, h, &target, BOW_REACH * arm).unwrap_or((MAX_BOW, bow_axis(&joints, &target)));
                 let angle = *bow_from + (need - *bow_from) * s;
                 if bow.is_none_or(|(a, _)| angle > a) {
                     bow = Some((angle, axis));
@@ -471,7 +473,7 @@ pub fn arm_ik(
     let u = sub(&pe, &ps);
     let f = sub(&pw, &pe);
     let (a, b) = (norm(&u), norm(&f));
-    if !(a > 1e-6 && b > 1e-6) || !target.iter().all(|v| v.is_finite()) {
+    if !(a > 1e-6 && b > 1e-6 && target.iter().all(|v| v.is_finite())) {
         return;
     }
     // Bend: the angle β between upper arm and forearm (0 = straight) sets |wrist - shoulder|.
@@ -603,10 +605,8 @@ mod tests {
 
     fn run(script: &Script, left_wrist: Option<&dyn Fn(usize) -> Vec3>) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
         let s = skeleton();
-        let mut stage = ContactStage::new(
-            ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05] },
-            30.0,
-        );
+        let mut stage =
+            ContactStage::new(ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05] }, 30.0);
         let mut out = Vec::new();
         for t in 0..script.frames {
             // The raw pose: arms put by IK where the script says (from the rest pose).
@@ -638,7 +638,13 @@ mod tests {
             // and away.
             wrist: Box::new(|t| {
                 let t = t as f64;
-                let lift = if t < 60.0 { 0.0 } else if t < 90.0 { 0.25 * (t - 60.0) / 30.0 } else { 0.25 };
+                let lift = if t < 60.0 {
+                    0.0
+                } else if t < 90.0 {
+                    0.25 * (t - 60.0) / 30.0
+                } else {
+                    0.25
+                };
                 let back = if t > 110.0 { 0.25 * ((t - 110.0) / 15.0).min(1.0) } else { 0.0 };
                 [-0.3, 0.27, 0.9 + lift - back]
             }),

@@ -55,7 +55,8 @@ pub struct cg_frame {
     pub right_wrist_to_object: [f32; 3],
     /// Contact probability per hand [left, right], 0..1.
     pub contact_probability: [f32; 2],
-    /// Contact flag per hand [left, right] (probability > 0.5), 0 or 1.
+    /// Per hand [left, right]: 1 while the hand holds the object (the contact-consistency
+    /// stage's debounced decision; with CG_STREAM_RAW_OUTPUT, probability > 0.5), else 0.
     pub contact: [u8; 2],
     /// 1 on the last frame of the stream, else 0.
     pub is_last: u8,

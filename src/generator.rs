@@ -44,9 +44,9 @@ use std::sync::Arc;
 
 use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
-use crate::contact::{ContactStage, ObjectShape};
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
+use crate::contact::{ContactStage, ObjectShape};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};

@@ -142,11 +142,7 @@ pub fn rot6d_to_matrix(d: &[f64; 6]) -> Mat3 {
     let p = dot(&b1, &a2);
     let r = [a2[0] - p * b1[0], a2[1] - p * b1[1], a2[2] - p * b1[2]];
     let n2 = dot(&r, &r).sqrt();
-    let b2 = if n2 > NORM_EPS && n2.is_finite() {
-        [r[0] / n2, r[1] / n2, r[2] / n2]
-    } else {
-        orthogonal(&b1)
-    };
+    let b2 = if n2 > NORM_EPS && n2.is_finite() { [r[0] / n2, r[1] / n2, r[2] / n2] } else { orthogonal(&b1) };
     let b3 = cross(&b1, &b2);
     [b1, b2, b3]
 }

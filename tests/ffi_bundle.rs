@@ -86,7 +86,11 @@ fn default_sampling_matches_the_recorded_sequence() {
     // (native coordinates: positions unchanged).
     let (shape, want) = load_f32(&dir, "parity/decode/case0_frames_denormalized.npy");
     assert_eq!(shape, vec![112, 335]);
-    let (frames, _) = run(&e, index["step"][0]["prompt"].as_str().unwrap(), None);
+    // The model's raw output: the contact-consistency stage (on by default) moves the object.
+    let mut raw = cg_stream_config::default();
+    unsafe { cg_stream_config_init(&mut raw) };
+    raw.flags = CG_STREAM_RAW_OUTPUT;
+    let (frames, _) = run(&e, index["step"][0]["prompt"].as_str().unwrap(), Some(&raw));
     let mut worst = 0f64;
     for (i, f) in frames.iter().enumerate() {
         let row = &want[i * 335..(i + 1) * 335];

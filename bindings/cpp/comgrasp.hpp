@@ -161,6 +161,11 @@ public:
     StreamConfig &top_k(uint32_t v) { raw_.top_k = v; return use(CG_USE_DEFAULT_TOP_K); }
     StreamConfig &min_len(uint32_t v) { raw_.min_len = v; return use(CG_USE_DEFAULT_MIN_LEN); }
     StreamConfig &max_len(uint32_t v) { raw_.max_len = v; return use(CG_USE_DEFAULT_MAX_LEN); }
+    /// The model's raw frames, without the contact-consistency stage.
+    StreamConfig &raw_output(bool on) {
+        raw_.flags = on ? (raw_.flags | CG_STREAM_RAW_OUTPUT) : (raw_.flags & ~CG_STREAM_RAW_OUTPUT);
+        return *this;
+    }
     const cg_stream_config &raw() const noexcept { return raw_; }
 
 private:

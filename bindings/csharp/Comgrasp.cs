@@ -247,7 +247,10 @@ namespace ComGrasp
         public uint TopK;
         public uint MinLen;
         public uint MaxLen;
-        public uint Reserved;
+        /// <summary>Bitmask of the Flag* constants (cg_stream_config.flags).</summary>
+        public uint Flags;
+        /// <summary>CG_STREAM_RAW_OUTPUT: the model's frames without the contact-consistency stage.</summary>
+        public const uint FlagRawOutput = 1u << 0;
     }
 
     /// <summary>struct cg_subscriber_config. Fill with cg_subscriber_config_init before changing fields.</summary>
@@ -514,6 +517,9 @@ namespace ComGrasp
         public uint? MinLen;
         /// <summary>End forced at this many token steps.</summary>
         public uint? MaxLen;
+        /// <summary>The model's raw frames, without the contact-consistency stage (the object
+        /// may float or drift). Default false.</summary>
+        public bool RawOutput;
     }
 
     /// <summary>A loaded model bundle (cg_engine). Create once (it takes a fraction of a second),
@@ -596,6 +602,7 @@ namespace ComGrasp
             if (options.TopK.HasValue) { cfg.TopK = options.TopK.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTopK; }
             if (options.MinLen.HasValue) { cfg.MinLen = options.MinLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMinLen; }
             if (options.MaxLen.HasValue) { cfg.MaxLen = options.MaxLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMaxLen; }
+            if (options.RawOutput) { cfg.Flags |= CgStreamConfig.FlagRawOutput; }
             IntPtr s = IntPtr.Zero;
             // `fixed` on an empty array gives NULL, which the library reads as a missing
             // text: pin a one-byte buffer instead so "" is reported as empty text.

@@ -74,6 +74,8 @@ USE_DEFAULT_TOP_K = 1 << 2
 USE_DEFAULT_MIN_LEN = 1 << 3
 USE_DEFAULT_MAX_LEN = 1 << 4
 USE_DEFAULT_ALL = 31
+# cg_stream_config.flags
+STREAM_RAW_OUTPUT = 1 << 0
 
 
 class Status(enum.IntEnum):
@@ -192,7 +194,7 @@ class CgStreamConfig(ctypes.Structure):
         ("top_k", ctypes.c_uint32),
         ("min_len", ctypes.c_uint32),
         ("max_len", ctypes.c_uint32),
-        ("reserved", ctypes.c_uint32),
+        ("flags", ctypes.c_uint32),
     ]
 
 
@@ -540,9 +542,10 @@ class Engine(_Owned):
 
     def start(self, text: Union[str, bytes, None], *, seed: Optional[int] = None,
               temperature: Optional[float] = None, top_k: Optional[int] = None,
-              min_len: Optional[int] = None, max_len: Optional[int] = None) -> Stream:
+              min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False) -> Stream:
         """Starts a stream for ``text`` (str, or UTF-8 bytes) and returns at once. Unset
-        sampling options keep the bundle's defaults. ``None`` text is passed as NULL."""
+        sampling options keep the bundle's defaults. ``None`` text is passed as NULL.
+        ``raw_output``: the model's frames without the contact-consistency stage."""
         cfg = CgStreamConfig()
         self._lib.cg_stream_config_init(ctypes.byref(cfg))
         for name, value, bit in (("seed", seed, USE_DEFAULT_SEED), ("temperature", temperature, USE_DEFAULT_TEMPERATURE),
@@ -551,6 +554,8 @@ class Engine(_Owned):
             if value is not None:
                 setattr(cfg, name, value)
                 cfg.use_defaults &= ~bit
+        if raw_output:
+            cfg.flags |= STREAM_RAW_OUTPUT
         data = text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
         h = ctypes.c_void_p()
         st = self._lib.cg_start_utf8(self.handle, data, 0 if data is None else len(data), ctypes.byref(cfg), ctypes.byref(h))

@@ -111,8 +111,7 @@ def test_stream_to_end():
             q = list(fr.root_rotation)
             assert abs(sum(x * x for x in q) - 1) < 1e-3 and q[3] >= 0
             for h in range(2):
-                assert 0 <= fr.contact_probability[h] <= 1
-                assert fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0)
+                assert 0 <= fr.contact_probability[h] <= 1 and fr.contact[h] in (0, 1)
             assert list(fr.reserved) == [0, 0, 0, 0]
         assert s.poll_into(f) == Status.END and s.poll() is None
         d = frames[-1].to_dict()
@@ -132,6 +131,31 @@ def test_iteration_ids_and_determinism():
             for x, y in zip(fa, fb):
                 assert x.stream_id == a.id and y.stream_id == b.id
                 assert bytes(x)[8:] == bytes(y)[8:]  # all but the stream id
+
+
+def test_raw_output_flag():
+    """Raw frames: contact = probability > 0.5, the object goes where the model put it. The
+    default (the contact-consistency stage): an object no hand holds stays put or falls."""
+    opts = dict(seed=5, min_len=6, max_len=6)
+    with engine() as e:
+        with e.start(PROMPT, raw_output=True, **opts) as s:
+            raw = s.frames()
+        with e.start(PROMPT, **opts) as s:
+            consistent = s.frames()
+        cfg = cg.CgStreamConfig()
+        e._lib.cg_stream_config_init(ctypes.byref(cfg))
+        cfg.flags = 1 << 6
+        h = ctypes.c_void_p()
+        st = e._lib.cg_start_utf8(e.handle, b"a mug", 5, ctypes.byref(cfg), ctypes.byref(h))
+        assert st == Status.ERR_INVALID_ARGUMENT and b"flags" in e._lib.cg_last_error()
+    assert len(raw) == len(consistent) == 96
+    for fr in raw:
+        assert all(fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0) for h in range(2))
+    for a, b in zip(consistent, consistent[1:]):
+        if not any(a.contact) and not any(b.contact):
+            assert list(a.object_translation)[:2] == list(b.object_translation)[:2]
+            assert b.object_translation[2] <= a.object_translation[2] + 0.011
+    assert any(list(a.object_translation) != list(b.object_translation) for a, b in zip(raw, consistent))
 
 
 def test_runtime_options_change_how_not_what():

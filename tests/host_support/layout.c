@@ -60,7 +60,7 @@ int main(void) {
     OFF(cg_stream_config, top_k);
     OFF(cg_stream_config, min_len);
     OFF(cg_stream_config, max_len);
-    OFF(cg_stream_config, reserved);
+    OFF(cg_stream_config, flags);
 
     SIZE(cg_subscriber_config);
     OFF(cg_subscriber_config, struct_size);
