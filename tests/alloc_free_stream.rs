@@ -1,5 +1,6 @@
 //! The whole generation loop allocates nothing after the first token: once a stream's first
-//! frames are out, its worker (token step, sampler, decoder, frame assembly, ring push,
+//! frames are out, its worker (token step, sampler, decoder, frame assembly and the
+//! contact-consistency stage, which is on by default, ring push,
 //! parking on a full ring) and the polling host allocate nothing until the stream ends.
 //! Publishing over shared memory adds iceoryx2's one allocation per sample. Counted on every thread of the process (tests/alloc_counter), so this binary
 //! holds one test only. Runs the native paths of the bundle `COMGRASP_PARITY_BUNDLE` names

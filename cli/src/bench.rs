@@ -11,7 +11,8 @@
 //!    The sequence length is fixed: `min_len = max_len = --steps`, so End is never sampled
 //!    early and every runtime does the same number of steps.
 //! 4. **decode**: `DecoderModel::decode` of those tokens, one 16-frame chunk per token,
-//!    after a warm-up chunk; and the frame assembly of a chunk.
+//!    after a warm-up chunk; the frame assembly of a chunk; the contact-consistency stage
+//!    on a chunk (timed apart from the assembly, on the prompt's object, as the streams run it).
 //! 5. **stream**: `--stream-runs` end-to-end generations through `Engine::start` and
 //!    `Stream::wait` on the same loaded bundle: time to first frame (start -> first frame
 //!    in the consumer's hands), frames per second over the whole generation and the
@@ -57,7 +58,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use comgrasp::bundle::manifest::FRAME_DIM;
-use comgrasp::bundle::N_STREAMS;
+use comgrasp::assemble::Pose;
+use comgrasp::bundle::{choose_object, N_STREAMS};
+use comgrasp::contact::{ContactStage, ObjectShape};
 use comgrasp::config::RuntimeOptions;
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
@@ -501,20 +504,25 @@ fn bench(o: &Args) -> Result<Value, String> {
     let n_frames = steps * f;
     let mut expected = vec![Frame::default(); n_frames];
     let mut assemble_us = Vec::with_capacity(steps);
+    let mut contact_us = Vec::with_capacity(steps);
+    // The streams run the contact-consistency stage on the prompt's object: so do these frames.
+    let objects = &bundle.manifest.objects;
+    let (object, _) = choose_object(objects, &o.prompt).ok_or("the bundle's object catalogue is empty")?;
+    let mut stage = ContactStage::new(ObjectShape::from_entry(&objects[object]), bundle.manifest.fps);
     for (c, frames) in expected.chunks_mut(f).enumerate() {
-        let t = Instant::now();
+        let (mut stage_time, t) = (Duration::ZERO, Instant::now());
         for (i, fr) in frames.iter_mut().enumerate() {
             let idx = c * f + i;
+            let mut pose = Pose::default();
+            assembler.decode(&normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM], &mut pose);
+            let ts = Instant::now();
+            stage.apply(assembler.skeleton(), &mut pose);
+            stage_time += ts.elapsed();
             // Stream ids start at 1 and the first stream of the engine below is compared.
-            assembler.assemble(
-                &normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM],
-                1,
-                idx as u64,
-                idx + 1 == n_frames,
-                fr,
-            );
+            assembler.emit(&pose, 1, idx as u64, idx + 1 == n_frames, fr);
         }
-        assemble_us.push(t.elapsed().as_secs_f64() * 1e6);
+        assemble_us.push((t.elapsed() - stage_time).as_secs_f64() * 1e6);
+        contact_us.push(stage_time.as_secs_f64() * 1e6);
     }
 
     // 5. end-to-end streams on the same loaded bundle
@@ -728,6 +736,7 @@ fn bench(o: &Args) -> Result<Value, String> {
                          "same_bits_as_one_by_one": group_same},
         "derived": derived,
         "assemble_us_per_chunk": stats(&assemble_us),
+        "contact_stage_us_per_chunk": stats(&contact_us),
         "stream": {
             "runs": o.stream_runs, "frames": n_frames,
             "ttff_ms": stats(&ttff_ms), "total_ms": stats(&total_ms),
@@ -819,6 +828,7 @@ fn print_report(r: &Value) {
         s(&["decode_group", "same_bits_as_one_by_one"])
     );
     line("assemble", "assemble_us_per_chunk", "us");
+    line("contact", "contact_stage_us_per_chunk", "us");
     println!(
         "  derived   TTFF {:.2} ms (text + step 0 + chunk 0), RTF {:.1} (frames per token / (step + chunk))",
         g(&["derived", "ttff_ms"]),
