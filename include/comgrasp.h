@@ -103,6 +103,10 @@
 // All `CG_STREAM_*` flags this library knows.
 #define CG_STREAM_FLAGS_ALL CG_STREAM_RAW_OUTPUT
 
+// Longest catalogue name `cg_stream_info.object_name` holds, NUL excluded (bundle
+// verification rejects longer names).
+#define CG_OBJECT_NAME_MAX 63
+
 // Version of the C ABI. Bumped on any incompatible change (a struct layout, a function
 // signature, a status value's meaning). Compare with `cg_abi_version()` at startup.
 #define CG_ABI_VERSION 1
@@ -324,6 +328,20 @@ typedef struct cg_frame {
   float joint_positions[CG_NUM_JOINTS][3];
 } cg_frame;
 
+// What a stream is about (`cg_stream_get_info`). Fixed layout.
+typedef struct cg_stream_info {
+  // The stream's id, as `cg_stream_id`.
+  uint64_t stream_id;
+  // Index of the stream's object in the bundle's catalogue (manifest `objects`): the
+  // object the frames' `object_*` fields pose and the contact stage rests and carries.
+  uint32_t object_index;
+  // 1 when the prompt names that object (its name or one of its aliases); 0 when the
+  // prompt names no catalogue object and the catalogue's first object stands in.
+  uint32_t object_named;
+  // The object's catalogue name, NUL-terminated (e.g. "mug", "cubelarge").
+  char object_name[64];
+} cg_stream_info;
+
 // Settings of a subscriber. Initialize with `cg_subscriber_config_init`, then change fields.
 typedef struct cg_subscriber_config {
   // `sizeof(cg_subscriber_config)` of the host's header (set by the `_init` function).
@@ -515,6 +533,12 @@ cg_status cg_stream_destroy(struct cg_stream *stream);
 // Writes the stream's id (unique per engine, starting at 1; frames carry it as
 // `stream_id`) to `*out`. Any thread (it only reads an immutable value).
 cg_status cg_stream_id(struct cg_stream *stream, uint64_t *out);
+
+// Writes what `stream` is about to `*out`: its id and the catalogue object its prompt
+// names (or the stand-in when it names none, `object_named` 0). Errors:
+// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`, `CG_ERR_WRONG_STATE` for a stream whose
+// engine has no model bundle. Any thread (it reads values fixed at `cg_start`).
+cg_status cg_stream_get_info(struct cg_stream *stream, struct cg_stream_info *out);
 
 // Fills `*cfg` with the defaults and the right `struct_size`. `CG_ERR_NULL_POINTER` if
 // `cfg` is NULL. Any thread.

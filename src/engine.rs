@@ -123,7 +123,9 @@ impl Engine {
             let fps = self.bundle.as_ref().map_or(0.0, |b| b.manifest.fps as f32);
             Box::new(StreamPublication::new(Arc::clone(p), id, text, fps))
         });
-        let stream = Stream::spawn(shared, source, self.config.ring_capacity, Arc::clone(&self.streams), sink)?;
+        let object = source.object();
+        let mut stream = Stream::spawn(shared, source, self.config.ring_capacity, Arc::clone(&self.streams), sink)?;
+        stream.set_object(object);
         // From here on the stream removes itself from the set when it is dropped.
         reservation.keep();
         Ok(stream)

@@ -68,6 +68,23 @@ pub trait ChunkSource: Send {
     fn max_chunk_frames(&self) -> usize {
         16
     }
+
+    /// The catalogue object the frames' object is, when the source knows one.
+    fn object(&self) -> Option<StreamObject> {
+        None
+    }
+}
+
+/// Which catalogue object a stream's object is: the one its prompt names, or the
+/// catalogue's first when it names none (`bundle::choose_object`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StreamObject {
+    /// Index in the bundle's catalogue (manifest `objects`).
+    pub index: usize,
+    /// The catalogue name.
+    pub name: String,
+    /// The name or alias found in the prompt; `None`: the prompt names no catalogue object.
+    pub alias: Option<String>,
 }
 
 /// What a [`SourceFactory`] gets for one new stream.
@@ -203,6 +220,7 @@ pub struct Generator {
     done: bool,
     /// The contact-consistency stage (None: the raw model output was asked for).
     contact: Option<ContactStage>,
+    object: StreamObject,
 }
 
 impl Generator {
@@ -225,13 +243,14 @@ impl Generator {
             return Err(Error::InvalidArgument("max_len must be at least 1".into()));
         }
         let pad_usize = pipe.pad_ids.map(|p| p as usize);
+        // The catalogue is never empty (bundle verification).
+        let objects = &b.manifest.objects;
+        let (index, alias) = choose_object(objects, req.text)
+            .ok_or_else(|| Error::InvalidArgument("the bundle's object catalogue is empty".into()))?;
+        let object = StreamObject { index, name: objects[index].name.clone(), alias };
         let contact = if c.raw_output.unwrap_or(false) {
             None
         } else {
-            // The catalogue is never empty (bundle verification).
-            let objects = &b.manifest.objects;
-            let (index, _) = choose_object(objects, req.text)
-                .ok_or_else(|| Error::InvalidArgument("the bundle's object catalogue is empty".into()))?;
             Some(ContactStage::new(ObjectShape::from_entry(&objects[index]), b.manifest.fps))
         };
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
@@ -250,6 +269,7 @@ impl Generator {
             next_frame: 0,
             done: false,
             contact,
+            object,
             sampler,
             pipe,
         })
@@ -292,6 +312,10 @@ impl ChunkSource for Generator {
     /// A decode's chunks plus the previous call's held frame.
     fn max_chunk_frames(&self) -> usize {
         self.pipe.group * self.pipe.bundle.manifest.frames_per_token + 1
+    }
+
+    fn object(&self) -> Option<StreamObject> {
+        Some(self.object.clone())
     }
 
     fn next_chunk(&mut self, out: &mut Vec<Frame>) -> Result<bool> {

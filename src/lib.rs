@@ -54,4 +54,4 @@ pub use frame::{CoordinateSystem, Frame};
 pub use generator::ChunkSource;
 pub use model::Bundle;
 pub use shm::{FrameSubscriber, PublisherStats, SubscriberStats};
-pub use stream::{PollResult, Stream, StreamCanceller};
+pub use stream::{PollResult, Stream, StreamCanceller, StreamObject};

@@ -36,7 +36,7 @@ use crate::error::{Error, Result};
 use crate::frame::Frame;
 
 pub use crate::config::StreamConfig;
-pub use crate::generator::ChunkSource;
+pub use crate::generator::{ChunkSource, StreamObject};
 
 /// How a stream's worker finished, as a [`StreamSink`] hears it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -188,6 +188,7 @@ pub struct Stream {
     /// last frame at once (not after the worker freed its model) and a later cancel cannot
     /// turn a finished stream into a cancelled one.
     finished: Option<PollResult>,
+    object: Option<StreamObject>,
 }
 
 impl Stream {
@@ -219,12 +220,22 @@ impl Stream {
             }
         };
         let _ = shared.worker.set(join.thread().clone());
-        Ok(Stream { shared, cons: Some(cons), join: Some(join), set, finished: None })
+        Ok(Stream { shared, cons: Some(cons), join: Some(join), set, finished: None, object: None })
     }
 
     /// The stream's id (unique per engine, starting at 1); frames carry it as `stream_id`.
     pub fn id(&self) -> u64 {
         self.shared.id
+    }
+
+    /// The catalogue object the frames' object is (the engine sets it from the prompt);
+    /// `None` for a stream without a model bundle (a test source).
+    pub fn object(&self) -> Option<&StreamObject> {
+        self.object.as_ref()
+    }
+
+    pub(crate) fn set_object(&mut self, object: Option<StreamObject>) {
+        self.object = object;
     }
 
     /// Takes the next frame if there is one. Never blocks, never allocates. `out` is written

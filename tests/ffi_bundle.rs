@@ -186,3 +186,32 @@ fn bad_bundle_path() {
     assert!(e.is_null());
     assert!(last_error().contains("/nonexistent/bundle"), "{}", last_error());
 }
+
+#[test]
+fn stream_info_names_the_catalogue_object() {
+    let e = engine(false);
+    // (prompt, catalogue name, named): the tiny catalogue is mug, cubesmall, waterbottle.
+    for (prompt, name, named) in [
+        ("Lift the small cube", "cubesmall", 1),
+        ("drink from the WATER BOTTLE", "waterbottle", 1),
+        ("Hebe die Tasse", "mug", 0), // names nothing: the first object stands in
+    ] {
+        let c = CString::new(prompt).unwrap();
+        let mut s = null_mut();
+        assert_eq!(unsafe { cg_start(e.0, c.as_ptr(), null(), &mut s) }, cg_status::CG_OK);
+        let mut info = cg_stream_info { stream_id: 0, object_index: 99, object_named: 9, object_name: [1; 64] };
+        assert_eq!(unsafe { cg_stream_get_info(s, &mut info) }, cg_status::CG_OK, "{}", last_error());
+        let mut id = 0;
+        unsafe { cg_stream_id(s, &mut id) };
+        let got = unsafe { std::ffi::CStr::from_ptr(info.object_name.as_ptr()) }.to_str().unwrap();
+        assert_eq!((info.stream_id, got, info.object_named), (id, name, named), "{prompt:?}");
+        let index = ["mug", "cubesmall", "waterbottle"].iter().position(|n| *n == name).unwrap();
+        assert_eq!(info.object_index as usize, index);
+        assert!(info.object_name[got.len()..].iter().all(|&b| b == 0), "NUL-padded");
+        assert_eq!(unsafe { cg_stream_get_info(s, null_mut()) }, cg_status::CG_ERR_NULL_POINTER);
+        assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
+        assert_eq!(unsafe { cg_stream_get_info(s, &mut info) }, cg_status::CG_ERR_INVALID_HANDLE);
+    }
+    assert_eq!(unsafe { cg_stream_get_info(null_mut(), null_mut()) }, cg_status::CG_ERR_NULL_POINTER);
+    unsafe { cg_engine_destroy(e.0) };
+}

@@ -215,6 +215,14 @@ public:
         return v;
     }
 
+    /// What the stream is about: the catalogue object its frames pose (`object_name`), and
+    /// whether the prompt named it (`object_named`; 0: the first catalogue object stands in).
+    cg_stream_info info() const {
+        cg_stream_info v{};
+        detail::check("cg_stream_get_info", cg_stream_get_info(h_, &v));
+        return v;
+    }
+
     /// Destroys the stream now (as the destructor would); the object becomes empty.
     void reset() noexcept {
         if (h_) cg_stream_destroy(std::exchange(h_, nullptr));

@@ -47,6 +47,10 @@ static int check_subscriber(const char *bundle, const char *prompt) {
     comgrasp::StreamEvent ev{};
     comgrasp::Stream stream = engine.start(prompt, comgrasp::StreamConfig().seed(5));
     const uint64_t id = stream.id();
+    const cg_stream_info info = stream.info();
+    if (info.stream_id != id || info.object_name[0] == '\0') fail("stream info: no id or object name");
+    std::printf("stream %llu: object %s (%s)\n", static_cast<unsigned long long>(id), info.object_name,
+                info.object_named ? "named by the prompt" : "the prompt names none");
     auto drain = [&] {
         while (sub.receive(r)) received.push_back(r);
         while (sub.receive_event(ev)) events.push_back(ev);

@@ -278,6 +278,34 @@ namespace ComGrasp
         Failed = 4,
     }
 
+    /// <summary>struct cg_stream_info (80 bytes): what a stream is about (cg_stream_get_info).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgStreamInfo
+    {
+        /// <summary>CG_OBJECT_NAME_MAX + 1: bytes of ObjectName, the terminating NUL included.</summary>
+        public const int ObjectNameBytes = 64;
+
+        /// <summary>The stream's id.</summary>
+        public ulong StreamId;
+        /// <summary>Index of the stream's object in the bundle's catalogue.</summary>
+        public uint ObjectIndex;
+        /// <summary>1 when the prompt names the object; 0 when it names none and the first catalogue object stands in.</summary>
+        public uint ObjectNamed;
+        /// <summary>The catalogue name, NUL-terminated ASCII/UTF-8.</summary>
+        public fixed byte ObjectName[ObjectNameBytes];
+
+        /// <summary>The catalogue name as a string (allocates it).</summary>
+        public string GetObjectName()
+        {
+            fixed (byte* p = ObjectName)
+            {
+                int n = 0;
+                while (n < ObjectNameBytes && p[n] != 0) n++;
+                return Encoding.UTF8.GetString(p, n);
+            }
+        }
+    }
+
     /// <summary>struct cg_stream_event (280 bytes): a stream's lifecycle record, received with
     /// <see cref="ComGraspSubscriber.TryReceiveEvent"/>. Blittable, like CgFrame.</summary>
     [StructLayout(LayoutKind.Sequential)]
@@ -410,6 +438,9 @@ namespace ComGrasp
         public static extern CgStatus cg_stream_destroy(IntPtr stream);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_stream_id(IntPtr stream, ulong* id);
+
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_get_info(IntPtr stream, CgStreamInfo* info);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_subscriber_config_init(CgSubscriberConfig* cfg);
         /// <summary>name: NUL-terminated publish name; cfg may be NULL (defaults).</summary>
@@ -683,6 +714,18 @@ namespace ComGrasp
 
         /// <summary>The stream's id (unique per engine, from 1); frames carry it as StreamId.</summary>
         public ulong Id { get { return id; } }
+
+        /// <summary>The catalogue object the frames pose (its name, index, and whether the prompt
+        /// named it); throws ComGraspException on a disposed stream.</summary>
+        public CgStreamInfo Info
+        {
+            get
+            {
+                CgStreamInfo info;
+                ComGraspException.Check("cg_stream_get_info", ComGraspNative.cg_stream_get_info(handle, &info));
+                return info;
+            }
+        }
 
         /// <summary>Ok (a frame was written to <paramref name="frame"/>), Pending (nothing yet),
         /// End (every frame delivered) or Cancelled. Never blocks; allocates nothing unless it

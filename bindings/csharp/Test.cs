@@ -137,14 +137,14 @@ static unsafe class ComGraspTest
             { "cg_frame", typeof(CgFrame) }, { "cg_engine_config", typeof(CgEngineConfig) },
             { "cg_stream_config", typeof(CgStreamConfig) }, { "cg_subscriber_config", typeof(CgSubscriberConfig) },
             { "cg_stream_event", typeof(CgStreamEvent) }, { "cg_subscriber_stats", typeof(CgSubscriberStats) },
-            { "cg_publisher_stats", typeof(CgPublisherStats) },
+            { "cg_publisher_stats", typeof(CgPublisherStats) }, { "cg_stream_info", typeof(CgStreamInfo) },
         };
         var sizes = new Dictionary<Type, int>
         {
             { typeof(CgFrame), sizeof(CgFrame) }, { typeof(CgEngineConfig), sizeof(CgEngineConfig) },
             { typeof(CgStreamConfig), sizeof(CgStreamConfig) }, { typeof(CgSubscriberConfig), sizeof(CgSubscriberConfig) },
             { typeof(CgStreamEvent), sizeof(CgStreamEvent) }, { typeof(CgSubscriberStats), sizeof(CgSubscriberStats) },
-            { typeof(CgPublisherStats), sizeof(CgPublisherStats) },
+            { typeof(CgPublisherStats), sizeof(CgPublisherStats) }, { typeof(CgStreamInfo), sizeof(CgStreamInfo) },
         };
         var sized = new HashSet<Type>();
         int facts = 0;
@@ -200,6 +200,10 @@ static unsafe class ComGraspTest
         {
             Check(stream.Id >= 1, "stream id >= 1");
             Eq(engine.StreamCount, 1u, "StreamCount");
+            CgStreamInfo info = stream.Info;
+            Eq(info.StreamId, stream.Id, "info.StreamId");
+            Eq(info.GetObjectName(), "mug", "the prompt's object");
+            Eq(info.ObjectNamed, 1u, "the prompt names it");
             var f = new CgFrame();
             ulong n = 0;
             bool sawLast = false;

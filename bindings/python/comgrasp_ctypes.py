@@ -76,6 +76,7 @@ USE_DEFAULT_MAX_LEN = 1 << 4
 USE_DEFAULT_ALL = 31
 # cg_stream_config.flags
 STREAM_RAW_OUTPUT = 1 << 0
+OBJECT_NAME_MAX = 63  # CG_OBJECT_NAME_MAX
 
 
 class Status(enum.IntEnum):
@@ -195,6 +196,17 @@ class CgStreamConfig(ctypes.Structure):
         ("min_len", ctypes.c_uint32),
         ("max_len", ctypes.c_uint32),
         ("flags", ctypes.c_uint32),
+    ]
+
+
+class CgStreamInfo(ctypes.Structure):
+    """struct cg_stream_info: what a stream is about (``cg_stream_get_info``)."""
+
+    _fields_ = [
+        ("stream_id", ctypes.c_uint64),
+        ("object_index", ctypes.c_uint32),
+        ("object_named", ctypes.c_uint32),
+        ("object_name", ctypes.c_char * (OBJECT_NAME_MAX + 1)),
     ]
 
 
@@ -331,6 +343,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_cancel": (st, [vp]),
         "cg_stream_destroy": (st, [vp]),
         "cg_stream_id": (st, [vp, P(u64)]),
+        "cg_stream_get_info": (st, [vp, P(CgStreamInfo)]),
     }
     # Shared memory (library 0.2); an older library simply lacks them (Subscriber then fails).
     shm = {
@@ -438,6 +451,14 @@ class Stream(_Owned):
     def id(self) -> int:
         """The stream's id (unique per engine, from 1); frames carry it as ``stream_id``."""
         return self._id
+
+    @property
+    def object(self) -> tuple[str, bool]:
+        """(catalogue name, named): the object the frames pose, and whether the prompt named
+        it (False: it names no catalogue object and the catalogue's first stands in)."""
+        info = CgStreamInfo()
+        _check(self._lib, "cg_stream_get_info", self._lib.cg_stream_get_info(self.handle, ctypes.byref(info)))
+        return info.object_name.decode("utf-8"), bool(info.object_named)
 
     @property
     def done(self) -> bool:

@@ -49,6 +49,7 @@ def test_layout_matches_c():
     assert cg.CgEngineConfig.step_backend.offset == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
     assert ctypes.sizeof(cg.CgSubscriberConfig) == 16 and ctypes.sizeof(CgStreamEvent) == 280
     assert ctypes.sizeof(cg.CgSubscriberStats) == 48 and ctypes.sizeof(cg.CgPublisherStats) == 40
+    assert ctypes.sizeof(cg.CgStreamInfo) == 80
     assert CgFrame.contact.offset == 940 and CgFrame.joint_positions.offset == 948
     ec = cg.CgEngineConfig()
     assert lib.cg_engine_config_init_sized(ctypes.byref(ec), ctypes.sizeof(ec)) == Status.OK
@@ -61,7 +62,8 @@ def test_layout_matches_c():
         return
     types = {"cg_frame": CgFrame, "cg_engine_config": cg.CgEngineConfig, "cg_stream_config": cg.CgStreamConfig,
              "cg_subscriber_config": cg.CgSubscriberConfig, "cg_stream_event": CgStreamEvent,
-             "cg_subscriber_stats": cg.CgSubscriberStats, "cg_publisher_stats": cg.CgPublisherStats}
+             "cg_subscriber_stats": cg.CgSubscriberStats, "cg_publisher_stats": cg.CgPublisherStats,
+             "cg_stream_info": cg.CgStreamInfo}
     seen = {t: 0 for t in types.values()}
     sized = set()
     for line in Path(path).read_text().splitlines():
@@ -149,6 +151,11 @@ def test_raw_output_flag():
         st = e._lib.cg_start_utf8(e.handle, b"a mug", 5, ctypes.byref(cfg), ctypes.byref(h))
         assert st == Status.ERR_INVALID_ARGUMENT and b"flags" in e._lib.cg_last_error()
     assert len(raw) == len(consistent) == 96
+    with engine() as e:
+        with e.start("Lift the small cube", min_len=1, max_len=1) as s:
+            assert s.object == ("cubesmall", True)
+        with e.start("Hebe die Tasse", min_len=1, max_len=1) as s:
+            assert s.object == ("mug", False)  # names nothing: the first catalogue object
     for fr in raw:
         assert all(fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0) for h in range(2))
     for a, b in zip(consistent, consistent[1:]):

@@ -57,11 +57,11 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::assemble::Pose;
+use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::bundle::{choose_object, N_STREAMS};
-use comgrasp::contact::{ContactStage, ObjectShape};
 use comgrasp::config::RuntimeOptions;
+use comgrasp::contact::{ContactStage, ObjectShape};
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
 use comgrasp::model::{decode_group, MAX_DECODE_GROUP};

@@ -149,6 +149,10 @@ pub fn run(args: Args) -> Result<(), Failure> {
         }
     }
     let generation = t_start.elapsed();
+    let object = stream.object().map(|o| match &o.alias {
+        Some(alias) => format!("object {} (prompt says {alias:?})", o.name),
+        None => format!("object {} (the prompt names no catalogue object; using the first)", o.name),
+    });
     drop(stream);
     drop(engine);
 
@@ -160,7 +164,7 @@ pub fn run(args: Args) -> Result<(), Failure> {
     if let (Some(path), Some(scene)) = (&opts.glb, &scene) {
         let bytes = gltf::glb(scene, &frames, &opts.text, fps).map_err(|e| Failure::Run(format!("glb: {e}")))?;
         write_file(path, &bytes)?;
-        wrote.push(format!("glb {} ({} bytes, {})", path.display(), bytes.len(), scene.object_note()));
+        wrote.push(format!("glb {} ({} bytes)", path.display(), bytes.len()));
     }
     if let (Some(path), Some(scene)) = (&opts.preview, &scene) {
         let p = preview::render(scene, &frames).map_err(|e| Failure::Run(format!("preview: {e}")))?;
@@ -168,11 +172,7 @@ pub fn run(args: Args) -> Result<(), Failure> {
         write_file(path, &png)?;
         let Image { width, height, .. } = p.image;
         let keys: Vec<String> = p.key_frames.iter().map(usize::to_string).collect();
-        let mut note = format!("preview {} ({width}x{height}, frames {})", path.display(), keys.join(","));
-        if opts.glb.is_none() {
-            note += &format!(", {}", scene.object_note());
-        }
-        wrote.push(note);
+        wrote.push(format!("preview {} ({width}x{height}, frames {})", path.display(), keys.join(",")));
     }
     let ms = |d: Duration| d.as_secs_f64() * 1e3;
     let motion_s = frames.len() as f64 / fps;
@@ -186,6 +186,9 @@ pub fn run(args: Args) -> Result<(), Failure> {
         ms(load),
         ms(t0.elapsed()),
     );
+    if let Some(object) = object {
+        line += &format!("; {object}");
+    }
     if let Some((path, _)) = &opts.out {
         line += &format!("; wrote {}", path.display());
     }

@@ -378,7 +378,7 @@ mod tests {
             joint_names: names,
             parents,
             rest: Vec::new(),
-            object: SceneObject { name: "cube".into(), matched: None, mesh: cube },
+            object: SceneObject { name: "cube".into(), mesh: cube },
         };
         let p = render(&scene, &[f, f]).unwrap();
         assert_eq!((p.image.width, p.image.height, p.key_frames.clone()), (2 * PANEL_WIDTH, PANEL_HEIGHT, vec![0, 1]));

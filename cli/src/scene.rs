@@ -24,9 +24,6 @@ pub struct Scene {
 pub struct SceneObject {
     /// The catalogue name.
     pub name: String,
-    /// The alias (or name) found in the prompt; `None` = the prompt names no catalogue
-    /// object and the first one was used.
-    pub matched: Option<String>,
     /// The mesh in the object's frame, converted to the frames' basis (`c S v`), so that
     /// `object_translation + object_rotation · v` places it in the world.
     pub mesh: obj::Mesh,
@@ -37,7 +34,8 @@ impl Scene {
         let m = &bundle.manifest;
         let (s, c) = coords.basis();
         let to_output = |p: &[f32; 3]| mat_vec(&s, &p.map(f64::from)).map(|v| (v * c) as f32);
-        let (index, matched) = choose_object(&m.objects, prompt).ok_or("the bundle's object catalogue is empty")?;
+        // The engine's choice for the stream (the summary line reports it from the stream).
+        let (index, _) = choose_object(&m.objects, prompt).ok_or("the bundle's object catalogue is empty")?;
         let entry = &m.objects[index];
         let bytes = bundle.file_bytes(&entry.mesh).map_err(|e| e.to_string())?;
         let text = String::from_utf8(bytes).map_err(|_| format!("{}: not UTF-8 text", entry.mesh))?;
@@ -50,15 +48,7 @@ impl Scene {
             joint_names: m.skeleton.joint_names.clone(),
             parents: m.skeleton.parents.clone(),
             rest: m.skeleton.rest_joints.iter().map(to_output).collect(),
-            object: SceneObject { name: entry.name.clone(), matched, mesh },
+            object: SceneObject { name: entry.name.clone(), mesh },
         })
-    }
-
-    /// How the object was chosen, for the summary line.
-    pub fn object_note(&self) -> String {
-        match &self.object.matched {
-            Some(alias) => format!("object {} (prompt says {alias:?})", self.object.name),
-            None => format!("object {} (the prompt names no catalogue object; using the first)", self.object.name),
-        }
     }
 }

@@ -84,8 +84,9 @@ fn summary_names_what_was_written() {
     let g = generated();
     assert_eq!(g.summary.lines().count(), 1, "{}", g.summary);
     assert!(g.summary.starts_with("48 frames, "), "{}", g.summary);
-    let want = format!("wrote glb {} ({} bytes, object mug (prompt says \"mug\"))", g.glb_path.display(), g.glb.len());
+    let want = format!("wrote glb {} ({} bytes)", g.glb_path.display(), g.glb.len());
     assert!(g.summary.contains(&want), "{want:?} not in {}", g.summary);
+    assert!(g.summary.contains("; object mug (prompt says \"mug\"); "), "{}", g.summary);
     assert!(
         g.summary.contains("; wrote preview ") && g.summary.contains("(1536x320, frames 0,9,19,28,38,47)"),
         "{}",

@@ -293,6 +293,9 @@ pub struct Skeleton {
     pub frame: String,
 }
 
+/// Longest catalogue object name, bytes (a C host gets it in a fixed buffer).
+pub const OBJECT_NAME_MAX: usize = 63;
+
 /// One catalogue object.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -357,6 +357,9 @@ fn check_skeleton_objects_sampling(p: &Path, m: &Manifest) -> Result<()> {
         ensure(!o.name.is_empty() && names.insert(o.name.as_str()), p, || {
             format!("object name {:?} is empty or repeated", o.name)
         })?;
+        ensure(o.name.len() <= OBJECT_NAME_MAX && !o.name.contains('\0'), p, || {
+            format!("object name {:?}: at most {OBJECT_NAME_MAX} bytes, no NUL", o.name)
+        })?;
         ensure(o.centre.iter().chain(&o.half_extents).all(|v| v.is_finite()), p, || {
             format!("object {}: centre/half_extents must be finite", o.name)
         })?;

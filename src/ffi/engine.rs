@@ -185,10 +185,10 @@ unsafe fn start(
         let _poison = PoisonOnUnwind(&entry.poisoned);
         entry.engine.start(text, opts)?
     };
-    let id = stream.id();
+    let (id, object) = (stream.id(), stream.object().cloned());
     let canceller = stream.canceller();
     let stream_entry =
-        Arc::new(StreamEntry { id, canceller, stream: Mutex::new(stream), poisoned: AtomicBool::new(false) });
+        Arc::new(StreamEntry { id, object, canceller, stream: Mutex::new(stream), poisoned: AtomicBool::new(false) });
     // If registration fails, dropping the entry stops and joins the worker.
     let handle =
         STREAMS.insert(stream_entry).ok_or_else(|| Failure::new(cg_status::CG_ERR_LIMIT, "too many stream handles"))?;

@@ -150,6 +150,8 @@ pub(crate) struct EngineEntry {
 /// works while another thread is inside `cg_stream_wait`.
 pub(crate) struct StreamEntry {
     pub(crate) id: u64,
+    /// Immutable after `cg_start`: read by `cg_stream_get_info` from any thread.
+    pub(crate) object: Option<crate::stream::StreamObject>,
     pub(crate) canceller: StreamCanceller,
     pub(crate) stream: Mutex<Stream>,
     pub(crate) poisoned: AtomicBool,

@@ -3,6 +3,7 @@
 //! A stream is used by one thread at a time (its mutex is only ever `try_lock`ed, so
 //! concurrent use is reported as `CG_ERR_WRONG_STATE` instead of blocking), except
 //! `cg_cancel`, which works from any thread at any time.
+use std::ffi::c_char;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -158,6 +159,56 @@ pub unsafe extern "C" fn cg_stream_id(stream: *mut cg_stream, out: *mut u64) -> 
         }
         let entry = lookup_stream(stream)?;
         unsafe { out.write(entry.id) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Longest catalogue name `cg_stream_info.object_name` holds, NUL excluded (bundle
+/// verification rejects longer names).
+pub const CG_OBJECT_NAME_MAX: usize = 63;
+const _: () = assert!(CG_OBJECT_NAME_MAX == crate::bundle::manifest::OBJECT_NAME_MAX);
+
+/// What a stream is about (`cg_stream_get_info`). Fixed layout.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct cg_stream_info {
+    /// The stream's id, as `cg_stream_id`.
+    pub stream_id: u64,
+    /// Index of the stream's object in the bundle's catalogue (manifest `objects`): the
+    /// object the frames' `object_*` fields pose and the contact stage rests and carries.
+    pub object_index: u32,
+    /// 1 when the prompt names that object (its name or one of its aliases); 0 when the
+    /// prompt names no catalogue object and the catalogue's first object stands in.
+    pub object_named: u32,
+    /// The object's catalogue name, NUL-terminated (e.g. "mug", "cubelarge").
+    pub object_name: [c_char; 64],
+}
+
+/// Writes what `stream` is about to `*out`: its id and the catalogue object its prompt
+/// names (or the stand-in when it names none, `object_named` 0). Errors:
+/// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`, `CG_ERR_WRONG_STATE` for a stream whose
+/// engine has no model bundle. Any thread (it reads values fixed at `cg_start`).
+#[no_mangle]
+pub unsafe extern "C" fn cg_stream_get_info(stream: *mut cg_stream, out: *mut cg_stream_info) -> cg_status {
+    boundary("cg_stream_get_info", || {
+        if out.is_null() {
+            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "out is NULL"));
+        }
+        let entry = lookup_stream(stream)?;
+        let o = entry.object.as_ref().ok_or_else(|| {
+            Failure::new(cg_status::CG_ERR_WRONG_STATE, "the stream has no catalogue object (no bundle)")
+        })?;
+        let mut info = cg_stream_info {
+            stream_id: entry.id,
+            object_index: o.index as u32,
+            object_named: u32::from(o.alias.is_some()),
+            object_name: [0; 64],
+        };
+        // Verified at bundle load: at most CG_OBJECT_NAME_MAX bytes, no NUL.
+        for (d, s) in info.object_name.iter_mut().zip(o.name.bytes().take(CG_OBJECT_NAME_MAX)) {
+            *d = s as c_char;
+        }
+        unsafe { out.write(info) };
         Ok(cg_status::CG_OK)
     })
 }

@@ -62,6 +62,12 @@ int main(void) {
     OFF(cg_stream_config, max_len);
     OFF(cg_stream_config, flags);
 
+    SIZE(cg_stream_info);
+    OFF(cg_stream_info, stream_id);
+    OFF(cg_stream_info, object_index);
+    OFF(cg_stream_info, object_named);
+    OFF(cg_stream_info, object_name);
+
     SIZE(cg_subscriber_config);
     OFF(cg_subscriber_config, struct_size);
     OFF(cg_subscriber_config, buffer_frames);
