@@ -380,7 +380,29 @@ impl ContactStage {
             }
         }
 
-        // Write back: every field from the same geometry.
+        self.write(pose, &joints);
+    }
+
+    /// The stream's last frame, after [`Self::apply`]: an object still falling (or rising
+    /// onto the table) comes to rest now; a host keeps showing the last frame, so nothing
+    /// may be left hanging in the air.
+    pub fn finish(&mut self, skeleton: &Skeleton, pose: &mut Pose) {
+        if self.hands.iter().any(|h| h.phase == Phase::Holding) {
+            return;
+        }
+        let (bottom, floor) = self.floor();
+        if bottom != floor {
+            self.pos[2] += floor - bottom;
+            self.fall = 0.0;
+            let mut global = [IDENTITY; CG_NUM_JOINTS];
+            let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
+            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+            self.write(pose, &joints);
+        }
+    }
+
+    /// Every object field of `pose` from the stage's state and the final FK.
+    fn write(&self, pose: &mut Pose, joints: &[Vec3; CG_NUM_JOINTS]) {
         pose.object_rotation = self.rot;
         pose.object_translation = self.pos;
         pose.object_centre = self.centre(&self.rot, &self.pos);
@@ -454,9 +476,7 @@ impl ContactStage {
     /// else the ground) and rests there. One let go a little below the start support's top
     /// (set down into the table) rises onto it at [`FADE_SPEED`].
     fn settle(&mut self) {
-        let bottom = self.bottom(&self.rot, &self.pos);
-        let on_table = self.over_table(&self.centre(&self.rot, &self.pos)) && bottom >= self.support_z - SUPPORT_DEPTH;
-        let floor = if on_table { self.support_z } else { GROUND_Z };
+        let (bottom, floor) = self.floor();
         if bottom > floor {
             self.fall += GRAVITY * self.dt;
             self.pos[2] -= (self.fall * self.dt).min(bottom - floor);
@@ -464,6 +484,15 @@ impl ContactStage {
             self.fall = 0.0;
             self.pos[2] += (FADE_SPEED * self.dt).min(floor - bottom);
         }
+    }
+
+    /// The unheld object's lowest point and the height it comes to rest at: the table top
+    /// when it is over the table and not more than [`SUPPORT_DEPTH`] below its top, else
+    /// the ground.
+    fn floor(&self) -> (f64, f64) {
+        let bottom = self.bottom(&self.rot, &self.pos);
+        let on_table = self.over_table(&self.centre(&self.rot, &self.pos)) && bottom >= self.support_z - SUPPORT_DEPTH;
+        (bottom, if on_table { self.support_z } else { GROUND_Z })
     }
 }
 

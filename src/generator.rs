@@ -211,6 +211,8 @@ pub struct Generator {
     prev: [i64; N_STREAMS],
     /// The final frame of the previous chunk, waiting for the next step's verdict.
     held: Option<Frame>,
+    /// The held frame's pose, for the contact stage's last word on the stream's last frame.
+    held_pose: Pose,
     /// Codes of steps k, k+1, ..., sampled during the previous call's decode (overlap):
     /// `ahead[..ahead_n]`; `ahead_end`: the sequence ends after them.
     ahead: [[i64; N_STREAMS]; MAX_DECODE_GROUP],
@@ -263,6 +265,7 @@ impl Generator {
             k: 0,
             prev: pipe.pad_ids,
             held: None,
+            held_pose: Pose::default(),
             ahead: [[0; N_STREAMS]; MAX_DECODE_GROUP],
             ahead_n: 0,
             ahead_end: false,
@@ -337,7 +340,14 @@ impl ChunkSource for Generator {
                 // The previous chunk was the last one: release its held frame, marked.
                 self.done = true;
                 if let Some(mut f) = self.held.take() {
-                    f.is_last = 1;
+                    match &mut self.contact {
+                        Some(stage) => {
+                            let (assembler, pose) = (&self.pipe.assembler, &mut self.held_pose);
+                            stage.finish(assembler.skeleton(), pose);
+                            assembler.emit(pose, f.stream_id, f.frame_index, true, &mut f);
+                        }
+                        None => f.is_last = 1,
+                    }
                     out.push(f);
                 }
                 return Ok(false);
@@ -412,11 +422,15 @@ impl ChunkSource for Generator {
             assembler.decode(feats, &mut pose);
             if let Some(stage) = &mut self.contact {
                 stage.apply(assembler.skeleton(), &mut pose);
+                if is_last {
+                    stage.finish(assembler.skeleton(), &mut pose);
+                }
             }
             assembler.emit(&pose, self.stream_id, self.next_frame, is_last, &mut frame);
             self.next_frame += 1;
             if last_of_chunk && last.is_none() {
                 self.held = Some(frame);
+                self.held_pose = pose;
             } else {
                 out.push(frame);
             }
