@@ -2,7 +2,7 @@
 
     python scripts/quality_report.py prompts N       N canonical prompts covering every SynthGrasp
                                                      intent and hand mode (tab: prompt, then meaning)
-    python scripts/quality_report.py bars OUT        OUT/bars.md from OUT/table.json and OUT/engine.json
+    python scripts/quality_report.py bars OUT        OUT/bars.md from OUT/table.json, OUT/engine.json and OUT/engine_raw.json
 """
 
 from __future__ import annotations
@@ -76,12 +76,13 @@ def bars(out: Path) -> str:
         bound = 1.5 * gt + 1.0
         lines.append(f"| generation foot sliding (mm/frame) | {v:.3f} | <= 1.5 x GT ({gt:.3f}) + 1 = {bound:.3f} | "
                      f"{'yes' if v <= bound else 'no'} |")
-    engine = out / "engine.json"
-    if engine.is_file():
-        e = json.loads(engine.read_text())
-        for k in ("intent_ok", "intent_grasp", "intent_unheld_still"):
-            if k in e["rates"]:
-                lines.append(f"| engine frames: {k} ({e['n']} samples) | {e['rates'][k]:.3f} | – | – |")
+    for name, what in (("engine.json", "engine frames"), ("engine_raw.json", "engine frames, raw (no contact stage)")):
+        engine = out / name
+        if engine.is_file():
+            e = json.loads(engine.read_text())
+            for k in ("intent_ok", "intent_grasp", "intent_unheld_still"):
+                if k in e["rates"]:
+                    lines.append(f"| {what}: {k} ({e['n']} samples) | {e['rates'][k]:.3f} | – | – |")
     return "\n".join(lines) + "\n"
 
 

@@ -5,8 +5,9 @@
 #      generation from the template prompts and from held-out wordings (grab.paraphrase),
 #      REPEATS seeds each -> $OUT/table.md (+ .json);
 #   2. the release engine (`comgrasp generate --fk`) on ENGINE_PROMPTS prompts covering every
-#      intent and hand mode, SEEDS seeds each, checked by `comgrasp-data check-engine`
-#      -> $OUT/engine.json;
+#      intent and hand mode, SEEDS seeds each, checked by `comgrasp-data check-engine`, with
+#      the contact-consistency stage (the default) -> $OUT/engine.json and without it
+#      (`--raw`, the model's own frames) -> $OUT/engine_raw.json;
 #   3. $OUT/bars.md: each bar, the measured value and whether it is met.
 # Knobs: RUN (runs/default: vq/ and gpt/), DATA (data/sg3000_prep), BUNDLE (models/default),
 # LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality).
@@ -28,22 +29,25 @@ if [ ! -f "$OUT/table.json" ]; then
     --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out
 fi
 [ -x target/release/comgrasp ] || cargo build --release --locked
-results=()
-k=0
-while IFS=$'\t' read -r prompt _meaning; do
-  k=$((k + 1))
-  for s in $(seq "$SEEDS"); do
-    f="$OUT/engine/p${k}_s${s}.npz"
-    target/release/comgrasp generate --bundle "$BUNDLE" --text "$prompt" --seed "$s" --fk --out "$f" >/dev/null
-    $P/comgrasp-data check-engine "$f" --prompt "$prompt" --json "$f.json" >/dev/null
-    results+=("$f.json")
-  done
-done < <($P/python scripts/quality_report.py prompts "$ENGINE_PROMPTS")
-$P/python - "$OUT/engine.json" "${results[@]}" <<'PY'
+for mode in stage raw; do
+  results=()
+  k=0
+  while IFS=$'\t' read -r prompt _meaning; do
+    k=$((k + 1))
+    for s in $(seq "$SEEDS"); do
+      f="$OUT/engine/p${k}_s${s}_$mode.npz"
+      target/release/comgrasp generate --bundle "$BUNDLE" --text "$prompt" --seed "$s" --fk \
+        $([ $mode = raw ] && echo --raw) --out "$f" >/dev/null
+      $P/comgrasp-data check-engine "$f" --prompt "$prompt" --json "$f.json" >/dev/null
+      results+=("$f.json")
+    done
+  done < <($P/python scripts/quality_report.py prompts "$ENGINE_PROMPTS")
+  $P/python - "$OUT/engine$([ $mode = raw ] && echo _raw).json" "${results[@]}" <<'PY'
 import json, sys
 rows = [r for f in sys.argv[2:] for r in json.load(open(f))["results"]]
 keys = sorted({k for r in rows for k in r if k.startswith("intent_")})
 rates = {k: sum(r[k] for r in rows if k in r) / max(1, sum(k in r for r in rows)) for k in keys}
 json.dump({"rates": rates, "n": len(rows), "results": rows}, open(sys.argv[1], "w"), indent=1)
 PY
+done
 $P/python scripts/quality_report.py bars "$OUT"
