@@ -75,7 +75,7 @@ pub const TABLE_FAR: f64 = 1.1;
 pub const TABLE_HALF_WIDTH: f64 = 0.7;
 pub const SUPPORT_RADIUS: f64 = 0.3;
 /// A start support this close to the ground is the ground (no table), m.
-const TABLE_MIN_HEIGHT: f64 = 0.05;
+pub const TABLE_MIN_HEIGHT: f64 = 0.05;
 /// A held object that was lifted this far above the table and is brought back down onto it
 /// is set down there: it stays on the table and the hands let go, m.
 pub const LIFT_CLEAR: f64 = 0.03;
@@ -103,6 +103,80 @@ pub struct ObjectShape {
 impl ObjectShape {
     pub fn from_entry(e: &ObjectEntry) -> ObjectShape {
         ObjectShape { centre: e.centre.map(f64::from), half_extents: e.half_extents.map(|v| f64::from(v.abs())) }
+    }
+}
+
+/// The support an object starts on, as the stage models it: a table top at the height of
+/// the object's first bottom, [`TABLE_NEAR`]..[`TABLE_FAR`] in front of the first frame's
+/// pelvis and [`TABLE_HALF_WIDTH`] to either side, plus [`SUPPORT_RADIUS`] around the
+/// object's start; or the ground when the object starts within [`TABLE_MIN_HEIGHT`] of it.
+/// Native world (z up, metres).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Table {
+    /// Height of the top ([`GROUND_Z`]: no table).
+    pub height: f64,
+    /// The object's start centre, horizontal.
+    pub start: [f64; 2],
+    /// The first frame's pelvis, horizontal, and the subject's unit forward direction.
+    pub origin: [f64; 2],
+    pub forward: [f64; 2],
+}
+
+impl Table {
+    /// From the first frame: pelvis, root rotation and the object's pose and box.
+    pub fn new(pelvis: &Vec3, root: &Mat3, object_rot: &Mat3, object_pos: &Vec3, shape: &ObjectShape) -> Table {
+        let c = add(object_pos, &mat_vec(object_rot, &shape.centre));
+        let bottom = c[2] - (0..3).map(|k| object_rot[2][k].abs() * shape.half_extents[k]).sum::<f64>();
+        let height = if bottom < GROUND_Z + TABLE_MIN_HEIGHT { GROUND_Z } else { bottom };
+        // SMPL-X faces +z in its rest frame; a root that leaves no horizontal facing falls
+        // back to the direction of the object.
+        let f = mat_vec(root, &[0.0, 0.0, 1.0]);
+        let to_object = [c[0] - pelvis[0], c[1] - pelvis[1]];
+        let (fl, ol) = (f[0].hypot(f[1]), to_object[0].hypot(to_object[1]));
+        let forward = if fl > 0.5 {
+            [f[0] / fl, f[1] / fl]
+        } else if ol > 1e-6 {
+            [to_object[0] / ol, to_object[1] / ol]
+        } else {
+            [0.0, 1.0]
+        };
+        Table { height, start: [c[0], c[1]], origin: [pelvis[0], pelvis[1]], forward }
+    }
+
+    /// Whether the object is on the ground rather than on a table.
+    pub fn is_ground(&self) -> bool {
+        self.height <= GROUND_Z
+    }
+
+    /// Whether a point is above the table's footprint.
+    pub fn over(&self, p: &Vec3) -> bool {
+        if self.is_ground() {
+            return false;
+        }
+        let (dx, dy) = (p[0] - self.start[0], p[1] - self.start[1]);
+        let [fx, fy] = self.forward;
+        let (rx, ry) = (p[0] - self.origin[0], p[1] - self.origin[1]);
+        let ahead = rx * fx + ry * fy;
+        let side = (rx * fy - ry * fx).abs();
+        dx.hypot(dy) <= SUPPORT_RADIUS || ((TABLE_NEAR..=TABLE_FAR).contains(&ahead) && side <= TABLE_HALF_WIDTH)
+    }
+
+    /// The rectangle of the top in front of the subject (without the disc around the
+    /// object's start), corners in order; `None` on the ground.
+    pub fn corners(&self) -> Option<[Vec3; 4]> {
+        if self.is_ground() {
+            return None;
+        }
+        let [fx, fy] = self.forward;
+        let at = |ahead: f64, side: f64| {
+            [self.origin[0] + ahead * fx + side * fy, self.origin[1] + ahead * fy - side * fx, self.height]
+        };
+        Some([
+            at(TABLE_NEAR, -TABLE_HALF_WIDTH),
+            at(TABLE_FAR, -TABLE_HALF_WIDTH),
+            at(TABLE_FAR, TABLE_HALF_WIDTH),
+            at(TABLE_NEAR, TABLE_HALF_WIDTH),
+        ])
     }
 }
 
@@ -158,12 +232,8 @@ pub struct ContactStage {
     pos: Vec3,
     /// Downward speed of a falling object, m/s.
     fall: f64,
-    /// Height of the start support's top (the ground when it is near the ground).
-    support_z: f64,
-    /// The object's start (horizontal), the first frame's pelvis and its forward direction.
-    support_xy: [f64; 2],
-    table_origin: [f64; 2],
-    table_forward: [f64; 2],
+    /// The support the object starts on (set by the first frame).
+    table: Table,
     /// The held object has been lifted [`LIFT_CLEAR`] above the table since the grasp.
     lifted: bool,
     hands: [Hand; 2],
@@ -182,10 +252,7 @@ impl ContactStage {
             rot: IDENTITY,
             pos: [0.0; 3],
             fall: 0.0,
-            support_z: GROUND_Z,
-            support_xy: [0.0; 2],
-            table_origin: [0.0; 2],
-            table_forward: [0.0, 1.0],
+            table: Table { height: GROUND_Z, start: [0.0; 2], origin: [0.0; 2], forward: [0.0, 1.0] },
             lifted: false,
             hands: [FREE_HAND; 2],
             bow: 0.0,
@@ -212,25 +279,7 @@ impl ContactStage {
             self.started = true;
             self.rot = pose.object_rotation;
             self.pos = pose.object_translation;
-            self.support_z = self.bottom(&self.rot, &self.pos);
-            if self.support_z < GROUND_Z + TABLE_MIN_HEIGHT {
-                self.support_z = GROUND_Z;
-            }
-            let c = self.centre(&self.rot, &self.pos);
-            self.support_xy = [c[0], c[1]];
-            self.table_origin = [pose.pelvis[0], pose.pelvis[1]];
-            // SMPL-X faces +z in its rest frame; a root that leaves no horizontal facing
-            // falls back to the direction of the object.
-            let f = mat_vec(&pose.local[0], &[0.0, 0.0, 1.0]);
-            let to_object = [c[0] - pose.pelvis[0], c[1] - pose.pelvis[1]];
-            let (fl, ol) = (f[0].hypot(f[1]), to_object[0].hypot(to_object[1]));
-            self.table_forward = if fl > 0.5 {
-                [f[0] / fl, f[1] / fl]
-            } else if ol > 1e-6 {
-                [to_object[0] / ol, to_object[1] / ol]
-            } else {
-                [0.0, 1.0]
-            };
+            self.table = Table::new(&pose.pelvis, &pose.local[0], &self.rot, &self.pos, &self.shape);
         }
 
         // Debounced intent: start grasps, abandon reaches whose flag went off.
@@ -334,8 +383,8 @@ impl ContactStage {
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
-                let depth = self.support_z - self.bottom(&rot, &pos);
-                if !self.lifted && depth > 0.0 && self.over_table(&self.centre(&rot, &pos)) {
+                let depth = self.table.height - self.bottom(&rot, &pos);
+                if !self.lifted && depth > 0.0 && self.table.over(&self.centre(&rot, &pos)) {
                     for h in 0..2 {
                         if self.hands[h].phase == Phase::Holding {
                             let hand = &mut self.hands[h];
@@ -439,30 +488,17 @@ impl ContactStage {
         self.lifted = false;
     }
 
-    /// Whether a point is above the start support (the table top's footprint).
-    fn over_table(&self, c: &Vec3) -> bool {
-        if self.support_z <= GROUND_Z {
-            return false;
-        }
-        let (dx, dy) = (c[0] - self.support_xy[0], c[1] - self.support_xy[1]);
-        let [fx, fy] = self.table_forward;
-        let (rx, ry) = (c[0] - self.table_origin[0], c[1] - self.table_origin[1]);
-        let ahead = rx * fx + ry * fy;
-        let side = (rx * fy - ry * fx).abs();
-        dx.hypot(dy) <= SUPPORT_RADIUS || ((TABLE_NEAR..=TABLE_FAR).contains(&ahead) && side <= TABLE_HALF_WIDTH)
-    }
-
     /// A held object brought back down onto the table after a lift stays there: it rests on
     /// the top and every hand lets go (latched until its flag goes off).
     fn set_down_on_table(&mut self) {
         let bottom = self.bottom(&self.rot, &self.pos);
-        if bottom > self.support_z + LIFT_CLEAR {
+        if bottom > self.table.height + LIFT_CLEAR {
             self.lifted = true;
         }
-        if !(self.lifted && bottom < self.support_z && self.over_table(&self.centre(&self.rot, &self.pos))) {
+        if !(self.lifted && bottom < self.table.height && self.table.over(&self.centre(&self.rot, &self.pos))) {
             return;
         }
-        self.pos[2] += self.support_z - bottom;
+        self.pos[2] += self.table.height - bottom;
         self.lifted = false;
         for hand in &mut self.hands {
             if hand.phase == Phase::Holding {
@@ -491,8 +527,9 @@ impl ContactStage {
     /// the ground.
     fn floor(&self) -> (f64, f64) {
         let bottom = self.bottom(&self.rot, &self.pos);
-        let on_table = self.over_table(&self.centre(&self.rot, &self.pos)) && bottom >= self.support_z - SUPPORT_DEPTH;
-        (bottom, if on_table { self.support_z } else { GROUND_Z })
+        let on_table =
+            self.table.over(&self.centre(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
+        (bottom, if on_table { self.table.height } else { GROUND_Z })
     }
 }
 

@@ -20,6 +20,7 @@
 //! With node TRS `T(t) R(q)` and world = parent world · local, the world position of joint
 //! `j` is `p_parent + G_parent (J'_j − J'_parent)`: the engine's own forward kinematics
 //! (src/skeleton.rs), so the glb reproduces `joint_positions`.
+use comgrasp::skeleton::mat_vec;
 use comgrasp::{CoordinateSystem, Frame};
 use serde_json::{json, Value};
 
@@ -177,6 +178,30 @@ pub fn glb(scene: &Scene, frames: &[Frame], prompt: &str, fps: f64) -> Result<Ve
         "rotation": f0.object_rotation,
     }));
 
+    // The table top the object starts on (mesh 2, static), as the contact stage models it.
+    let mut scene_nodes = vec![0, body_node, object_node];
+    let mut meshes = vec![
+        json!({ "name": "body", "primitives": [{
+            "attributes": { "POSITION": body_pos, "NORMAL": body_nrm, "JOINTS_0": body_joints, "WEIGHTS_0": body_weights },
+            "indices": body_idx, "material": 0 }] }),
+        json!({ "name": scene.object.name, "primitives": [{
+            "attributes": { "POSITION": obj_pos, "NORMAL": obj_nrm }, "material": 1 }] }),
+    ];
+    if let Some(corners) = scene.table(f0) {
+        let (s, c) = scene.coords.basis();
+        let top: Vec<f32> = corners.iter().flat_map(|p| mat_vec(&s, p).map(|v| (v * c) as f32)).collect();
+        let up = mat_vec(&s, &[0.0, 0.0, 1.0]).map(|v| v as f32);
+        let normals: Vec<f32> = (0..4).flat_map(|_| up).collect();
+        let top_pos = bin.floats(&top, 3, "VEC3", Some(ARRAY_BUFFER), true);
+        let top_nrm = bin.floats(&normals, 3, "VEC3", Some(ARRAY_BUFFER), false);
+        // Counter-clockwise seen from above (the corners go clockwise about +z).
+        let top_idx = bin.indices(&[0, 2, 1, 0, 3, 2], 4);
+        meshes.push(json!({ "name": "table", "primitives": [{
+            "attributes": { "POSITION": top_pos, "NORMAL": top_nrm }, "indices": top_idx, "material": 2 }] }));
+        scene_nodes.push(nodes.len());
+        nodes.push(json!({ "name": "table", "mesh": 2 }));
+    }
+
     // The animation.
     let times: Vec<f32> = frames.iter().map(|f| f.time_s as f32).collect();
     if times.windows(2).any(|w| w[1] <= w[0]) {
@@ -204,20 +229,15 @@ pub fn glb(scene: &Scene, frames: &[Frame], prompt: &str, fps: f64) -> Result<Ve
         "scene": 0,
         "scenes": [{
             "name": "comgrasp",
-            "nodes": [0, body_node, object_node],
+            "nodes": scene_nodes,
             "extras": { "prompt": prompt, "fps": fps, "frames": frames.len(), "object": scene.object.name },
         }],
         "nodes": nodes,
-        "meshes": [
-            { "name": "body", "primitives": [{
-                "attributes": { "POSITION": body_pos, "NORMAL": body_nrm, "JOINTS_0": body_joints, "WEIGHTS_0": body_weights },
-                "indices": body_idx, "material": 0 }] },
-            { "name": scene.object.name, "primitives": [{
-                "attributes": { "POSITION": obj_pos, "NORMAL": obj_nrm }, "material": 1 }] },
-        ],
+        "meshes": meshes,
         "materials": [
             { "name": "body", "pbrMetallicRoughness": { "baseColorFactor": [0.80, 0.62, 0.50, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8 } },
             { "name": "object", "pbrMetallicRoughness": { "baseColorFactor": [0.20, 0.42, 0.80, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.4 } },
+            { "name": "table", "doubleSided": true, "pbrMetallicRoughness": { "baseColorFactor": [0.55, 0.42, 0.30, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.9 } },
         ],
         "skins": [{ "name": "smplx", "joints": (0..n).collect::<Vec<_>>(), "inverseBindMatrices": ibm, "skeleton": 0 }],
         "animations": [{ "name": "motion", "samplers": samplers, "channels": channels }],

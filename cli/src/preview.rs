@@ -1,8 +1,9 @@
 //! A PNG strip of key frames for a quick look without a 3D viewer: six panels, first and
 //! last frame included, each an orthographic three-quarter view from slightly above of
 //! the skeleton as lines (left limbs blue, right limbs teal, each hand grey or orange by
-//! its contact flag), the object's mesh as a wireframe, a ground grid, and a bar showing
-//! where in the motion the panel is.
+//! its contact flag), the object's mesh as a wireframe, the table top it starts on (as the
+//! engine's contact stage models it), a ground grid, and a bar showing where in the motion
+//! the panel is.
 //!
 //! Works in every coordinate system: points are mapped back to the native world (z up,
 //! right-handed, metres) with the inverse basis change first, so the camera logic exists
@@ -29,6 +30,7 @@ const RIGHT: [u8; 3] = [30, 135, 115];
 const HAND_FREE: [u8; 3] = [150, 150, 158];
 const HAND_CONTACT: [u8; 3] = [235, 120, 0];
 const OBJECT: [u8; 3] = [150, 125, 205];
+const TABLE: [u8; 3] = [176, 146, 110];
 
 /// SMPL-X joints the drawing needs by index (the tree is fixed at 55 joints).
 const LEFT_HIP: usize = 1;
@@ -107,6 +109,7 @@ pub fn render(scene: &Scene, frames: &[Frame]) -> Result<Preview, String> {
         .collect();
 
     let cam = Camera::facing(&worlds[0].0);
+    let table = scene.table(&frames[0]);
     // One scale for the strip; vertical placement shared too, so the ground lines up.
     let mut panels = Vec::with_capacity(keys.len());
     let (mut y_lo, mut y_hi, mut widest) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
@@ -131,7 +134,7 @@ pub fn render(scene: &Scene, frames: &[Frame]) -> Result<Preview, String> {
             [0.5 * w + (x - *x_mid) * scale, MARGIN + (y_hi - y) * scale, depth]
         };
         let mut panel = Image::new(PANEL_WIDTH, PANEL_HEIGHT, BACKGROUND);
-        for seg in ground_grid(&worlds[0].0[0]) {
+        for seg in ground_grid(&worlds[0].0[0]).into_iter().chain(table.iter().flat_map(table_top)) {
             line(&mut panel, to_px(seg.a), to_px(seg.b), seg.colour, seg.half);
         }
         // Painter's order: far segments first, so nearer limbs cover them.
@@ -194,6 +197,20 @@ fn segments(scene: &Scene, f: &Frame, joints: &[[f64; 3]], object: &[[f64; 3]]) 
     edges.dedup();
     for (a, b) in edges {
         out.push(Segment { a: object[a as usize], b: object[b as usize], colour: OBJECT, half: 0 });
+    }
+    out
+}
+
+/// The table top the object started on: its outline and lines across it every 20 cm.
+fn table_top(c: &[[f64; 3]; 4]) -> Vec<Segment> {
+    let mut out: Vec<Segment> =
+        (0..4).map(|i| Segment { a: c[i], b: c[(i + 1) % 4], colour: TABLE, half: 1 }).collect();
+    let depth = (0..3).map(|k| (c[1][k] - c[0][k]).powi(2)).sum::<f64>().sqrt();
+    let n = (depth / 0.2).round().max(1.0) as usize;
+    for i in 1..n {
+        let t = i as f64 / n as f64;
+        let (a, b) = (add(c[0], scaled(sub(c[1], c[0]), t)), add(c[3], scaled(sub(c[2], c[3]), t)));
+        out.push(Segment { a, b, colour: TABLE, half: 0 });
     }
     out
 }
@@ -345,6 +362,7 @@ mod tests {
     fn a_standing_body_is_drawn_upright() {
         use crate::obj::Mesh;
         use crate::scene::SceneObject;
+        use comgrasp::contact::ObjectShape;
         use comgrasp::CoordinateSystem;
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/tiny/manifest.json");
         let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
@@ -378,7 +396,11 @@ mod tests {
             joint_names: names,
             parents,
             rest: Vec::new(),
-            object: SceneObject { name: "cube".into(), mesh: cube },
+            object: SceneObject {
+                name: "cube".into(),
+                mesh: cube,
+                shape: ObjectShape { centre: [0.025; 3], half_extents: [0.025; 3] },
+            },
         };
         let p = render(&scene, &[f, f]).unwrap();
         assert_eq!((p.image.width, p.image.height, p.key_frames.clone()), (2 * PANEL_WIDTH, PANEL_HEIGHT, vec![0, 1]));
@@ -395,5 +417,10 @@ mod tests {
         let (trunk, legs) = (rows(TRUNK), rows(LEFT));
         assert!(trunk[0] + 40 < *legs.last().unwrap(), "head above the feet");
         assert!(!rows(HAND_CONTACT).is_empty() && !rows(HAND_FREE).is_empty() && !rows(OBJECT).is_empty());
+        // The object starts at the wrist, above the ground: a table top is drawn, at the
+        // height of the object's bottom (the object's lowest rows, above the feet).
+        let (table, object) = (rows(TABLE), rows(OBJECT));
+        assert!(!table.is_empty() && table[0] < *legs.last().unwrap(), "{table:?}");
+        assert!(table.iter().any(|r| (*r as i64 - *object.last().unwrap() as i64).abs() <= 20), "{table:?} {object:?}");
     }
 }

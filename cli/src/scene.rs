@@ -5,9 +5,11 @@
 //! joints and the object's mesh vertices must get the same `c S` for the frames to pose
 //! them correctly, so the conversion happens once here and nowhere else.
 use comgrasp::bundle::choose_object;
-use comgrasp::skeleton::mat_vec;
+use comgrasp::contact::{ObjectShape, Table};
+use comgrasp::skeleton::{mat_mul, mat_vec, quaternion_to_matrix, transpose};
 use comgrasp::Bundle;
 use comgrasp::CoordinateSystem;
+use comgrasp::Frame;
 
 use crate::obj;
 
@@ -27,6 +29,8 @@ pub struct SceneObject {
     /// The mesh in the object's frame, converted to the frames' basis (`c S v`), so that
     /// `object_translation + object_rotation · v` places it in the world.
     pub mesh: obj::Mesh,
+    /// Its box (native world units), as the engine's contact stage sees it.
+    pub shape: ObjectShape,
 }
 
 impl Scene {
@@ -48,7 +52,27 @@ impl Scene {
             joint_names: m.skeleton.joint_names.clone(),
             parents: m.skeleton.parents.clone(),
             rest: m.skeleton.rest_joints.iter().map(to_output).collect(),
-            object: SceneObject { name: entry.name.clone(), mesh },
+            object: SceneObject { name: entry.name.clone(), mesh, shape: ObjectShape::from_entry(entry) },
         })
+    }
+}
+
+impl Scene {
+    /// The table top the engine's contact stage rested the object on (`contact::Table`, from
+    /// the first frame), its corners in the NATIVE world; `None` when the object starts on
+    /// the ground.
+    pub fn table(&self, first: &Frame) -> Option<[[f64; 3]; 4]> {
+        let (s, c) = self.coords.basis();
+        let st = transpose(&s);
+        let point = |p: &[f32; 3]| mat_vec(&st, &p.map(f64::from)).map(|v| v / c);
+        let rotation = |q: &[f32; 4]| mat_mul(&mat_mul(&st, &quaternion_to_matrix(&q.map(f64::from))), &s);
+        let table = Table::new(
+            &point(&first.root_translation),
+            &rotation(&first.root_rotation),
+            &rotation(&first.object_rotation),
+            &point(&first.object_translation),
+            &self.object.shape,
+        );
+        table.corners()
     }
 }

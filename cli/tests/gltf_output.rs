@@ -344,6 +344,31 @@ fn glb_skeleton_and_object_reproduce_the_engine_frames() {
         }
     }
     eprintln!("largest glb-vs-engine joint difference: {worst:.2e} m");
+
+    // The table top the mug starts on: a static, level quad in the scene at the height of
+    // the first frame's mug bottom (glTF: y up), under the mug.
+    let table = glb.json["nodes"].as_array().unwrap().iter().position(|n| n["name"] == "table");
+    let table = table.expect("a table node (the tiny bundle's mug starts above the ground)");
+    assert!(scene_nodes.contains(&Value::from(table)));
+    let mesh = &glb.json["meshes"][glb.node(table)["mesh"].as_u64().unwrap() as usize];
+    let top = glb.floats(mesh["primitives"][0]["attributes"]["POSITION"].as_u64().unwrap() as usize);
+    assert_eq!(top.len(), 12);
+    let heights: Vec<f32> = top.chunks(3).map(|p| p[1]).collect();
+    assert!(heights.iter().all(|h| (h - heights[0]).abs() < 1e-6), "level: {heights:?}");
+    let mug = vec3(&frames[0]["object_centre"]);
+    let half =
+        manifest["objects"].as_array().unwrap().iter().find(|o| o["name"] == "mug").unwrap()["half_extents"].clone();
+    // The object's own (native) axis k is S e_k in glTF (S: (x, y, z) -> (x, z, -y)).
+    let s: Mat3 = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]];
+    let r = mat_mul(&quat_to_matrix(vec4(&frames[0]["object_rotation"])), &s);
+    let bottom = mug[1] - (0..3).map(|k| r[1][k].abs() * half[k].as_f64().unwrap()).sum::<f64>();
+    assert!((heights[0] as f64 - bottom).abs() < 1e-4, "table at {} vs the mug's bottom {bottom}", heights[0]);
+    let (xs, zs): (Vec<f64>, Vec<f64>) = top.chunks(3).map(|p| (p[0] as f64, p[2] as f64)).unzip();
+    let inside = |v: f64, vs: &[f64]| {
+        vs.iter().cloned().fold(f64::INFINITY, f64::min) <= v
+            && v <= vs.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+    };
+    assert!(inside(mug[0], &xs) && inside(mug[2], &zs), "the mug starts over the table");
 }
 
 // ---------------------------------------------------------------------------------------
