@@ -14,6 +14,8 @@
 // call it before changing fields. A macro over cg_engine_config_init_sized, so the library
 // never writes past the caller's struct, whichever of the two is newer.
 #define cg_engine_config_init(cfg) cg_engine_config_init_sized((cfg), sizeof(*(cfg)))
+// The same for cg_stream_config (its scene-anchoring fields came in version 2).
+#define cg_stream_config_init(cfg) cg_stream_config_init_sized((cfg), sizeof(*(cfg)))
 
 // Body joints 1..21 of the SMPL-X tree.
 #define CG_BODY_JOINTS 21
@@ -102,6 +104,23 @@
 
 // All `CG_STREAM_*` flags this library knows.
 #define CG_STREAM_FLAGS_ALL CG_STREAM_RAW_OUTPUT
+
+// Set in `cg_stream_config.anchor`: `character_position` / `character_rotation` place the
+// character in the host's world.
+#define CG_ANCHOR_CHARACTER (1 << 0)
+
+// Set in `cg_stream_config.anchor`: the object starts at `object_position` /
+// `object_rotation`; the character reaches for it (it must be within the reach envelope:
+// 0.8 m horizontally from the character's ground point, 0.3-1.6 m above it).
+#define CG_ANCHOR_OBJECT (1 << 1)
+
+// Set in `cg_stream_config.anchor` with `CG_ANCHOR_OBJECT` and without
+// `CG_ANCHOR_CHARACTER`: the character is placed at the model's own spot relative to the
+// object (the "interaction spot") instead of reaching from where it stands.
+#define CG_ANCHOR_PLACE_CHARACTER (1 << 2)
+
+// All `CG_ANCHOR_*` bits.
+#define CG_ANCHOR_ALL 7
 
 // Longest catalogue name `cg_stream_info.object_name` holds, NUL excluded (bundle
 // verification rejects longer names).
@@ -278,6 +297,23 @@ typedef struct cg_stream_config {
   // Bitmask of `CG_STREAM_*` flags; 0 = the defaults (the contact-consistency stage on).
   // Unknown bits are `CG_ERR_INVALID_ARGUMENT`. (Named `reserved`, must-be-0, before.)
   uint32_t flags;
+  // Scene anchoring (version 2 of this struct): bitmask of `CG_ANCHOR_*`; 0 = the
+  // model's own placement. Positions and rotations below are in the engine's coordinate
+  // system (its basis and units, as frames are); rotations unit quaternions (x, y, z, w).
+  uint32_t anchor;
+  // Reserved, must be 0.
+  uint32_t reserved;
+  // With `CG_ANCHOR_CHARACTER`: the character's ground point (under the pelvis at the
+  // first frame).
+  float character_position[3];
+  // With `CG_ANCHOR_CHARACTER`: its heading; only the turn about the up axis counts, and
+  // the identity faces the native +y axis (glTF -z, Unity -z, Unreal -y).
+  float character_rotation[4];
+  // With `CG_ANCHOR_OBJECT`: where the object starts (its origin, as
+  // `cg_frame.object_translation`).
+  float object_position[3];
+  // With `CG_ANCHOR_OBJECT`: the object's start rotation.
+  float object_rotation[4];
 } cg_stream_config;
 
 // One frame of generated motion. All positions in the engine's coordinate system
@@ -418,9 +454,12 @@ extern "C" {
 // bytes). Any thread.
 cg_status cg_engine_config_init_sized(struct cg_engine_config *cfg, size_t size);
 
-// Fills `*cfg` with the defaults (`use_defaults = CG_USE_DEFAULT_ALL`) and the right
-// `struct_size`. Returns `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
-cg_status cg_stream_config_init(struct cg_stream_config *cfg);
+// Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
+// `size` (capped at this library's `sizeof(cg_stream_config)`). `size` is the HOST's
+// `sizeof(cg_stream_config)`: the header's `cg_stream_config_init(cfg)` macro passes it.
+// Errors: `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_ARGUMENT` (`size` below the first
+// version's 40 bytes). Any thread.
+cg_status cg_stream_config_init_sized(struct cg_stream_config *cfg, size_t size);
 
 // Creates an engine: loads and verifies the model bundle selected by `cfg->bundle_path`
 // (NULL: `COMGRASP_BUNDLE`, else the embedded default; see `cg_engine_config`) and

@@ -322,6 +322,23 @@ pub struct Pose {
     pub contact: [bool; 2],
 }
 
+impl Pose {
+    /// Moves the whole frame by the rigid motion `p -> r p + t` (native world): root,
+    /// object and the wrist-to-object vectors; local rotations below the root are unchanged.
+    pub fn transform(&mut self, r: &Mat3, t: &Vec3) {
+        let moved = |p: &Vec3| {
+            let q = mat_vec(r, p);
+            [q[0] + t[0], q[1] + t[1], q[2] + t[2]]
+        };
+        self.local[0] = mat_mul(r, &self.local[0]);
+        self.pelvis = moved(&self.pelvis);
+        self.object_rotation = mat_mul(r, &self.object_rotation);
+        self.object_translation = moved(&self.object_translation);
+        self.object_centre = moved(&self.object_centre);
+        self.wrist_to_object = self.wrist_to_object.map(|v| mat_vec(r, &v));
+    }
+}
+
 impl Default for Pose {
     fn default() -> Self {
         Pose {

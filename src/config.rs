@@ -311,6 +311,70 @@ pub struct StreamConfig {
     /// `Some(true)`: frames are the model's raw output, without the contact-consistency
     /// stage (`crate::contact`). Unset = false: the stage is on.
     pub raw_output: Option<bool>,
+    /// Where the host's scene puts the character and the object (`crate::anchor`); unset:
+    /// the model's own placement.
+    pub anchor: Option<Anchor>,
+}
+
+/// A position and a rotation in the host's world, in the engine's coordinate system (its
+/// basis and units, as frames are): position (x, y, z), rotation a unit quaternion
+/// (x, y, z, w).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    pub position: [f32; 3],
+    pub rotation: [f32; 4],
+}
+
+/// Scene anchoring of one stream (docs/engine.md, "Scene anchoring").
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Anchor {
+    /// The character's ground point (under the pelvis at the first frame) and heading
+    /// (only the rotation about the up axis counts; identity faces the native +y axis).
+    pub character: Option<Placement>,
+    /// The object's start pose (its origin, as `object_translation`): the generated object
+    /// starts there and the reach correction brings the hand to it.
+    pub object: Option<Placement>,
+    /// With `object` and without `character`: place the character at the model's own spot
+    /// relative to the object (the "interaction spot") instead of reaching for it.
+    pub place_character: bool,
+}
+
+/// |q| may differ from 1 by this much in a host's quaternion.
+pub const UNIT_QUATERNION_TOLERANCE: f32 = 1e-3;
+
+impl Placement {
+    fn validate(&self, what: &str) -> Result<()> {
+        if !self.position.iter().chain(&self.rotation).all(|v| v.is_finite()) {
+            return Err(Error::InvalidArgument(format!("anchor: {what} has a non-finite value: {self:?}")));
+        }
+        let n = self.rotation.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if (n - 1.0).abs() > UNIT_QUATERNION_TOLERANCE {
+            return Err(Error::InvalidArgument(format!(
+                "anchor: {what} rotation is not a unit quaternion (|q| = {n}): {:?}",
+                self.rotation
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl Anchor {
+    /// What can be checked without the bundle and the coordinate system (the generator
+    /// checks the object's reach).
+    pub fn validate(&self) -> Result<()> {
+        if let Some(c) = &self.character {
+            c.validate("character")?;
+        }
+        if let Some(o) = &self.object {
+            o.validate("object")?;
+        }
+        if self.place_character && (self.object.is_none() || self.character.is_some()) {
+            return Err(Error::InvalidArgument(
+                "anchor: place_character needs the object's pose and no character placement".into(),
+            ));
+        }
+        Ok(())
+    }
 }
 
 impl StreamConfig {
@@ -323,6 +387,7 @@ impl StreamConfig {
             min_len: self.min_len.or(fallback.min_len),
             max_len: self.max_len.or(fallback.max_len),
             raw_output: self.raw_output.or(fallback.raw_output),
+            anchor: self.anchor.or(fallback.anchor),
         }
     }
 
@@ -343,6 +408,9 @@ impl StreamConfig {
             if lo > hi {
                 return Err(Error::InvalidArgument(format!("min_len {lo} > max_len {hi}")));
             }
+        }
+        if let Some(a) = &self.anchor {
+            a.validate()?;
         }
         Ok(())
     }

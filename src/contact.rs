@@ -128,18 +128,7 @@ impl Table {
         let c = add(object_pos, &mat_vec(object_rot, &shape.centre));
         let bottom = c[2] - (0..3).map(|k| object_rot[2][k].abs() * shape.half_extents[k]).sum::<f64>();
         let height = if bottom < GROUND_Z + TABLE_MIN_HEIGHT { GROUND_Z } else { bottom };
-        // SMPL-X faces +z in its rest frame; a root that leaves no horizontal facing falls
-        // back to the direction of the object.
-        let f = mat_vec(root, &[0.0, 0.0, 1.0]);
-        let to_object = [c[0] - pelvis[0], c[1] - pelvis[1]];
-        let (fl, ol) = (f[0].hypot(f[1]), to_object[0].hypot(to_object[1]));
-        let forward = if fl > 0.5 {
-            [f[0] / fl, f[1] / fl]
-        } else if ol > 1e-6 {
-            [to_object[0] / ol, to_object[1] / ol]
-        } else {
-            [0.0, 1.0]
-        };
+        let forward = heading(pelvis, root, &c);
         Table { height, start: [c[0], c[1]], origin: [pelvis[0], pelvis[1]], forward }
     }
 
@@ -177,6 +166,22 @@ impl Table {
             at(TABLE_FAR, TABLE_HALF_WIDTH),
             at(TABLE_NEAR, TABLE_HALF_WIDTH),
         ])
+    }
+}
+
+/// The subject's horizontal unit forward direction: SMPL-X faces +z in its rest frame, so
+/// the root rotation's +z; a root that leaves no horizontal facing falls back to the
+/// direction from the pelvis to `toward` (the object), then +y.
+pub fn heading(pelvis: &Vec3, root: &Mat3, toward: &Vec3) -> [f64; 2] {
+    let f = mat_vec(root, &[0.0, 0.0, 1.0]);
+    let to = [toward[0] - pelvis[0], toward[1] - pelvis[1]];
+    let (fl, tl) = (f[0].hypot(f[1]), to[0].hypot(to[1]));
+    if fl > 0.5 {
+        [f[0] / fl, f[1] / fl]
+    } else if tl > 1e-6 {
+        [to[0] / tl, to[1] / tl]
+    } else {
+        [0.0, 1.0]
     }
 }
 
@@ -234,6 +239,8 @@ pub struct ContactStage {
     fall: f64,
     /// The support the object starts on (set by the first frame).
     table: Table,
+    /// The object's start pose when the host gives it (scene anchoring), else the model's.
+    start_object: Option<(Mat3, Vec3)>,
     /// The held object has been lifted [`LIFT_CLEAR`] above the table since the grasp.
     lifted: bool,
     hands: [Hand; 2],
@@ -253,11 +260,18 @@ impl ContactStage {
             pos: [0.0; 3],
             fall: 0.0,
             table: Table { height: GROUND_Z, start: [0.0; 2], origin: [0.0; 2], forward: [0.0, 1.0] },
+            start_object: None,
             lifted: false,
             hands: [FREE_HAND; 2],
             bow: 0.0,
             bow_axis: [1.0, 0.0, 0.0],
         }
+    }
+
+    /// Starts the object at this pose (native world, the model's frame) instead of where
+    /// the model's first frame puts it. Call before the first [`Self::apply`].
+    pub fn set_start_object(&mut self, rot: Mat3, pos: Vec3) {
+        self.start_object = Some((rot, pos));
     }
 
     fn centre(&self, rot: &Mat3, pos: &Vec3) -> Vec3 {
@@ -277,8 +291,7 @@ impl ContactStage {
         skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
         if !self.started {
             self.started = true;
-            self.rot = pose.object_rotation;
-            self.pos = pose.object_translation;
+            (self.rot, self.pos) = self.start_object.unwrap_or((pose.object_rotation, pose.object_translation));
             self.table = Table::new(&pose.pelvis, &pose.local[0], &self.rot, &self.pos, &self.shape);
         }
 

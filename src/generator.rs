@@ -42,6 +42,7 @@
 //!   frames and ends directly (poll reports End without any frame).
 use std::sync::Arc;
 
+use crate::anchor::AnchorStage;
 use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
@@ -222,6 +223,8 @@ pub struct Generator {
     done: bool,
     /// The contact-consistency stage (None: the raw model output was asked for).
     contact: Option<ContactStage>,
+    /// Scene anchoring (None: the model's own placement).
+    anchor: Option<AnchorStage>,
     object: StreamObject,
 }
 
@@ -255,6 +258,7 @@ impl Generator {
         } else {
             Some(ContactStage::new(ObjectShape::from_entry(&objects[index]), b.manifest.fps))
         };
+        let anchor = c.anchor.as_ref().map(|a| AnchorStage::new(a, pipe.assembler.coordinate_system())).transpose()?;
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
         Ok(Generator {
             stream_id: req.stream_id,
@@ -272,6 +276,7 @@ impl Generator {
             next_frame: 0,
             done: false,
             contact,
+            anchor,
             object,
             sampler,
             pipe,
@@ -344,6 +349,9 @@ impl ChunkSource for Generator {
                         Some(stage) => {
                             let (assembler, pose) = (&self.pipe.assembler, &mut self.held_pose);
                             stage.finish(assembler.skeleton(), pose);
+                            if let Some(anchor) = &self.anchor {
+                                anchor.apply(pose);
+                            }
                             assembler.emit(pose, f.stream_id, f.frame_index, true, &mut f);
                         }
                         None => f.is_last = 1,
@@ -420,17 +428,29 @@ impl ChunkSource for Generator {
             let assembler = &self.pipe.assembler;
             let mut pose = Pose::default();
             assembler.decode(feats, &mut pose);
+            if let Some(anchor) = &mut self.anchor {
+                if self.next_frame == 0 {
+                    if let (Some((rot, pos)), Some(stage)) = (anchor.begin(&pose), &mut self.contact) {
+                        stage.set_start_object(rot, pos);
+                    }
+                }
+            }
             if let Some(stage) = &mut self.contact {
                 stage.apply(assembler.skeleton(), &mut pose);
                 if is_last {
                     stage.finish(assembler.skeleton(), &mut pose);
                 }
             }
+            // The held frame keeps its pose in the model's frame (finish may change it).
+            let model_pose = pose;
+            if let Some(anchor) = &self.anchor {
+                anchor.apply(&mut pose);
+            }
             assembler.emit(&pose, self.stream_id, self.next_frame, is_last, &mut frame);
             self.next_frame += 1;
             if last_of_chunk && last.is_none() {
                 self.held = Some(frame);
-                self.held_pose = pose;
+                self.held_pose = model_pose;
             } else {
                 out.push(frame);
             }

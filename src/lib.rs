@@ -9,7 +9,8 @@
 //!    default embedded in the library (feature `embedded-default`); files only;
 //! 3. [`sampler`] (the cross-language deterministic sampler), [`skeleton`] (FK) and
 //!    [`assemble`] (335-D features -> frames), then [`contact`] (the contact-consistency
-//!    stage: debounced grasps, reach IK, an object that obeys the hands);
+//!    stage: debounced grasps, reach IK, an object that obeys the hands), then [`anchor`]
+//!    (frames in the host's world);
 //! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
 //!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract; graph rewrites
 //!    in `model::graph` only);
@@ -38,6 +39,8 @@ pub mod assemble;
 #[doc(hidden)]
 pub mod contact;
 #[doc(hidden)]
+pub mod anchor;
+#[doc(hidden)]
 pub mod model;
 #[doc(hidden)]
 pub mod generator;
@@ -47,7 +50,9 @@ pub mod engine;
 pub mod ffi;
 
 pub use bundle::BundleSource;
-pub use config::{DecoderBackend, EngineConfig, InstructionSet, RuntimeOptions, StepBackend, StreamConfig};
+pub use config::{
+    Anchor, DecoderBackend, EngineConfig, InstructionSet, Placement, RuntimeOptions, StepBackend, StreamConfig,
+};
 pub use engine::Engine;
 pub use error::{Error, Result};
 pub use frame::{CoordinateSystem, Frame};

@@ -23,7 +23,10 @@ fn engine() -> Engine {
 }
 
 fn frames(e: &Engine, text: &str, seed: u64, raw: bool) -> Vec<Frame> {
-    let cfg = StreamConfig { seed: Some(seed), raw_output: raw.then_some(true), ..StreamConfig::default() };
+    collect(e, text, StreamConfig { seed: Some(seed), raw_output: raw.then_some(true), ..StreamConfig::default() })
+}
+
+fn collect(e: &Engine, text: &str, cfg: StreamConfig) -> Vec<Frame> {
     let mut s = e.start(text, cfg).unwrap();
     let (mut out, mut f) = (Vec::new(), Frame::default());
     loop {
@@ -144,4 +147,54 @@ fn raw_output_is_the_models_own() {
         assert_eq!(a.left_hand_rotations, b.left_hand_rotations); // fingers
     }
     assert!(raw.iter().zip(&consistent).any(|(a, b)| a.object_translation != b.object_translation));
+}
+
+fn placement(position: [f32; 3], yaw_deg: f32, up: [f32; 3]) -> comgrasp::Placement {
+    let h = yaw_deg.to_radians() / 2.0;
+    comgrasp::Placement { position, rotation: [up[0] * h.sin(), up[1] * h.sin(), up[2] * h.sin(), h.cos()] }
+}
+
+#[test]
+fn anchored_streams_are_in_the_hosts_world() {
+    use comgrasp::{Anchor, CoordinateSystem};
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("models").join("default");
+    // glTF: y up; the host's character at (2, 0, -3) facing +x (a quarter turn from -z, the
+    // native +y), the mug 0.55 m in front of it on a 0.8 m table.
+    let e = Engine::new(EngineConfig {
+        bundle_path: Some(dir),
+        enable_fk: true,
+        coordinate_system: CoordinateSystem::CG_COORDS_GLTF,
+        ..EngineConfig::default()
+    })
+    .unwrap();
+    let up = [0.0, 1.0, 0.0];
+    let anchor = Anchor {
+        character: Some(placement([2.0, 0.0, -3.0], -90.0, up)),
+        object: Some(placement([2.55, 0.8, -3.0], 0.0, up)),
+        place_character: false,
+    };
+    let fr = collect(&e, PROMPTS[0], StreamConfig { seed: Some(1), anchor: Some(anchor), ..StreamConfig::default() });
+    let f0 = &fr[0];
+    // The pelvis stands over the host's ground point; the feet on its ground (y = 0).
+    assert!((f0.root_translation[0] - 2.0).abs() < 1e-4 && (f0.root_translation[2] + 3.0).abs() < 1e-4);
+    let foot = f0.joint_positions[10][1].min(f0.joint_positions[11][1]);
+    assert!(foot.abs() < 0.1, "feet at {foot}");
+    // The mug starts exactly at the host's pose, and stays until a hand holds it.
+    assert_eq!(f0.object_translation, [2.55, 0.8, -3.0]);
+    // The character faces the host's heading (+x, y up): its left is -z, so the hips'
+    // left-to-right axis is +z.
+    let hips = sub(&f0.joint_positions[2], &f0.joint_positions[1]);
+    assert!(hips[2] > 0.8 * dist(&f0.joint_positions[2], &f0.joint_positions[1]) as f32, "hips {hips:?}");
+    // Out of reach: a clear error at start.
+    let far = Anchor { object: Some(placement([9.0, 0.8, -3.0], 0.0, up)), ..anchor };
+    let Err(err) = e.start(PROMPTS[0], StreamConfig { anchor: Some(far), ..StreamConfig::default() }) else {
+        panic!("an object 7 m away is within reach")
+    };
+    assert!(err.to_string().contains("out of reach"), "{err}");
+    // The interaction spot: the character comes to the object.
+    let spot = Anchor { character: None, place_character: true, ..anchor };
+    let g = collect(&e, PROMPTS[0], StreamConfig { seed: Some(1), anchor: Some(spot), ..StreamConfig::default() })[0];
+    assert_eq!(g.object_translation, [2.55, 0.8, -3.0]);
+    let d = dist(&g.root_translation, &g.object_translation);
+    assert!(d < 0.8, "the character stands at its spot, {d} m from the mug");
 }

@@ -128,9 +128,12 @@ fn stream_config_validation() {
         min_len: 0,
         max_len: 0,
         flags: 0,
+        ..cg_stream_config::default()
     };
     unsafe {
         assert_eq!(cg_stream_config_init(&mut cfg), cg_status::CG_OK);
+        assert_eq!(cfg.struct_size, 40, "the first version's entry point");
+        assert_eq!(cg_stream_config_init_sized(&mut cfg, std::mem::size_of::<cg_stream_config>()), cg_status::CG_OK);
         assert_eq!(cfg.struct_size as usize, std::mem::size_of::<cg_stream_config>());
         assert_eq!(cfg.use_defaults, CG_USE_DEFAULT_ALL);
         assert_eq!(cg_start(e.handle, c"x".as_ptr(), &cfg, &mut s), cg_status::CG_OK);

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 /// Bottom up; a module may use those before it.
-const FLOORS: [&str; 14] = [
+const FLOORS: [&str; 15] = [
     "error",
     "frame",
     "config",
@@ -14,6 +14,7 @@ const FLOORS: [&str; 14] = [
     "skeleton",
     "assemble",
     "contact",
+    "anchor",
     "model",
     "generator",
     "stream",

@@ -28,6 +28,7 @@
 #ifndef COMGRASP_HPP
 #define COMGRASP_HPP
 
+#include <algorithm>
 #include <chrono>
 #include <cstdint>
 #include <cstring>
@@ -161,6 +162,25 @@ public:
     StreamConfig &top_k(uint32_t v) { raw_.top_k = v; return use(CG_USE_DEFAULT_TOP_K); }
     StreamConfig &min_len(uint32_t v) { raw_.min_len = v; return use(CG_USE_DEFAULT_MIN_LEN); }
     StreamConfig &max_len(uint32_t v) { raw_.max_len = v; return use(CG_USE_DEFAULT_MAX_LEN); }
+    /// Scene anchoring (engine coordinates): the character's ground point and heading.
+    StreamConfig &character(const float (&position)[3], const float (&rotation)[4]) {
+        std::copy(position, position + 3, raw_.character_position);
+        std::copy(rotation, rotation + 4, raw_.character_rotation);
+        raw_.anchor |= CG_ANCHOR_CHARACTER;
+        return *this;
+    }
+    /// Scene anchoring: where the object starts (the character reaches for it, or comes to
+    /// it with `place_character()`).
+    StreamConfig &object(const float (&position)[3], const float (&rotation)[4]) {
+        std::copy(position, position + 3, raw_.object_position);
+        std::copy(rotation, rotation + 4, raw_.object_rotation);
+        raw_.anchor |= CG_ANCHOR_OBJECT;
+        return *this;
+    }
+    StreamConfig &place_character() {
+        raw_.anchor |= CG_ANCHOR_PLACE_CHARACTER;
+        return *this;
+    }
     /// The model's raw frames, without the contact-consistency stage.
     StreamConfig &raw_output(bool on) {
         raw_.flags = on ? (raw_.flags | CG_STREAM_RAW_OUTPUT) : (raw_.flags & ~CG_STREAM_RAW_OUTPUT);

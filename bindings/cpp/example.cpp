@@ -8,6 +8,7 @@
 //
 // Exit code 0 when every check passed, 1 otherwise (message on stderr).
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <string>
@@ -164,6 +165,28 @@ int main(int argc, char **argv) {
         } catch (const comgrasp::Error &e) {
             if (e.status() != CG_ERR_INVALID_ARGUMENT || e.native_message().empty()) throw;
             std::printf("blank prompt rejected: %s\n", e.what());
+        }
+
+        // 2b. Scene anchoring (glTF coordinates, y up): the object starts where the host puts it;
+        // one out of reach is an error.
+        {
+            const float here[3] = {1.0f, 0.0f, 2.0f}, facing[4] = {0, 0, 0, 1}, mug[3] = {1.1f, 0.8f, 1.45f};
+            comgrasp::Stream a = engine.start(prompt, comgrasp::StreamConfig().min_len(1).max_len(1).character(here, facing).object(mug, facing));
+            comgrasp::Frame g{};
+            while (a.wait(g, 5ms) != comgrasp::Poll::Frame) {}
+            for (int i = 0; i < 3; ++i)
+                if (std::fabs(g.object_translation[i] - mug[i]) > 1e-5f) {
+                    std::fprintf(stderr, "anchored object at %f %f %f\n", g.object_translation[0], g.object_translation[1], g.object_translation[2]);
+                    return 1;
+                }
+            const float far[3] = {9.0f, 0.8f, 2.0f};
+            try {
+                engine.start(prompt, comgrasp::StreamConfig().character(here, facing).object(far, facing));
+                std::fprintf(stderr, "an object 8 m away was within reach\n");
+                return 1;
+            } catch (const comgrasp::Error &e) {
+                if (e.status() != CG_ERR_INVALID_ARGUMENT) throw;
+            }
         }
 
         // 3. Cancel from another thread while this one polls with the noexcept API.

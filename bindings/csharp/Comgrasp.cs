@@ -97,6 +97,7 @@ namespace ComGrasp
         public override string ToString() { return string.Format("({0:F3}, {1:F3}, {2:F3})", X, Y, Z); }
 #if UNITY_5_3_OR_NEWER
         public static implicit operator UnityEngine.Vector3(CgVec3 v) { return new UnityEngine.Vector3(v.X, v.Y, v.Z); }
+        public static implicit operator CgVec3(UnityEngine.Vector3 v) { return new CgVec3(v.x, v.y, v.z); }
 #endif
     }
 
@@ -109,6 +110,7 @@ namespace ComGrasp
         public override string ToString() { return string.Format("({0:F3}, {1:F3}, {2:F3}, {3:F3})", X, Y, Z, W); }
 #if UNITY_5_3_OR_NEWER
         public static implicit operator UnityEngine.Quaternion(CgQuat q) { return new UnityEngine.Quaternion(q.X, q.Y, q.Z, q.W); }
+        public static implicit operator CgQuat(UnityEngine.Quaternion q) { return new CgQuat(q.x, q.y, q.z, q.w); }
 #endif
     }
 
@@ -231,7 +233,7 @@ namespace ComGrasp
     /// <summary>struct cg_stream_config. Fill with cg_stream_config_init; to override a field set
     /// it AND clear its UseDefault* bit in UseDefaults.</summary>
     [StructLayout(LayoutKind.Sequential)]
-    public struct CgStreamConfig
+    public unsafe struct CgStreamConfig
     {
         public const uint UseDefaultSeed = 1u << 0;
         public const uint UseDefaultTemperature = 1u << 1;
@@ -251,6 +253,20 @@ namespace ComGrasp
         public uint Flags;
         /// <summary>CG_STREAM_RAW_OUTPUT: the model's frames without the contact-consistency stage.</summary>
         public const uint FlagRawOutput = 1u << 0;
+        /// <summary>CG_ANCHOR_*: bits of Anchor.</summary>
+        public const uint AnchorCharacter = 1u << 0;
+        public const uint AnchorObject = 1u << 1;
+        public const uint AnchorPlaceCharacter = 1u << 2;
+        /// <summary>Scene anchoring (CG_ANCHOR_* bits); positions and rotations below in the engine's coordinates.</summary>
+        public uint Anchor;
+        public uint Reserved;
+        /// <summary>The character's ground point (under the pelvis at the first frame).</summary>
+        public fixed float CharacterPosition[3];
+        /// <summary>Its heading (only the turn about the up axis counts; identity faces native +y = Unity -z).</summary>
+        public fixed float CharacterRotation[4];
+        /// <summary>The object's start (its origin) and rotation.</summary>
+        public fixed float ObjectPosition[3];
+        public fixed float ObjectRotation[4];
     }
 
     /// <summary>struct cg_subscriber_config. Fill with cg_subscriber_config_init before changing fields.</summary>
@@ -413,6 +429,9 @@ namespace ComGrasp
         public static extern CgStatus cg_engine_config_init_sized(CgEngineConfig* cfg, UIntPtr size);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_stream_config_init(CgStreamConfig* cfg);
+
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_stream_config_init_sized(CgStreamConfig* cfg, UIntPtr size);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_engine_create(CgEngineConfig* cfg, IntPtr* engine);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
@@ -551,6 +570,18 @@ namespace ComGrasp
         /// <summary>The model's raw frames, without the contact-consistency stage (the object
         /// may float or drift). Default false.</summary>
         public bool RawOutput;
+        /// <summary>Scene anchoring: the character's ground point and heading in the engine's
+        /// coordinates (e.g. its Unity transform's position and rotation).</summary>
+        public CgVec3? CharacterPosition;
+        /// <summary>Null: the identity.</summary>
+        public CgQuat? CharacterRotation;
+        /// <summary>Scene anchoring: where the object starts; the character reaches for it
+        /// (within 0.8 m and 0.3-1.6 m above its ground point).</summary>
+        public CgVec3? ObjectPosition;
+        /// <summary>Null: the identity.</summary>
+        public CgQuat? ObjectRotation;
+        /// <summary>With ObjectPosition and no CharacterPosition: the character comes to the object.</summary>
+        public bool PlaceCharacter;
     }
 
     /// <summary>A loaded model bundle (cg_engine). Create once (it takes a fraction of a second),
@@ -627,13 +658,30 @@ namespace ComGrasp
         public ComGraspStream Start(byte[] utf8, ComGraspStreamOptions options = default(ComGraspStreamOptions))
         {
             CgStreamConfig cfg;
-            ComGraspNative.cg_stream_config_init(&cfg);
+            ComGraspNative.cg_stream_config_init_sized(&cfg, (UIntPtr)sizeof(CgStreamConfig));
             if (options.Seed.HasValue) { cfg.Seed = options.Seed.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultSeed; }
             if (options.Temperature.HasValue) { cfg.Temperature = options.Temperature.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTemperature; }
             if (options.TopK.HasValue) { cfg.TopK = options.TopK.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTopK; }
             if (options.MinLen.HasValue) { cfg.MinLen = options.MinLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMinLen; }
             if (options.MaxLen.HasValue) { cfg.MaxLen = options.MaxLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMaxLen; }
             if (options.RawOutput) { cfg.Flags |= CgStreamConfig.FlagRawOutput; }
+            if (options.CharacterPosition.HasValue)
+            {
+                cfg.Anchor |= CgStreamConfig.AnchorCharacter;
+                CgVec3 p = options.CharacterPosition.Value;
+                CgQuat q = options.CharacterRotation ?? new CgQuat(0, 0, 0, 1);
+                cfg.CharacterPosition[0] = p.X; cfg.CharacterPosition[1] = p.Y; cfg.CharacterPosition[2] = p.Z;
+                cfg.CharacterRotation[0] = q.X; cfg.CharacterRotation[1] = q.Y; cfg.CharacterRotation[2] = q.Z; cfg.CharacterRotation[3] = q.W;
+            }
+            if (options.ObjectPosition.HasValue)
+            {
+                cfg.Anchor |= CgStreamConfig.AnchorObject;
+                CgVec3 p = options.ObjectPosition.Value;
+                CgQuat q = options.ObjectRotation ?? new CgQuat(0, 0, 0, 1);
+                cfg.ObjectPosition[0] = p.X; cfg.ObjectPosition[1] = p.Y; cfg.ObjectPosition[2] = p.Z;
+                cfg.ObjectRotation[0] = q.X; cfg.ObjectRotation[1] = q.Y; cfg.ObjectRotation[2] = q.Z; cfg.ObjectRotation[3] = q.W;
+            }
+            if (options.PlaceCharacter) { cfg.Anchor |= CgStreamConfig.AnchorPlaceCharacter; }
             IntPtr s = IntPtr.Zero;
             // `fixed` on an empty array gives NULL, which the library reads as a missing
             // text: pin a one-byte buffer instead so "" is reported as empty text.

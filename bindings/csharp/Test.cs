@@ -113,7 +113,7 @@ static unsafe class ComGraspTest
         Eq(ComGraspNative.cg_frame_size().ToUInt64(), (ulong)sizeof(CgFrame), "cg_frame_size()");
         Eq(ComGraspNative.FrameSize, sizeof(CgFrame), "ComGraspNative.FrameSize");
         Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 72 : 64, "sizeof(CgEngineConfig)");
-        Eq(sizeof(CgStreamConfig), 40, "sizeof(CgStreamConfig)");
+        Eq(sizeof(CgStreamConfig), 104, "sizeof(CgStreamConfig)");
         Eq(sizeof(CgSubscriberConfig), 16, "sizeof(CgSubscriberConfig)");
         Eq(sizeof(CgStreamEvent), 280, "sizeof(CgStreamEvent)");
         Eq(sizeof(CgSubscriberStats), 48, "sizeof(CgSubscriberStats)");
@@ -204,6 +204,19 @@ static unsafe class ComGraspTest
             Eq(info.StreamId, stream.Id, "info.StreamId");
             Eq(info.GetObjectName(), "mug", "the prompt's object");
             Eq(info.ObjectNamed, 1u, "the prompt names it");
+            // Scene anchoring in Unity coordinates: the mug starts where the host puts it.
+            var anchored = new ComGraspStreamOptions { Seed = 1, MinLen = 1, MaxLen = 1,
+                CharacterPosition = new CgVec3(0, 0, 0), ObjectPosition = new CgVec3(0.1f, 0.8f, -0.55f) };
+            using (var a = engine.Start("A woman drinks from the mug", anchored))
+            {
+                var g = new CgFrame();
+                var until = DateTime.UtcNow.AddSeconds(60);
+                while (a.Poll(ref g) != CgStatus.Ok) { Check(DateTime.UtcNow < until, "anchored frame"); Thread.Sleep(1); }
+                CgVec3 o = g.GetObjectTranslation();
+                Check(Math.Abs(o.X - 0.1f) < 1e-5 && Math.Abs(o.Y - 0.8f) < 1e-5 && Math.Abs(o.Z + 0.55f) < 1e-5, "anchored object " + o);
+            }
+            var e2 = Throws("out of reach", () => engine.Start("a mug", new ComGraspStreamOptions { ObjectPosition = new CgVec3(9, 0.8f, 0) }));
+            Eq(e2.Status, CgStatus.ErrInvalidArgument, "out of reach status");
             var f = new CgFrame();
             ulong n = 0;
             bool sawLast = false;

@@ -40,7 +40,7 @@ import enum
 import os
 import sys
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Union
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 __all__ = [
     "ABI_VERSION", "FRAME_SIZE", "MAX_TEXT_BYTES", "BODY_JOINTS", "HAND_JOINTS", "NUM_JOINTS",
@@ -76,6 +76,12 @@ USE_DEFAULT_MAX_LEN = 1 << 4
 USE_DEFAULT_ALL = 31
 # cg_stream_config.flags
 STREAM_RAW_OUTPUT = 1 << 0
+#: A position (x, y, z) and a unit quaternion (x, y, z, w) for scene anchoring.
+Placement = Tuple[Sequence[float], Sequence[float]]
+# cg_stream_config.anchor
+ANCHOR_CHARACTER = 1 << 0
+ANCHOR_OBJECT = 1 << 1
+ANCHOR_PLACE_CHARACTER = 1 << 2
 OBJECT_NAME_MAX = 63  # CG_OBJECT_NAME_MAX
 
 
@@ -196,6 +202,12 @@ class CgStreamConfig(ctypes.Structure):
         ("min_len", ctypes.c_uint32),
         ("max_len", ctypes.c_uint32),
         ("flags", ctypes.c_uint32),
+        ("anchor", ctypes.c_uint32),
+        ("reserved", ctypes.c_uint32),
+        ("character_position", ctypes.c_float * 3),
+        ("character_rotation", ctypes.c_float * 4),
+        ("object_position", ctypes.c_float * 3),
+        ("object_rotation", ctypes.c_float * 4),
     ]
 
 
@@ -333,6 +345,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_last_error_status": (st, []),
         "cg_engine_config_init_sized": (st, [P(CgEngineConfig), ctypes.c_size_t]),
         "cg_stream_config_init": (st, [P(CgStreamConfig)]),
+        "cg_stream_config_init_sized": (st, [P(CgStreamConfig), ctypes.c_size_t]),
         "cg_engine_create": (st, [P(CgEngineConfig), P(vp)]),
         "cg_engine_destroy": (st, [vp]),
         "cg_engine_stream_count": (st, [vp, P(u32)]),
@@ -563,12 +576,17 @@ class Engine(_Owned):
 
     def start(self, text: Union[str, bytes, None], *, seed: Optional[int] = None,
               temperature: Optional[float] = None, top_k: Optional[int] = None,
-              min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False) -> Stream:
+              min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False,
+              character: Optional[Placement] = None, object: Optional[Placement] = None,
+              place_character: bool = False) -> Stream:
         """Starts a stream for ``text`` (str, or UTF-8 bytes) and returns at once. Unset
         sampling options keep the bundle's defaults. ``None`` text is passed as NULL.
-        ``raw_output``: the model's frames without the contact-consistency stage."""
+        ``raw_output``: the model's frames without the contact-consistency stage.
+        Scene anchoring, each a ``(position xyz, rotation xyzw)`` pair in the engine's
+        coordinate system: ``character`` (ground point and heading), ``object`` (start pose;
+        reached for), ``place_character`` (with ``object`` only: the character comes to it)."""
         cfg = CgStreamConfig()
-        self._lib.cg_stream_config_init(ctypes.byref(cfg))
+        self._lib.cg_stream_config_init_sized(ctypes.byref(cfg), ctypes.sizeof(cfg))
         for name, value, bit in (("seed", seed, USE_DEFAULT_SEED), ("temperature", temperature, USE_DEFAULT_TEMPERATURE),
                                  ("top_k", top_k, USE_DEFAULT_TOP_K), ("min_len", min_len, USE_DEFAULT_MIN_LEN),
                                  ("max_len", max_len, USE_DEFAULT_MAX_LEN)):
@@ -577,6 +595,14 @@ class Engine(_Owned):
                 cfg.use_defaults &= ~bit
         if raw_output:
             cfg.flags |= STREAM_RAW_OUTPUT
+        for bit, placement, fields in ((ANCHOR_CHARACTER, character, ("character_position", "character_rotation")),
+                                       (ANCHOR_OBJECT, object, ("object_position", "object_rotation"))):
+            if placement is not None:
+                cfg.anchor |= bit
+                for field, values in zip(fields, placement):
+                    getattr(cfg, field)[:] = list(values)
+        if place_character:
+            cfg.anchor |= ANCHOR_PLACE_CHARACTER
         data = text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
         h = ctypes.c_void_p()
         st = self._lib.cg_start_utf8(self.handle, data, 0 if data is None else len(data), ctypes.byref(cfg), ctypes.byref(h))

@@ -43,7 +43,7 @@ def test_layout_matches_c():
     assert ctypes.sizeof(CgFrame) == cg.FRAME_SIZE == 1608
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
-    assert ctypes.sizeof(cg.CgStreamConfig) == 40
+    assert ctypes.sizeof(cg.CgStreamConfig) == 104
     assert ctypes.sizeof(cg.CgEngineConfig) == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
     assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
     assert cg.CgEngineConfig.step_backend.offset == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
@@ -156,6 +156,14 @@ def test_raw_output_flag():
             assert s.object == ("cubesmall", True)
         with e.start("Hebe die Tasse", min_len=1, max_len=1) as s:
             assert s.object == ("mug", False)  # names nothing: the first catalogue object
+        # Scene anchoring: the mug starts at the host's pose; out of reach is an error.
+        mug = ((0.1, 0.55, 0.8), (0.0, 0.0, 0.0, 1.0))
+        with e.start(PROMPT, min_len=1, max_len=1, character=((0, 0, 0), (0, 0, 0, 1)), object=mug) as s:
+            assert [round(v, 5) for v in s.frames()[0].object_translation] == [0.1, 0.55, 0.8]
+        err = raises(e.start, PROMPT, object=((5.0, 0.0, 0.8), (0, 0, 0, 1)))
+        assert err.status == Status.ERR_INVALID_ARGUMENT and "out of reach" in err.message
+        err = raises(e.start, PROMPT, object=((0.1, 0.5, 0.8), (0, 0, 0.5, 0.5)))
+        assert "unit quaternion" in err.message
     for fr in raw:
         assert all(fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0) for h in range(2))
     for a, b in zip(consistent, consistent[1:]):

@@ -541,6 +541,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         min_len: Some(steps as u32),
         max_len: Some(steps as u32),
         raw_output: None,
+        anchor: None,
     };
     let mut ttff_ms = Vec::new();
     let mut total_ms = Vec::new();

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use comgrasp::frame::{CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
-use comgrasp::{CoordinateSystem, Engine, EngineConfig, Error, Frame, PollResult, StreamConfig};
+use comgrasp::{Anchor, CoordinateSystem, Engine, EngineConfig, Error, Frame, Placement, PollResult, StreamConfig};
 use serde::Serialize;
 
 use crate::npz;
@@ -63,6 +63,29 @@ pub struct Args {
     /// a hand may close on empty air).
     #[arg(long)]
     raw: bool,
+    /// Scene anchoring: the character's ground point and heading in the frames' coordinate
+    /// system, X,Y,Z[,YAW] (YAW: degrees about the system's up axis; 0 faces native +y).
+    #[arg(long, value_name = "X,Y,Z[,YAW]", value_parser = placement, allow_hyphen_values = true)]
+    character: Option<[f32; 4]>,
+    /// Scene anchoring: where the object starts, X,Y,Z[,YAW] (its origin; YAW about the up
+    /// axis); the character reaches for it (within 0.8 m and 0.3-1.6 m above its ground).
+    #[arg(long, value_name = "X,Y,Z[,YAW]", value_parser = placement, allow_hyphen_values = true)]
+    object: Option<[f32; 4]>,
+    /// With --object and without --character: place the character at the model's own spot
+    /// relative to the object.
+    #[arg(long, requires = "object", conflicts_with = "character")]
+    place_character: bool,
+}
+
+/// `X,Y,Z[,YAW]` for --character / --object.
+fn placement(v: &str) -> Result<[f32; 4], String> {
+    let n: Vec<f32> =
+        v.split(',').map(|x| x.trim().parse::<f32>().map_err(|e| format!("{x:?}: {e}"))).collect::<Result<_, _>>()?;
+    match n[..] {
+        [x, y, z] => Ok([x, y, z, 0.0]),
+        [x, y, z, yaw] => Ok([x, y, z, yaw]),
+        _ => Err(format!("expected X,Y,Z or X,Y,Z,YAW, got {} numbers", n.len())),
+    }
 }
 
 /// `--coords` values.
@@ -214,6 +237,27 @@ fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Failure> {
     std::fs::write(path, bytes).map_err(|e| Failure::Run(format!("cannot write {}: {e}", path.display())))
 }
 
+/// --character / --object as an [`Anchor`]: YAW turns about the coordinate system's up axis.
+fn anchor(
+    character: Option<[f32; 4]>,
+    object: Option<[f32; 4]>,
+    place_character: bool,
+    coords: CoordinateSystem,
+) -> Option<Anchor> {
+    if character.is_none() && object.is_none() {
+        return None;
+    }
+    let (s, _) = coords.basis();
+    // The up axis in the frames' basis (native +z mapped), then the quaternion about it.
+    let up = comgrasp::skeleton::mat_vec(&s, &[0.0, 0.0, 1.0]);
+    let place = |v: [f32; 4]| {
+        let h = (v[3] as f64).to_radians() / 2.0;
+        let q = [up[0] * h.sin(), up[1] * h.sin(), up[2] * h.sin(), h.cos()].map(|x| x as f32);
+        Placement { position: [v[0], v[1], v[2]], rotation: q }
+    };
+    Some(Anchor { character: character.map(place), object: object.map(place), place_character })
+}
+
 /// The checks clap cannot make: output names and directories, --glb against --coords.
 fn options(a: Args) -> Result<Options, String> {
     let stream = StreamConfig {
@@ -223,7 +267,9 @@ fn options(a: Args) -> Result<Options, String> {
         min_len: a.min_len,
         max_len: a.max_len,
         raw_output: a.raw.then_some(true),
+        anchor: None,
     };
+    let (character, object, place_character) = (a.character, a.object, a.place_character);
     let (bundle, text, out, glb, preview, fk) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk);
     let coords = a.coords.map(CoordinateSystem::from);
     // Decide formats and check directories before generating, so a typo does not cost a
@@ -249,6 +295,7 @@ fn options(a: Args) -> Result<Options, String> {
         (_, Some(_)) => CoordinateSystem::CG_COORDS_GLTF,
         (c, None) => c.unwrap_or(CoordinateSystem::CG_COORDS_NATIVE),
     };
+    let stream = StreamConfig { anchor: anchor(character, object, place_character, coords), ..stream };
     Ok(Options { bundle, text, out, glb, preview, stream, coords, fk })
 }
 

@@ -390,7 +390,7 @@ fn op_engine_create(inp: &mut Input) {
 fn stream_config(inp: &mut Input) -> Padded<cg_stream_config> {
     let real = size_of::<cg_stream_config>();
     let mut c = cg_stream_config::default();
-    c.struct_size = struct_size(inp, real);
+    c.struct_size = if inp.u8() % 5 == 0 { 40 } else { struct_size(inp, real) }; // 40: v1
     c.use_defaults = u32::from(inp.u8());
     c.seed = inp.u64();
     c.temperature = match inp.u8() % 6 {
@@ -405,12 +405,44 @@ fn stream_config(inp: &mut Input) -> Padded<cg_stream_config> {
     c.max_len = u32::from(inp.u8() % 8);
     // flags: 0, the raw-output flag, or an unknown bit
     c.flags = [0, 0, 0, CG_STREAM_RAW_OUTPUT, 1 << 9][usize::from(inp.u8() % 5)];
+    // version 2: scene anchoring, mostly off; placements good, NaN or not unit
+    if inp.u8() % 4 == 0 {
+        c.anchor = u32::from(inp.u8() % 16);
+        c.reserved = u32::from(inp.u8() % 8 == 0);
+        let rotation = |inp: &mut Input| match inp.u8() % 4 {
+            0 => [0.0, 0.0, 0.5, 0.5],
+            1 => [f32::NAN, 0.0, 0.0, 1.0],
+            _ => [0.0, 0.0, 0.0, 1.0],
+        };
+        c.character_rotation = rotation(inp);
+        c.object_rotation = rotation(inp);
+        c.object_position = [0.0, if inp.u8() % 8 == 0 { f32::INFINITY } else { 0.5 }, 0.8];
+    }
     Padded { value: c, tail: [0; 64] }
 }
 
 /// Whether the library must accept this stream config (mirrors the documented rules).
 fn stream_config_ok(c: &cg_stream_config) -> bool {
-    if (c.struct_size as usize) < size_of::<cg_stream_config>() || c.flags & !CG_STREAM_FLAGS_ALL != 0 {
+    if (c.struct_size as usize) < 40 || c.flags & !CG_STREAM_FLAGS_ALL != 0 {
+        return false;
+    }
+    // A v1 struct ends before the anchor fields: they are not read.
+    if c.struct_size as usize >= size_of::<cg_stream_config>() && c.anchor != 0 {
+        if c.anchor & !CG_ANCHOR_ALL != 0 || c.reserved != 0 {
+            return false;
+        }
+        let good = |p: &[f32], q: &[f32; 4]| {
+            p.iter().chain(q).all(|v| v.is_finite())
+                && (q.iter().map(|v| v * v).sum::<f32>().sqrt() - 1.0).abs() <= 1e-3
+        };
+        let (character, object) = (c.anchor & CG_ANCHOR_CHARACTER != 0, c.anchor & CG_ANCHOR_OBJECT != 0);
+        if (character && !good(&c.character_position, &c.character_rotation))
+            || (object && !good(&c.object_position, &c.object_rotation))
+            || (c.anchor & CG_ANCHOR_PLACE_CHARACTER != 0 && (!object || character))
+        {
+            return false;
+        }
+    } else if c.struct_size as usize >= size_of::<cg_stream_config>() && c.reserved != 0 {
         return false;
     }
     let set = |bit: u32| c.use_defaults & bit == 0;
@@ -723,7 +755,7 @@ fn run(data: &[u8]) {
                     "{}",
                     e.struct_size
                 );
-                assert_eq!(s.struct_size as usize, size_of::<cg_stream_config>());
+                assert_eq!(s.struct_size, 40, "cg_stream_config_init is the first version's entry point");
                 assert_eq!(s.use_defaults, CG_USE_DEFAULT_ALL);
                 e.bundle_path = c"/nonexistent/comgrasp-fuzz-bundle".as_ptr();
                 let mut out = null_mut();

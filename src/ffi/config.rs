@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 use super::panic::{boundary, Failure};
 use super::status::cg_status;
+use crate::config::{Anchor, Placement};
 use crate::config::{DecoderBackend, InstructionSet, RuntimeOptions, StepBackend};
 use crate::engine::{EngineConfig, StreamConfig};
 use crate::frame::{cg_coordinate_system, CoordinateSystem};
@@ -123,6 +124,19 @@ pub const CG_USE_DEFAULT_ALL: u32 = 0x1f;
 pub const CG_STREAM_RAW_OUTPUT: u32 = 1 << 0;
 /// All `CG_STREAM_*` flags this library knows.
 pub const CG_STREAM_FLAGS_ALL: u32 = CG_STREAM_RAW_OUTPUT;
+/// Set in `cg_stream_config.anchor`: `character_position` / `character_rotation` place the
+/// character in the host's world.
+pub const CG_ANCHOR_CHARACTER: u32 = 1 << 0;
+/// Set in `cg_stream_config.anchor`: the object starts at `object_position` /
+/// `object_rotation`; the character reaches for it (it must be within the reach envelope:
+/// 0.8 m horizontally from the character's ground point, 0.3-1.6 m above it).
+pub const CG_ANCHOR_OBJECT: u32 = 1 << 1;
+/// Set in `cg_stream_config.anchor` with `CG_ANCHOR_OBJECT` and without
+/// `CG_ANCHOR_CHARACTER`: the character is placed at the model's own spot relative to the
+/// object (the "interaction spot") instead of reaching from where it stands.
+pub const CG_ANCHOR_PLACE_CHARACTER: u32 = 1 << 2;
+/// All `CG_ANCHOR_*` bits.
+pub const CG_ANCHOR_ALL: u32 = 0x7;
 
 /// Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets
 /// `use_defaults = CG_USE_DEFAULT_ALL`); to override a field, set it AND clear its bit:
@@ -148,13 +162,30 @@ pub struct cg_stream_config {
     /// Bitmask of `CG_STREAM_*` flags; 0 = the defaults (the contact-consistency stage on).
     /// Unknown bits are `CG_ERR_INVALID_ARGUMENT`. (Named `reserved`, must-be-0, before.)
     pub flags: u32,
+    /// Scene anchoring (version 2 of this struct): bitmask of `CG_ANCHOR_*`; 0 = the
+    /// model's own placement. Positions and rotations below are in the engine's coordinate
+    /// system (its basis and units, as frames are); rotations unit quaternions (x, y, z, w).
+    pub anchor: u32,
+    /// Reserved, must be 0.
+    pub reserved: u32,
+    /// With `CG_ANCHOR_CHARACTER`: the character's ground point (under the pelvis at the
+    /// first frame).
+    pub character_position: [f32; 3],
+    /// With `CG_ANCHOR_CHARACTER`: its heading; only the turn about the up axis counts, and
+    /// the identity faces the native +y axis (glTF -z, Unity -z, Unreal -y).
+    pub character_rotation: [f32; 4],
+    /// With `CG_ANCHOR_OBJECT`: where the object starts (its origin, as
+    /// `cg_frame.object_translation`).
+    pub object_position: [f32; 3],
+    /// With `CG_ANCHOR_OBJECT`: the object's start rotation.
+    pub object_rotation: [f32; 4],
 }
 
 /// Size of the first published version of each struct: the smallest `struct_size`
 /// accepted. Frozen: fields appended later take their defaults when a host's struct is
 /// shorter (`cg_engine_config` v1 ended at `reserved`, before `publish_name`).
 const ENGINE_CONFIG_V1_SIZE: usize = std::mem::offset_of!(cg_engine_config, publish_name);
-const STREAM_CONFIG_V1_SIZE: usize = size_of::<cg_stream_config>();
+const STREAM_CONFIG_V1_SIZE: usize = std::mem::offset_of!(cg_stream_config, anchor);
 
 impl Default for cg_engine_config {
     fn default() -> Self {
@@ -191,6 +222,12 @@ impl Default for cg_stream_config {
             min_len: 0,
             max_len: 0,
             flags: 0,
+            anchor: 0,
+            reserved: 0,
+            character_position: [0.0; 3],
+            character_rotation: [0.0, 0.0, 0.0, 1.0],
+            object_position: [0.0; 3],
+            object_rotation: [0.0, 0.0, 0.0, 1.0],
         }
     }
 }
@@ -385,7 +422,28 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
         min_len: set(CG_USE_DEFAULT_MIN_LEN).then_some(c.min_len),
         max_len: set(CG_USE_DEFAULT_MAX_LEN).then_some(c.max_len),
         raw_output: (c.flags & CG_STREAM_RAW_OUTPUT != 0).then_some(true),
+        anchor: anchor_from_c(&c)?,
     })
+}
+
+fn anchor_from_c(c: &cg_stream_config) -> Result<Option<Anchor>, Failure> {
+    let invalid = |m: String| Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, m);
+    if c.anchor & !CG_ANCHOR_ALL != 0 || c.reserved != 0 {
+        return Err(invalid(format!(
+            "cg_stream_config: unknown anchor bits {:#x} or non-zero reserved",
+            c.anchor & !CG_ANCHOR_ALL
+        )));
+    }
+    if c.anchor == 0 {
+        return Ok(None);
+    }
+    let set = |bit: u32| c.anchor & bit != 0;
+    Ok(Some(Anchor {
+        character: set(CG_ANCHOR_CHARACTER)
+            .then_some(Placement { position: c.character_position, rotation: c.character_rotation }),
+        object: set(CG_ANCHOR_OBJECT).then_some(Placement { position: c.object_position, rotation: c.object_rotation }),
+        place_character: set(CG_ANCHOR_PLACE_CHARACTER),
+    }))
 }
 
 /// Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
@@ -411,34 +469,60 @@ pub unsafe extern "C" fn cg_engine_config_init(cfg: *mut cg_engine_config) -> cg
 
 /// SAFETY: `cfg` is NULL or valid for `size` writable bytes.
 unsafe fn engine_config_init(cfg: *mut cg_engine_config, size: usize) -> Result<cg_status, Failure> {
+    let defaults = |n: usize| cg_engine_config { struct_size: n as u32, ..cg_engine_config::default() };
+    unsafe { init_sized(cfg, size, ENGINE_CONFIG_V1_SIZE, "cg_engine_config_init", defaults) }
+}
+
+/// Writes the first `min(size, sizeof T)` bytes of `defaults(n)` to `*cfg`: a library never
+/// writes past a host's struct, whichever of the two is newer.
+///
+/// SAFETY: `cfg` is NULL or valid for `size` writable bytes.
+unsafe fn init_sized<T>(
+    cfg: *mut T,
+    size: usize,
+    v1: usize,
+    name: &str,
+    defaults: impl Fn(usize) -> T,
+) -> Result<cg_status, Failure> {
     if cfg.is_null() {
-        return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_engine_config_init: cfg is NULL"));
+        return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, format_args!("{name}: cfg is NULL")));
     }
-    if size < ENGINE_CONFIG_V1_SIZE {
+    if size < v1 {
         return Err(Failure::new(
             cg_status::CG_ERR_INVALID_ARGUMENT,
-            format_args!(
-                "cg_engine_config_init: size {size} is below the first version's {ENGINE_CONFIG_V1_SIZE} bytes"
-            ),
+            format_args!("{name}: size {size} is below the first version's {v1} bytes"),
         ));
     }
-    let n = size.min(size_of::<cg_engine_config>());
-    let defaults = cg_engine_config { struct_size: n as u32, ..cg_engine_config::default() };
-    unsafe { std::ptr::copy_nonoverlapping(&defaults as *const cg_engine_config as *const u8, cfg as *mut u8, n) };
+    let n = size.min(size_of::<T>());
+    let value = defaults(n);
+    unsafe { std::ptr::copy_nonoverlapping(&value as *const T as *const u8, cfg as *mut u8, n) };
     Ok(cg_status::CG_OK)
 }
 
-/// Fills `*cfg` with the defaults (`use_defaults = CG_USE_DEFAULT_ALL`) and the right
-/// `struct_size`. Returns `CG_ERR_NULL_POINTER` if `cfg` is NULL. Any thread.
+/// The first version's entry point, for binaries built against a header whose struct ends
+/// at `flags` (40 bytes): fills those bytes with the defaults (`use_defaults =
+/// CG_USE_DEFAULT_ALL`). Code compiled with the current header reaches
+/// `cg_stream_config_init_sized` through the `cg_stream_config_init(cfg)` macro instead.
+/// Errors: `CG_ERR_NULL_POINTER`. Any thread.
 #[no_mangle]
 pub unsafe extern "C" fn cg_stream_config_init(cfg: *mut cg_stream_config) -> cg_status {
-    boundary("cg_stream_config_init", || {
-        if cfg.is_null() {
-            return Err(Failure::new(cg_status::CG_ERR_NULL_POINTER, "cg_stream_config_init: cfg is NULL"));
-        }
-        unsafe { cfg.write_unaligned(cg_stream_config::default()) };
-        Ok(cg_status::CG_OK)
-    })
+    boundary("cg_stream_config_init", || unsafe { stream_config_init(cfg, STREAM_CONFIG_V1_SIZE) })
+}
+
+/// Fills the first `size` bytes of `*cfg` with the defaults and sets `struct_size` to
+/// `size` (capped at this library's `sizeof(cg_stream_config)`). `size` is the HOST's
+/// `sizeof(cg_stream_config)`: the header's `cg_stream_config_init(cfg)` macro passes it.
+/// Errors: `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_ARGUMENT` (`size` below the first
+/// version's 40 bytes). Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_stream_config_init_sized(cfg: *mut cg_stream_config, size: usize) -> cg_status {
+    boundary("cg_stream_config_init_sized", || unsafe { stream_config_init(cfg, size) })
+}
+
+/// SAFETY: `cfg` is NULL or valid for `size` writable bytes.
+unsafe fn stream_config_init(cfg: *mut cg_stream_config, size: usize) -> Result<cg_status, Failure> {
+    let defaults = |n: usize| cg_stream_config { struct_size: n as u32, ..cg_stream_config::default() };
+    unsafe { init_sized(cfg, size, STREAM_CONFIG_V1_SIZE, "cg_stream_config_init", defaults) }
 }
 
 #[cfg(test)]
@@ -458,8 +542,36 @@ mod tests {
         let e = unsafe { stream_config_from_c(&c) }.unwrap_err();
         assert_eq!(e.0, cg_status::CG_ERR_INVALID_ARGUMENT);
         c.flags = 0;
+        // Version 2: scene anchoring; a v1 host (40 bytes) never has it, whatever follows.
+        c.anchor = CG_ANCHOR_OBJECT | CG_ANCHOR_PLACE_CHARACTER;
+        c.object_position = [1.0, 2.0, 0.8];
+        let s = unsafe { stream_config_from_c(&c) }.unwrap();
+        let a = s.anchor.unwrap();
+        assert!(a.place_character && a.character.is_none());
+        assert_eq!(a.object.unwrap().position, [1.0, 2.0, 0.8]);
+        c.struct_size = STREAM_CONFIG_V1_SIZE as u32;
+        assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap().anchor, None);
+        c.struct_size = size_of::<cg_stream_config>() as u32;
+        for (anchor, reserved) in [(1 << 3, 0), (CG_ANCHOR_OBJECT, 1)] {
+            (c.anchor, c.reserved) = (anchor, reserved);
+            assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+        }
+        (c.anchor, c.reserved) = (0, 0);
         c.struct_size = 8;
         assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
+        // The sized init writes no byte past the host's struct; the v1 entry point 40 bytes.
+        let mut buf = [0xAAu8; 200];
+        let p = buf.as_mut_ptr() as *mut cg_stream_config;
+        assert_eq!(unsafe { cg_stream_config_init_sized(p, STREAM_CONFIG_V1_SIZE) }, cg_status::CG_OK);
+        assert!(buf[STREAM_CONFIG_V1_SIZE..].iter().all(|&b| b == 0xAA));
+        assert_eq!(u32::from_ne_bytes(buf[..4].try_into().unwrap()) as usize, STREAM_CONFIG_V1_SIZE);
+        assert_eq!(unsafe { cg_stream_config_init(p) }, cg_status::CG_OK);
+        assert!(buf[STREAM_CONFIG_V1_SIZE..].iter().all(|&b| b == 0xAA));
+        assert_eq!(unsafe { cg_stream_config_init_sized(p, 200) }, cg_status::CG_OK);
+        assert!(buf[size_of::<cg_stream_config>()..].iter().all(|&b| b == 0xAA));
+        let full = unsafe { p.read_unaligned() };
+        assert_eq!(full, cg_stream_config::default());
+        assert_eq!(unsafe { cg_stream_config_init_sized(p, 39) }, cg_status::CG_ERR_INVALID_ARGUMENT);
 
         let e = cg_engine_config::default();
         assert!(unsafe { engine_config_from_c(&e) }.is_ok());

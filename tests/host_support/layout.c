@@ -61,6 +61,12 @@ int main(void) {
     OFF(cg_stream_config, min_len);
     OFF(cg_stream_config, max_len);
     OFF(cg_stream_config, flags);
+    OFF(cg_stream_config, anchor);
+    OFF(cg_stream_config, reserved);
+    OFF(cg_stream_config, character_position);
+    OFF(cg_stream_config, character_rotation);
+    OFF(cg_stream_config, object_position);
+    OFF(cg_stream_config, object_rotation);
 
     SIZE(cg_stream_info);
     OFF(cg_stream_info, stream_id);
