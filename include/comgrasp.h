@@ -26,6 +26,12 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
+// Ended streams a new one can continue from (the oldest is forgotten first).
+#define KEEP_ENDED 64
+
+// Frames over which a continued stream blends its body from the earlier stream's last pose.
+#define BLEND_FRAMES 15
+
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -314,6 +320,11 @@ typedef struct cg_stream_config {
   float object_position[3];
   // With `CG_ANCHOR_OBJECT`: the object's start rotation.
   float object_rotation[4];
+  // Non-zero: continue the stream with this id (of the same engine, ended: its `CG_END`
+  // was seen, among its 64 most recent): start where it left off (the character's place,
+  // heading and last pose, blended from over 15 frames; its object, resting or held).
+  // Excludes `anchor`.
+  uint64_t continue_from;
 } cg_stream_config;
 
 // One frame of generated motion. All positions in the engine's coordinate system

@@ -84,6 +84,17 @@ impl AnchorStage {
         Ok(AnchorStage { character, object, place_character: a.place_character, world: None })
     }
 
+    /// Anchoring that continues an earlier stream: the character's ground point and heading
+    /// (radians about +z, 0 = +y) in the native world, where the earlier stream left it.
+    pub fn continuing(ground: Vec3, heading: [f64; 2]) -> AnchorStage {
+        AnchorStage { character: Some((ground, yaw(heading))), object: None, place_character: false, world: None }
+    }
+
+    /// The rigid motion from the model's frame to the host's world, once fixed.
+    pub fn world(&self) -> Option<(Mat3, Vec3)> {
+        self.world
+    }
+
     /// The first frame (before the contact stage): fixes the world motion from the model's
     /// first frame and returns the object's start pose in the model's frame when the host
     /// gives it.

@@ -38,7 +38,8 @@
 use crate::error::{Error, Result};
 use crate::frame::{cg_coordinate_system, CoordinateSystem, Frame, CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
 use crate::skeleton::{
-    mat_mul, mat_vec, matrix_to_quaternion, rot6d_to_matrix, transpose, Mat3, Skeleton, Vec3, IDENTITY,
+    mat_mul, mat_vec, matrix_to_quaternion, quaternion_to_matrix, rot6d_to_matrix, transpose, Mat3, Skeleton, Vec3,
+    IDENTITY,
 };
 
 /// Width of one frame's feature vector.
@@ -336,6 +337,26 @@ impl Pose {
         self.object_translation = moved(&self.object_translation);
         self.object_centre = moved(&self.object_centre);
         self.wrist_to_object = self.wrist_to_object.map(|v| mat_vec(r, &v));
+    }
+}
+
+impl Pose {
+    /// Blends the body from `from` (weight `1 - s`) to this pose (weight `s`): every local
+    /// rotation by normalized quaternion interpolation, the pelvis linearly. The object and
+    /// contact fields are this pose's (the contact stage owns them).
+    pub fn blend_from(&mut self, from: &Pose, s: f64) {
+        for (l, f) in self.local.iter_mut().zip(&from.local) {
+            let (a, b) = (matrix_to_quaternion(f), matrix_to_quaternion(l));
+            let sign = if (0..4).map(|i| a[i] * b[i]).sum::<f64>() < 0.0 { -1.0 } else { 1.0 };
+            let q: [f64; 4] = std::array::from_fn(|i| (1.0 - s) * a[i] + s * sign * b[i]);
+            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if n > 1e-12 {
+                *l = quaternion_to_matrix(&q.map(|v| v / n));
+            }
+        }
+        for i in 0..3 {
+            self.pelvis[i] = (1.0 - s) * from.pelvis[i] + s * self.pelvis[i];
+        }
     }
 }
 

@@ -314,6 +314,10 @@ pub struct StreamConfig {
     /// Where the host's scene puts the character and the object (`crate::anchor`); unset:
     /// the model's own placement.
     pub anchor: Option<Anchor>,
+    /// Start from where this earlier, ended stream of the same engine left off: its
+    /// character's place, heading and last pose (blended from), its object and whether a
+    /// hand holds it. Excludes `anchor`.
+    pub continue_from: Option<u64>,
 }
 
 /// A position and a rotation in the host's world, in the engine's coordinate system (its
@@ -388,6 +392,7 @@ impl StreamConfig {
             max_len: self.max_len.or(fallback.max_len),
             raw_output: self.raw_output.or(fallback.raw_output),
             anchor: self.anchor.or(fallback.anchor),
+            continue_from: self.continue_from.or(fallback.continue_from),
         }
     }
 

@@ -132,6 +132,17 @@ impl Table {
         Table { height, start: [c[0], c[1]], origin: [pelvis[0], pelvis[1]], forward }
     }
 
+    /// The same table after the rigid motion `p -> r p + t` (`r` a turn about the up axis).
+    pub fn moved(&self, r: &Mat3, t: &Vec3) -> Table {
+        let point = |p: [f64; 2]| {
+            let q = mat_vec(r, &[p[0], p[1], 0.0]);
+            [q[0] + t[0], q[1] + t[1]]
+        };
+        let f = mat_vec(r, &[self.forward[0], self.forward[1], 0.0]);
+        let height = if self.is_ground() { GROUND_Z + t[2] } else { self.height + t[2] };
+        Table { height, start: point(self.start), origin: point(self.origin), forward: [f[0], f[1]] }
+    }
+
     /// Whether the object is on the ground rather than on a table.
     pub fn is_ground(&self) -> bool {
         self.height <= GROUND_Z
@@ -266,6 +277,33 @@ impl ContactStage {
             bow: 0.0,
             bow_axis: [1.0, 0.0, 0.0],
         }
+    }
+
+    /// The state a stream that continues this one starts from (`StreamConfig::continue_from`),
+    /// moved by the rigid motion `p -> r p + t` (`r` a turn about the up axis) into the new
+    /// stream's frame: the object where it is, on the same table, held by the same hands
+    /// with the same grasps; reaches, corrections and the bow end (the new stream blends
+    /// its body from the old one's last pose, which has them).
+    pub fn continued(&self, r: &Mat3, t: &Vec3) -> ContactStage {
+        let mut next = self.clone();
+        next.rot = mat_mul(r, &self.rot);
+        let p = mat_vec(r, &self.pos);
+        next.pos = [p[0] + t[0], p[1] + t[1], p[2] + t[2]];
+        next.table = self.table.moved(r, t);
+        next.start_object = None;
+        next.bow = 0.0;
+        for hand in &mut next.hands {
+            hand.correction = [0.0; 3];
+            if matches!(hand.phase, Phase::Reaching { .. }) {
+                hand.phase = Phase::Free;
+            }
+        }
+        next
+    }
+
+    /// Which hands hold the object.
+    pub fn holding(&self) -> [bool; 2] {
+        self.hands.map(|h| h.phase == Phase::Holding)
     }
 
     /// Starts the object at this pose (native world, the model's frame) instead of where

@@ -40,14 +40,18 @@
 //!   final chunk goes out whole, its last frame marked, without running the forced step;
 //! * if End is sampled at step 0 (possible only with `min_len = 0`) the stream has no
 //!   frames and ends directly (poll reports End without any frame).
+use std::collections::VecDeque;
 use std::sync::Arc;
+
+use parking_lot::Mutex;
 
 use crate::anchor::AnchorStage;
 use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
-use crate::contact::{ContactStage, ObjectShape};
+use crate::contact::{heading, ContactStage, ObjectShape};
+use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
@@ -127,6 +131,25 @@ pub struct Pipeline {
     overlap: bool,
     /// Tokens per decode after the first chunk (`model::decode_group`).
     group: usize,
+    /// Where the most recent ended streams left off, newest last (`continue_from`).
+    ended: Mutex<VecDeque<(u64, Arc<Continuation>)>>,
+}
+
+/// Ended streams a new one can continue from (the oldest is forgotten first).
+pub const KEEP_ENDED: usize = 64;
+/// Frames over which a continued stream blends its body from the earlier stream's last pose.
+pub const BLEND_FRAMES: u64 = 15;
+
+/// Where a stream left off: what a stream that continues it starts from.
+#[derive(Clone, Debug)]
+pub struct Continuation {
+    /// The last frame in the host's world (native), after every stage.
+    pose: Pose,
+    /// The contact stage's state in the host's world (None: raw output).
+    contact: Option<ContactStage>,
+    /// The character's ground point there.
+    ground: Vec3,
+    object: StreamObject,
 }
 
 impl Pipeline {
@@ -151,7 +174,20 @@ impl Pipeline {
         }
         let overlap = overlap::overlaps(&bundle.step, &bundle.decoder, config.runtime.overlap);
         let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder, config.runtime.decode_group);
-        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group })
+        let ended = Mutex::new(VecDeque::with_capacity(KEEP_ENDED));
+        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group, ended })
+    }
+
+    fn continuation(&self, id: u64) -> Option<Arc<Continuation>> {
+        self.ended.lock().iter().find(|(i, _)| *i == id).map(|(_, c)| Arc::clone(c))
+    }
+
+    fn remember(&self, id: u64, c: Continuation) {
+        let mut ended = self.ended.lock();
+        if ended.len() == KEEP_ENDED {
+            ended.pop_front();
+        }
+        ended.push_back((id, Arc::new(c)));
     }
 
     /// The bundle the pipeline runs.
@@ -226,6 +262,10 @@ pub struct Generator {
     /// Scene anchoring (None: the model's own placement).
     anchor: Option<AnchorStage>,
     object: StreamObject,
+    /// The earlier stream this one continues, and its last pose in this stream's model frame
+    /// (set by the first frame) that the body blends from.
+    continuation: Option<Arc<Continuation>>,
+    blend_from: Option<Pose>,
 }
 
 impl Generator {
@@ -248,17 +288,45 @@ impl Generator {
             return Err(Error::InvalidArgument("max_len must be at least 1".into()));
         }
         let pad_usize = pipe.pad_ids.map(|p| p as usize);
-        // The catalogue is never empty (bundle verification).
+        let continuation = match c.continue_from {
+            None => None,
+            Some(_) if c.anchor.is_some() => {
+                return Err(Error::InvalidArgument(
+                    "continue_from and anchor exclude each other: a continued stream starts where the earlier one \
+                     left off"
+                        .into(),
+                ))
+            }
+            Some(id) => Some(pipe.continuation(id).ok_or_else(|| {
+                Error::InvalidArgument(format!(
+                    "continue_from: stream {id} has not ended on this engine (or is older than its last {KEEP_ENDED} \
+                     ended streams)"
+                ))
+            })?),
+        };
+        // The catalogue is never empty (bundle verification). A continued stream keeps the
+        // earlier stream's object, whatever its prompt names.
         let objects = &b.manifest.objects;
-        let (index, alias) = choose_object(objects, req.text)
-            .ok_or_else(|| Error::InvalidArgument("the bundle's object catalogue is empty".into()))?;
-        let object = StreamObject { index, name: objects[index].name.clone(), alias };
+        let object = match &continuation {
+            Some(k) => k.object.clone(),
+            None => {
+                let (index, alias) = choose_object(objects, req.text)
+                    .ok_or_else(|| Error::InvalidArgument("the bundle's object catalogue is empty".into()))?;
+                StreamObject { index, name: objects[index].name.clone(), alias }
+            }
+        };
         let contact = if c.raw_output.unwrap_or(false) {
             None
         } else {
-            Some(ContactStage::new(ObjectShape::from_entry(&objects[index]), b.manifest.fps))
+            Some(ContactStage::new(ObjectShape::from_entry(&objects[object.index]), b.manifest.fps))
         };
-        let anchor = c.anchor.as_ref().map(|a| AnchorStage::new(a, pipe.assembler.coordinate_system())).transpose()?;
+        let anchor = match &continuation {
+            Some(k) => {
+                let p = &k.pose;
+                Some(AnchorStage::continuing(k.ground, heading(&p.pelvis, &p.local[0], &p.object_centre)))
+            }
+            None => c.anchor.as_ref().map(|a| AnchorStage::new(a, pipe.assembler.coordinate_system())).transpose()?,
+        };
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
         Ok(Generator {
             stream_id: req.stream_id,
@@ -278,6 +346,8 @@ impl Generator {
             contact,
             anchor,
             object,
+            continuation,
+            blend_from: None,
             sampler,
             pipe,
         })
@@ -298,6 +368,41 @@ impl Generator {
             return Ok(None);
         }
         Ok(Some(codes.map(|c| c as i64)))
+    }
+}
+
+impl Generator {
+    /// The first frame: fixes the anchoring; a continued stream takes over the earlier
+    /// stream's last pose (to blend from) and contact state, moved into its model frame.
+    fn begin(&mut self, pose: &Pose) {
+        let Some(anchor) = &mut self.anchor else { return };
+        let start = anchor.begin(pose);
+        match (&self.continuation, anchor.world()) {
+            (Some(k), Some((r, t))) => {
+                // The inverse of the world motion: the host's world -> this model frame.
+                let ri = transpose(&r);
+                let ti = mat_vec(&ri, &t).map(|v| -v);
+                let mut from = k.pose;
+                from.transform(&ri, &ti);
+                self.blend_from = Some(from);
+                if let (Some(stage), Some(earlier)) = (&mut self.contact, &k.contact) {
+                    *stage = earlier.continued(&ri, &ti);
+                }
+            }
+            _ => {
+                if let (Some((rot, pos)), Some(stage)) = (start, &mut self.contact) {
+                    stage.set_start_object(rot, pos);
+                }
+            }
+        }
+    }
+
+    /// The last frame (`pose` in the host's world): what a stream continuing this one needs.
+    fn remember(&self, pose: &Pose) {
+        let (r, t): (Mat3, Vec3) = self.anchor.as_ref().and_then(AnchorStage::world).unwrap_or((crate::skeleton::IDENTITY, [0.0; 3]));
+        let contact = self.contact.as_ref().map(|s| s.continued(&r, &t));
+        let ground = [pose.pelvis[0], pose.pelvis[1], t[2]];
+        self.pipe.remember(self.stream_id, Continuation { pose: *pose, contact, ground, object: self.object.clone() });
     }
 }
 
@@ -353,8 +458,17 @@ impl ChunkSource for Generator {
                                 anchor.apply(pose);
                             }
                             assembler.emit(pose, f.stream_id, f.frame_index, true, &mut f);
+                            let pose = *pose;
+                            self.remember(&pose);
                         }
-                        None => f.is_last = 1,
+                        None => {
+                            f.is_last = 1;
+                            let mut pose = self.held_pose;
+                            if let Some(anchor) = &self.anchor {
+                                anchor.apply(&mut pose);
+                            }
+                            self.remember(&pose);
+                        }
                     }
                     out.push(f);
                 }
@@ -420,18 +534,31 @@ impl ChunkSource for Generator {
             None
         };
         let width = crate::bundle::manifest::FRAME_DIM;
-        let n = normalized.len() / width;
-        for (i, feats) in normalized.chunks_exact(width).enumerate() {
+        let used = normalized.len();
+        // Moved out (no copy, no allocation) so the frame loop may borrow the generator.
+        let buffer = std::mem::take(&mut state.normalized);
+        let n = used / width;
+        let pipe = Arc::clone(&self.pipe);
+        for (i, feats) in buffer[..used].chunks_exact(width).enumerate() {
             let mut frame = Frame::default();
             let last_of_chunk = i + 1 == n;
             let is_last = last_of_chunk && last == Some(true);
-            let assembler = &self.pipe.assembler;
+            let assembler = &pipe.assembler;
             let mut pose = Pose::default();
             assembler.decode(feats, &mut pose);
-            if let Some(anchor) = &mut self.anchor {
-                if self.next_frame == 0 {
-                    if let (Some((rot, pos)), Some(stage)) = (anchor.begin(&pose), &mut self.contact) {
-                        stage.set_start_object(rot, pos);
+            if self.next_frame == 0 {
+                self.begin(&pose);
+            }
+            if let Some(from) = &self.blend_from {
+                if self.next_frame < BLEND_FRAMES {
+                    let t = (self.next_frame + 1) as f64 / (BLEND_FRAMES + 1) as f64;
+                    pose.blend_from(from, t * t * (3.0 - 2.0 * t));
+                    // The model does not know it holds the object: the hands keep it while
+                    // they blend.
+                    if let Some(stage) = &self.contact {
+                        for (c, held) in pose.contact.iter_mut().zip(stage.holding()) {
+                            *c |= held;
+                        }
                     }
                 }
             }
@@ -447,6 +574,9 @@ impl ChunkSource for Generator {
                 anchor.apply(&mut pose);
             }
             assembler.emit(&pose, self.stream_id, self.next_frame, is_last, &mut frame);
+            if is_last {
+                self.remember(&pose);
+            }
             self.next_frame += 1;
             if last_of_chunk && last.is_none() {
                 self.held = Some(frame);
@@ -454,6 +584,9 @@ impl ChunkSource for Generator {
             } else {
                 out.push(frame);
             }
+        }
+        if let Some(state) = &mut self.state {
+            state.normalized = buffer;
         }
         self.prev = group[g - 1];
         self.k = next;

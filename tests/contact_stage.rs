@@ -198,3 +198,47 @@ fn anchored_streams_are_in_the_hosts_world() {
     let d = dist(&g.root_translation, &g.object_translation);
     assert!(d < 0.8, "the character stands at its spot, {d} m from the mug");
 }
+
+#[test]
+fn a_continued_stream_starts_where_the_earlier_one_left_off() {
+    let e = engine();
+    let a = frames(&e, "Someone picks up the cube and puts it back", 3, false);
+    let id_of = |f: &Frame| f.stream_id;
+    let cfg = StreamConfig { seed: Some(4), continue_from: Some(id_of(&a[0])), ..StreamConfig::default() };
+    let mut s = e.start("Drink from it", cfg).unwrap();
+    // The earlier stream's object, whatever this prompt names.
+    assert_eq!(s.object().unwrap().name, "cubesmall");
+    let (mut b, mut f) = (Vec::new(), Frame::default());
+    loop {
+        match s.wait(&mut f, Duration::from_secs(5)) {
+            PollResult::Frame => b.push(f),
+            PollResult::End => break,
+            PollResult::Pending => {}
+            r => panic!("{r:?}"),
+        }
+    }
+    let (last, first) = (a.last().unwrap(), &b[0]);
+    // No pop: the seam moves no joint further than the earlier stream's own largest step.
+    let step = |x: &Frame, y: &Frame| (0..55).map(|j| dist(&x.joint_positions[j], &y.joint_positions[j])).fold(0.0, f64::max);
+    let own = a.windows(2).map(|w| step(&w[0], &w[1])).fold(0.0, f64::max);
+    let seam = step(last, first);
+    assert!(seam <= own, "seam {seam} m, the earlier stream's largest step {own} m");
+    assert!(dist(&last.root_translation, &first.root_translation) < 0.02);
+    // The object carries over: where it was, held by the same hands.
+    assert_eq!(first.contact, last.contact);
+    if last.contact == [0, 0] {
+        assert!(dist(&first.object_translation, &last.object_translation) < 1e-5);
+    }
+    // Unknown or not yet ended streams, and anchoring with continuation, are refused.
+    for cfg in [
+        StreamConfig { continue_from: Some(999), ..StreamConfig::default() },
+        StreamConfig {
+            continue_from: Some(id_of(&a[0])),
+            anchor: Some(comgrasp::Anchor { place_character: false, ..Default::default() }),
+            ..StreamConfig::default()
+        },
+    ] {
+        let Err(err) = e.start("Drink from it", cfg) else { panic!("accepted") };
+        assert!(matches!(err, comgrasp::Error::InvalidArgument(_)), "{err}");
+    }
+}

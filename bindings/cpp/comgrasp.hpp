@@ -181,6 +181,11 @@ public:
         raw_.anchor |= CG_ANCHOR_PLACE_CHARACTER;
         return *this;
     }
+    /// Start where the ended stream `id` left off (its pose, place and object).
+    StreamConfig &continue_from(uint64_t id) {
+        raw_.continue_from = id;
+        return *this;
+    }
     /// The model's raw frames, without the contact-consistency stage.
     StreamConfig &raw_output(bool on) {
         raw_.flags = on ? (raw_.flags | CG_STREAM_RAW_OUTPUT) : (raw_.flags & ~CG_STREAM_RAW_OUTPUT);

@@ -267,6 +267,8 @@ namespace ComGrasp
         /// <summary>The object's start (its origin) and rotation.</summary>
         public fixed float ObjectPosition[3];
         public fixed float ObjectRotation[4];
+        /// <summary>Non-zero: continue the ended stream with this id (its pose, place and object).</summary>
+        public ulong ContinueFrom;
     }
 
     /// <summary>struct cg_subscriber_config. Fill with cg_subscriber_config_init before changing fields.</summary>
@@ -582,6 +584,8 @@ namespace ComGrasp
         public CgQuat? ObjectRotation;
         /// <summary>With ObjectPosition and no CharacterPosition: the character comes to the object.</summary>
         public bool PlaceCharacter;
+        /// <summary>Continue from the ended stream with this id (ComGraspStream.Id): its pose, place and object.</summary>
+        public ulong? ContinueFrom;
     }
 
     /// <summary>A loaded model bundle (cg_engine). Create once (it takes a fraction of a second),
@@ -682,6 +686,7 @@ namespace ComGrasp
                 cfg.ObjectRotation[0] = q.X; cfg.ObjectRotation[1] = q.Y; cfg.ObjectRotation[2] = q.Z; cfg.ObjectRotation[3] = q.W;
             }
             if (options.PlaceCharacter) { cfg.Anchor |= CgStreamConfig.AnchorPlaceCharacter; }
+            if (options.ContinueFrom.HasValue) { cfg.ContinueFrom = options.ContinueFrom.Value; }
             IntPtr s = IntPtr.Zero;
             // `fixed` on an empty array gives NULL, which the library reads as a missing
             // text: pin a one-byte buffer instead so "" is reported as empty text.

@@ -208,6 +208,7 @@ class CgStreamConfig(ctypes.Structure):
         ("character_rotation", ctypes.c_float * 4),
         ("object_position", ctypes.c_float * 3),
         ("object_rotation", ctypes.c_float * 4),
+        ("continue_from", ctypes.c_uint64),
     ]
 
 
@@ -578,13 +579,14 @@ class Engine(_Owned):
               temperature: Optional[float] = None, top_k: Optional[int] = None,
               min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False,
               character: Optional[Placement] = None, object: Optional[Placement] = None,
-              place_character: bool = False) -> Stream:
+              place_character: bool = False, continue_from: Optional[int] = None) -> Stream:
         """Starts a stream for ``text`` (str, or UTF-8 bytes) and returns at once. Unset
         sampling options keep the bundle's defaults. ``None`` text is passed as NULL.
         ``raw_output``: the model's frames without the contact-consistency stage.
         Scene anchoring, each a ``(position xyz, rotation xyzw)`` pair in the engine's
         coordinate system: ``character`` (ground point and heading), ``object`` (start pose;
-        reached for), ``place_character`` (with ``object`` only: the character comes to it)."""
+        reached for), ``place_character`` (with ``object`` only: the character comes to it).
+        ``continue_from``: the id of an ended stream to continue from (its pose, place and object)."""
         cfg = CgStreamConfig()
         self._lib.cg_stream_config_init_sized(ctypes.byref(cfg), ctypes.sizeof(cfg))
         for name, value, bit in (("seed", seed, USE_DEFAULT_SEED), ("temperature", temperature, USE_DEFAULT_TEMPERATURE),
@@ -603,6 +605,8 @@ class Engine(_Owned):
                     getattr(cfg, field)[:] = list(values)
         if place_character:
             cfg.anchor |= ANCHOR_PLACE_CHARACTER
+        if continue_from is not None:
+            cfg.continue_from = continue_from
         data = text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text
         h = ctypes.c_void_p()
         st = self._lib.cg_start_utf8(self.handle, data, 0 if data is None else len(data), ctypes.byref(cfg), ctypes.byref(h))

@@ -43,7 +43,7 @@ def test_layout_matches_c():
     assert ctypes.sizeof(CgFrame) == cg.FRAME_SIZE == 1608
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
-    assert ctypes.sizeof(cg.CgStreamConfig) == 104
+    assert ctypes.sizeof(cg.CgStreamConfig) == 112
     assert ctypes.sizeof(cg.CgEngineConfig) == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
     assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
     assert cg.CgEngineConfig.step_backend.offset == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
@@ -164,6 +164,15 @@ def test_raw_output_flag():
         assert err.status == Status.ERR_INVALID_ARGUMENT and "out of reach" in err.message
         err = raises(e.start, PROMPT, object=((0.1, 0.5, 0.8), (0, 0, 0.5, 0.5)))
         assert "unit quaternion" in err.message
+        # Chaining: the next stream starts where an ended one left off.
+        with e.start(PROMPT, min_len=2, max_len=2, seed=1) as a:
+            first = a.frames()
+            with e.start("Drink from it", min_len=2, max_len=2, continue_from=a.id) as b:
+                second = b.frames()
+                assert b.object == ("mug", True)  # the earlier stream's object
+        gap = max(abs(x - y) for x, y in zip(first[-1].root_translation, second[0].root_translation))
+        assert gap < 0.05, gap
+        assert "has not ended" in raises(e.start, PROMPT, continue_from=999).message
     for fr in raw:
         assert all(fr.contact[h] == (1 if fr.contact_probability[h] > 0.5 else 0) for h in range(2))
     for a, b in zip(consistent, consistent[1:]):

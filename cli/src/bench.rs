@@ -542,6 +542,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         max_len: Some(steps as u32),
         raw_output: None,
         anchor: None,
+        continue_from: None,
     };
     let mut ttff_ms = Vec::new();
     let mut total_ms = Vec::new();

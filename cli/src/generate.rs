@@ -75,6 +75,10 @@ pub struct Args {
     /// relative to the object.
     #[arg(long, requires = "object", conflicts_with = "character")]
     place_character: bool,
+    /// Another prompt that continues where the previous one left off (repeatable: --then
+    /// "Drink from it" --then "Put it back down"); the frames form one timeline.
+    #[arg(long, value_name = "TEXT")]
+    then: Vec<String>,
 }
 
 /// `X,Y,Z[,YAW]` for --character / --object.
@@ -110,6 +114,8 @@ impl From<Coords> for CoordinateSystem {
 
 /// The parsed command line.
 struct Options {
+    /// Prompts that continue the first (`--then`).
+    then: Vec<String>,
     /// `None`: the engine's default (COMGRASP_BUNDLE or the embedded bundle).
     bundle: Option<PathBuf>,
     text: String,
@@ -152,31 +158,47 @@ pub fn run(args: Args) -> Result<(), Failure> {
     let load = t0.elapsed();
 
     let t_start = Instant::now();
-    let mut stream = engine.start(&opts.text, opts.stream.clone()).map_err(engine_failure)?;
     let mut frames: Vec<Frame> = Vec::new();
     let mut first_frame = None;
-    let mut f = Frame::default();
-    loop {
-        match stream.wait(&mut f, Duration::from_millis(100)) {
-            PollResult::Frame => {
-                first_frame.get_or_insert_with(|| t_start.elapsed());
-                frames.push(f);
-            }
-            PollResult::Pending => {}
-            PollResult::End => break,
-            PollResult::Cancelled => return Err(Failure::Run("the stream was cancelled".into())),
-            PollResult::Error => {
-                let msg = stream.error().map_or_else(|| "the stream failed".into(), |e| e.to_string());
-                return Err(Failure::Run(msg));
+    let mut object = None;
+    let mut previous = None;
+    // The prompt, then each --then prompt continuing where the one before left off; one
+    // timeline (frame_index and time_s run on, is_last only on the very last frame).
+    for text in std::iter::once(&opts.text).chain(&opts.then) {
+        let cfg = StreamConfig { continue_from: previous, ..opts.stream.clone() };
+        let mut stream = engine.start(text, cfg).map_err(engine_failure)?;
+        let offset = frames.len() as u64;
+        if let Some(last) = frames.last_mut() {
+            last.is_last = 0;
+        }
+        let mut f = Frame::default();
+        loop {
+            match stream.wait(&mut f, Duration::from_millis(100)) {
+                PollResult::Frame => {
+                    first_frame.get_or_insert_with(|| t_start.elapsed());
+                    f.frame_index += offset;
+                    f.time_s = f.frame_index as f64 / fps;
+                    frames.push(f);
+                }
+                PollResult::Pending => {}
+                PollResult::End => break,
+                PollResult::Cancelled => return Err(Failure::Run("the stream was cancelled".into())),
+                PollResult::Error => {
+                    let msg = stream.error().map_or_else(|| "the stream failed".into(), |e| e.to_string());
+                    return Err(Failure::Run(msg));
+                }
             }
         }
+        object.get_or_insert_with(|| {
+            stream.object().map(|o| match &o.alias {
+                Some(alias) => format!("object {} (prompt says {alias:?})", o.name),
+                None => format!("object {} (the prompt names no catalogue object; using the first)", o.name),
+            })
+        });
+        previous = Some(stream.id());
     }
     let generation = t_start.elapsed();
-    let object = stream.object().map(|o| match &o.alias {
-        Some(alias) => format!("object {} (prompt says {alias:?})", o.name),
-        None => format!("object {} (the prompt names no catalogue object; using the first)", o.name),
-    });
-    drop(stream);
+    let object = object.flatten();
     drop(engine);
 
     if let Some((path, format)) = &opts.out {
@@ -268,8 +290,9 @@ fn options(a: Args) -> Result<Options, String> {
         max_len: a.max_len,
         raw_output: a.raw.then_some(true),
         anchor: None,
+        continue_from: None,
     };
-    let (character, object, place_character) = (a.character, a.object, a.place_character);
+    let (character, object, place_character, then) = (a.character, a.object, a.place_character, a.then);
     let (bundle, text, out, glb, preview, fk) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk);
     let coords = a.coords.map(CoordinateSystem::from);
     // Decide formats and check directories before generating, so a typo does not cost a
@@ -296,7 +319,7 @@ fn options(a: Args) -> Result<Options, String> {
         (c, None) => c.unwrap_or(CoordinateSystem::CG_COORDS_NATIVE),
     };
     let stream = StreamConfig { anchor: anchor(character, object, place_character, coords), ..stream };
-    Ok(Options { bundle, text, out, glb, preview, stream, coords, fk })
+    Ok(Options { bundle, text, then, out, glb, preview, stream, coords, fk })
 }
 
 fn coords_name(c: CoordinateSystem) -> &'static str {

@@ -179,6 +179,11 @@ pub struct cg_stream_config {
     pub object_position: [f32; 3],
     /// With `CG_ANCHOR_OBJECT`: the object's start rotation.
     pub object_rotation: [f32; 4],
+    /// Non-zero: continue the stream with this id (of the same engine, ended: its `CG_END`
+    /// was seen, among its 64 most recent): start where it left off (the character's place,
+    /// heading and last pose, blended from over 15 frames; its object, resting or held).
+    /// Excludes `anchor`.
+    pub continue_from: u64,
 }
 
 /// Size of the first published version of each struct: the smallest `struct_size`
@@ -228,6 +233,7 @@ impl Default for cg_stream_config {
             character_rotation: [0.0, 0.0, 0.0, 1.0],
             object_position: [0.0; 3],
             object_rotation: [0.0, 0.0, 0.0, 1.0],
+            continue_from: 0,
         }
     }
 }
@@ -423,6 +429,7 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
         max_len: set(CG_USE_DEFAULT_MAX_LEN).then_some(c.max_len),
         raw_output: (c.flags & CG_STREAM_RAW_OUTPUT != 0).then_some(true),
         anchor: anchor_from_c(&c)?,
+        continue_from: (c.continue_from != 0).then_some(c.continue_from),
     })
 }
 
