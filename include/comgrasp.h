@@ -26,12 +26,6 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
-// Ended streams a new one can continue from (the oldest is forgotten first).
-#define KEEP_ENDED 64
-
-// Frames over which a continued stream blends its body from the earlier stream's last pose.
-#define BLEND_FRAMES 15
-
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 

@@ -51,11 +51,11 @@ use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
 use crate::contact::{heading, ContactStage, ObjectShape};
-use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
 use crate::sampler::{SamplingParams, TokenSampler};
+use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 
 /// Where a stream's frames come from. The real implementation is
 /// [`Generator`] (text → tokens → decoded, assembled frames); tests use
@@ -399,7 +399,8 @@ impl Generator {
 
     /// The last frame (`pose` in the host's world): what a stream continuing this one needs.
     fn remember(&self, pose: &Pose) {
-        let (r, t): (Mat3, Vec3) = self.anchor.as_ref().and_then(AnchorStage::world).unwrap_or((crate::skeleton::IDENTITY, [0.0; 3]));
+        let (r, t): (Mat3, Vec3) =
+            self.anchor.as_ref().and_then(AnchorStage::world).unwrap_or((crate::skeleton::IDENTITY, [0.0; 3]));
         let contact = self.contact.as_ref().map(|s| s.continued(&r, &t));
         let ground = [pose.pelvis[0], pose.pelvis[1], t[2]];
         self.pipe.remember(self.stream_id, Continuation { pose: *pose, contact, ground, object: self.object.clone() });

@@ -219,7 +219,8 @@ fn a_continued_stream_starts_where_the_earlier_one_left_off() {
     }
     let (last, first) = (a.last().unwrap(), &b[0]);
     // No pop: the seam moves no joint further than the earlier stream's own largest step.
-    let step = |x: &Frame, y: &Frame| (0..55).map(|j| dist(&x.joint_positions[j], &y.joint_positions[j])).fold(0.0, f64::max);
+    let step =
+        |x: &Frame, y: &Frame| (0..55).map(|j| dist(&x.joint_positions[j], &y.joint_positions[j])).fold(0.0, f64::max);
     let own = a.windows(2).map(|w| step(&w[0], &w[1])).fold(0.0, f64::max);
     let seam = step(last, first);
     assert!(seam <= own, "seam {seam} m, the earlier stream's largest step {own} m");
