@@ -8,7 +8,9 @@
 #      intent and hand mode, SEEDS seeds each, checked by `comgrasp-data check-engine`, with
 #      the contact-consistency stage (the default) -> $OUT/engine.json and without it
 #      (`--raw`, the model's own frames) -> $OUT/engine_raw.json;
-#   3. $OUT/bars.md: each bar, the measured value and whether it is met.
+#   3. $OUT/bars.md: each bar, the measured value and whether it is met;
+#   4. $OUT/contact.md: issue 17's contact measurements on those frames, raw against the
+#      contact stage (scripts/contact_report.py).
 # Knobs: RUN (runs/default: vq/ and gpt/), DATA (data/sg3000_prep), BUNDLE (models/default),
 # LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality).
 set -euo pipefail
@@ -51,3 +53,5 @@ json.dump({"rates": rates, "n": len(rows), "results": rows}, open(sys.argv[1], "
 PY
 done
 $P/python scripts/quality_report.py bars "$OUT"
+$P/python scripts/quality_report.py prompts "$ENGINE_PROMPTS" > "$OUT/prompts.tsv"
+$P/python scripts/contact_report.py "$OUT/prompts.tsv" "$OUT/engine" | tee "$OUT/contact.md"
