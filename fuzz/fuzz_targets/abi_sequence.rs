@@ -423,32 +423,32 @@ fn stream_config(inp: &mut Input) -> Padded<cg_stream_config> {
 
 /// Whether the library must accept this stream config (mirrors the documented rules).
 fn stream_config_ok(c: &cg_stream_config) -> bool {
-    if (c.struct_size as usize) < 40 || c.flags & !CG_STREAM_FLAGS_ALL != 0 {
+    if (c.struct_size as usize) < 40 {
         return false;
     }
-    // A v1 struct ends before the anchor fields: they are not read.
-    if c.struct_size as usize >= size_of::<cg_stream_config>() && c.anchor != 0 {
-        if c.anchor & !CG_ANCHOR_ALL != 0 || c.reserved != 0 {
-            return false;
-        }
-        let good = |p: &[f32], q: &[f32; 4]| {
-            p.iter().chain(q).all(|v| v.is_finite())
-                && (q.iter().map(|v| v * v).sum::<f32>().sqrt() - 1.0).abs() <= 1e-3
-        };
-        let (character, object) = (c.anchor & CG_ANCHOR_CHARACTER != 0, c.anchor & CG_ANCHOR_OBJECT != 0);
-        if (character && !good(&c.character_position, &c.character_rotation))
-            || (object && !good(&c.object_position, &c.object_rotation))
-            || (c.anchor & CG_ANCHOR_PLACE_CHARACTER != 0 && (!object || character))
-        {
-            return false;
-        }
-    } else if c.struct_size as usize >= size_of::<cg_stream_config>() && c.reserved != 0 {
+    // What the library reads: the host's first struct_size bytes over the defaults (fields
+    // a shorter struct lacks, or only partly has, keep their default bytes).
+    let mut e = cg_stream_config::default();
+    let n = (c.struct_size as usize).min(size_of::<cg_stream_config>());
+    // SAFETY: both are plain-data structs of at least n bytes.
+    unsafe { std::ptr::copy_nonoverlapping(c as *const _ as *const u8, &mut e as *mut _ as *mut u8, n) };
+    if e.flags & !CG_STREAM_FLAGS_ALL != 0 || e.anchor & !CG_ANCHOR_ALL != 0 || e.reserved != 0 {
         return false;
     }
-    let set = |bit: u32| c.use_defaults & bit == 0;
-    let temp_ok = !set(CG_USE_DEFAULT_TEMPERATURE) || (c.temperature.is_finite() && c.temperature >= 0.0);
-    let max_ok = !set(CG_USE_DEFAULT_MAX_LEN) || c.max_len >= 1;
-    let order_ok = !(set(CG_USE_DEFAULT_MIN_LEN) && set(CG_USE_DEFAULT_MAX_LEN)) || c.min_len <= c.max_len;
+    let good = |p: &[f32], q: &[f32; 4]| {
+        p.iter().chain(q).all(|v| v.is_finite()) && (q.iter().map(|v| v * v).sum::<f32>().sqrt() - 1.0).abs() <= 1e-3
+    };
+    let (character, object) = (e.anchor & CG_ANCHOR_CHARACTER != 0, e.anchor & CG_ANCHOR_OBJECT != 0);
+    if (character && !good(&e.character_position, &e.character_rotation))
+        || (object && !good(&e.object_position, &e.object_rotation))
+        || (e.anchor & CG_ANCHOR_PLACE_CHARACTER != 0 && (!object || character))
+    {
+        return false;
+    }
+    let set = |bit: u32| e.use_defaults & bit == 0;
+    let temp_ok = !set(CG_USE_DEFAULT_TEMPERATURE) || (e.temperature.is_finite() && e.temperature >= 0.0);
+    let max_ok = !set(CG_USE_DEFAULT_MAX_LEN) || e.max_len >= 1;
+    let order_ok = !(set(CG_USE_DEFAULT_MIN_LEN) && set(CG_USE_DEFAULT_MAX_LEN)) || e.min_len <= e.max_len;
     temp_ok && max_ok && order_ok
 }
 
