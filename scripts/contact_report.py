@@ -11,7 +11,8 @@ hand holds the object (the stage's decision, or the raw flag):
   object's surface (the catalogue SDF), mean and max, mm;
 * unheld drift: the largest horizontal object step between two frames no hand holds, mm;
 * penetration: the deepest hand joint inside the object over all frames, mm;
-* the largest wrist and object speeds, m/s.
+* the largest wrist and object speeds, m/s (the object's without the last frame, which
+  lands an object still falling at once).
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ def measure(npz: Path, obj: str) -> dict[str, float]:
     steps = np.linalg.norm(np.diff(t.object_transl[:, :2], axis=0), axis=1)
     both = unheld[1:] & unheld[:-1]
     wrist = np.linalg.norm(np.diff(t.joints[:, [20, 21]], axis=0), axis=2) * t.fps
-    obj_speed = np.linalg.norm(np.diff(t.object_transl, axis=0), axis=1) * t.fps
+    # Without the last step: the stream's last frame lands an object still falling at once.
+    obj_speed = np.linalg.norm(np.diff(t.object_transl[:-1], axis=0), axis=1) * t.fps
     return {
         "held_frames": float(held.any(axis=1).sum()),
         "dist_mean_mm": float(np.clip(near, 0, None).mean() * 1e3) if len(near) else float("nan"),
