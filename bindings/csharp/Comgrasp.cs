@@ -315,12 +315,7 @@ namespace ComGrasp
         /// <summary>The catalogue name as a string (allocates it).</summary>
         public string GetObjectName()
         {
-            fixed (byte* p = ObjectName)
-            {
-                int n = 0;
-                while (n < ObjectNameBytes && p[n] != 0) n++;
-                return Encoding.UTF8.GetString(p, n);
-            }
+            fixed (byte* p = ObjectName) return ComGraspNative.Utf8ToString(p, ObjectNameBytes);
         }
     }
 
@@ -345,12 +340,7 @@ namespace ComGrasp
         /// <summary>The prompt as a string (allocates it; the bytes up to the first NUL).</summary>
         public string GetText()
         {
-            fixed (byte* p = Text)
-            {
-                int n = 0;
-                while (n < TextBytes && p[n] != 0) n++;
-                return Encoding.UTF8.GetString(p, n);
-            }
+            fixed (byte* p = Text) return ComGraspNative.Utf8ToString(p, TextBytes);
         }
     }
 
@@ -483,6 +473,14 @@ namespace ComGrasp
         public static extern CgStatus cg_engine_publisher_stats(IntPtr engine, CgPublisherStats* stats);
 
         /// <summary>A NUL-terminated UTF-8 C string as a .NET string ("" for NULL).</summary>
+        /// <summary>The UTF-8 bytes of a fixed buffer up to its first NUL (or its end).</summary>
+        public static string Utf8ToString(byte* p, int max)
+        {
+            int n = 0;
+            while (n < max && p[n] != 0) n++;
+            return Encoding.UTF8.GetString(p, n);
+        }
+
         public static string Utf8ToString(IntPtr p)
         {
             if (p == IntPtr.Zero) return "";
