@@ -182,12 +182,14 @@ impl Pipeline {
         self.ended.lock().iter().find(|(i, _)| *i == id).map(|(_, c)| Arc::clone(c))
     }
 
-    fn remember(&self, id: u64, c: Continuation) {
+    /// Keeps an ended stream's state. Allocation-free: the entry was made when the stream
+    /// started and the queue's capacity is fixed.
+    fn remember(&self, id: u64, c: Arc<Continuation>) {
         let mut ended = self.ended.lock();
         if ended.len() == KEEP_ENDED {
             ended.pop_front();
         }
-        ended.push_back((id, Arc::new(c)));
+        ended.push_back((id, c));
     }
 
     /// The bundle the pipeline runs.
@@ -266,6 +268,8 @@ pub struct Generator {
     /// (set by the first frame) that the body blends from.
     continuation: Option<Arc<Continuation>>,
     blend_from: Option<Pose>,
+    /// Where this stream leaves off, made at the start (the end must not allocate).
+    memo: Option<Arc<Continuation>>,
 }
 
 impl Generator {
@@ -328,6 +332,12 @@ impl Generator {
             None => c.anchor.as_ref().map(|a| AnchorStage::new(a, pipe.assembler.coordinate_system())).transpose()?,
         };
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
+        let memo = Arc::new(Continuation {
+            pose: Pose::default(),
+            contact: contact.clone(),
+            ground: [0.0; 3],
+            object: object.clone(),
+        });
         Ok(Generator {
             stream_id: req.stream_id,
             text: req.text.to_owned(),
@@ -346,6 +356,7 @@ impl Generator {
             contact,
             anchor,
             object,
+            memo: Some(memo),
             continuation,
             blend_from: None,
             sampler,
@@ -398,12 +409,19 @@ impl Generator {
     }
 
     /// The last frame (`pose` in the host's world): what a stream continuing this one needs.
-    fn remember(&self, pose: &Pose) {
+    fn remember(&mut self, pose: &Pose) {
         let (r, t): (Mat3, Vec3) =
             self.anchor.as_ref().and_then(AnchorStage::world).unwrap_or((crate::skeleton::IDENTITY, [0.0; 3]));
-        let contact = self.contact.as_ref().map(|s| s.continued(&r, &t));
-        let ground = [pose.pelvis[0], pose.pelvis[1], t[2]];
-        self.pipe.remember(self.stream_id, Continuation { pose: *pose, contact, ground, object: self.object.clone() });
+        let Some(mut memo) = self.memo.take() else { return };
+        // Only this stream holds the entry until it is handed to the pipeline.
+        if let Some(m) = Arc::get_mut(&mut memo) {
+            m.pose = *pose;
+            m.ground = [pose.pelvis[0], pose.pelvis[1], t[2]];
+            if let (Some(slot), Some(stage)) = (&mut m.contact, &self.contact) {
+                *slot = stage.continued(&r, &t);
+            }
+        }
+        self.pipe.remember(self.stream_id, memo);
     }
 }
 
