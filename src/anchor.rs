@@ -54,13 +54,11 @@ impl AnchorStage {
     /// (`InvalidArgument` naming the distance and the envelope).
     pub fn new(a: &Anchor, coords: CoordinateSystem) -> Result<AnchorStage> {
         a.validate()?;
-        let (s, c) = coords.basis();
-        let st = transpose(&s);
         let native = |p: &Placement| -> (Mat3, Vec3) {
             let q = p.rotation.map(f64::from);
             let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
             let r = quaternion_to_matrix(&q.map(|v| v / n));
-            (mat_mul(&mat_mul(&st, &r), &s), mat_vec(&st, &p.position.map(f64::from)).map(|v| v / c))
+            (coords.to_native_rotation(&r), coords.to_native_point(&p.position.map(f64::from)))
         };
         let character = a.character.as_ref().map(|p| {
             let (r, g) = native(p);

@@ -88,6 +88,19 @@ impl cg_coordinate_system {
             cg_coordinate_system::CG_COORDS_UNREAL => ([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]], 100.0),
         }
     }
+
+    /// A point or vector of this system in the native world: `S^T p / c` (the inverse of
+    /// what frames get).
+    pub fn to_native_point(self, p: &Vec3) -> Vec3 {
+        let (s, c) = self.basis();
+        mat_vec(&transpose(&s), p).map(|v| v / c)
+    }
+
+    /// A rotation of this system in the native world: `S^T R S`.
+    pub fn to_native_rotation(self, r: &Mat3) -> Mat3 {
+        let (s, _) = self.basis();
+        mat_mul(&mat_mul(&transpose(&s), r), &s)
+    }
 }
 
 /// The basis change of one coordinate system, applied to points and rotations.

@@ -104,6 +104,21 @@ impl ObjectShape {
     pub fn from_entry(e: &ObjectEntry) -> ObjectShape {
         ObjectShape { centre: e.centre.map(f64::from), half_extents: e.half_extents.map(|v| f64::from(v.abs())) }
     }
+
+    /// The box centre in the world, the object's origin at `pos` turned by `rot`.
+    pub fn centre_at(&self, rot: &Mat3, pos: &Vec3) -> Vec3 {
+        add(pos, &mat_vec(rot, &self.centre))
+    }
+
+    /// A point given from the box centre in the object frame (a grip), in the world.
+    fn point_at(&self, rot: &Mat3, pos: &Vec3, local: &Vec3) -> Vec3 {
+        add(&self.centre_at(rot, pos), &mat_vec(rot, local))
+    }
+
+    /// The lowest point of the box.
+    pub fn bottom_at(&self, rot: &Mat3, pos: &Vec3) -> f64 {
+        self.centre_at(rot, pos)[2] - (0..3).map(|k| rot[2][k].abs() * self.half_extents[k]).sum::<f64>()
+    }
 }
 
 /// The support an object starts on, as the stage models it: a table top at the height of
@@ -125,8 +140,8 @@ pub struct Table {
 impl Table {
     /// From the first frame: pelvis, root rotation and the object's pose and box.
     pub fn new(pelvis: &Vec3, root: &Mat3, object_rot: &Mat3, object_pos: &Vec3, shape: &ObjectShape) -> Table {
-        let c = add(object_pos, &mat_vec(object_rot, &shape.centre));
-        let bottom = c[2] - (0..3).map(|k| object_rot[2][k].abs() * shape.half_extents[k]).sum::<f64>();
+        let c = shape.centre_at(object_rot, object_pos);
+        let bottom = shape.bottom_at(object_rot, object_pos);
         let height = if bottom < GROUND_Z + TABLE_MIN_HEIGHT { GROUND_Z } else { bottom };
         let forward = heading(pelvis, root, &c);
         Table { height, start: [c[0], c[1]], origin: [pelvis[0], pelvis[1]], forward }
@@ -312,16 +327,6 @@ impl ContactStage {
         self.start_object = Some((rot, pos));
     }
 
-    fn centre(&self, rot: &Mat3, pos: &Vec3) -> Vec3 {
-        add(pos, &mat_vec(rot, &self.shape.centre))
-    }
-
-    /// Lowest point of the object's box.
-    fn bottom(&self, rot: &Mat3, pos: &Vec3) -> f64 {
-        let c = self.centre(rot, pos);
-        c[2] - (0..3).map(|k| rot[2][k].abs() * self.shape.half_extents[k]).sum::<f64>()
-    }
-
     /// Rewrites one frame (the next of the stream) in place. No allocation.
     pub fn apply(&mut self, skeleton: &Skeleton, pose: &mut Pose) {
         let mut global = [IDENTITY; CG_NUM_JOINTS];
@@ -337,7 +342,6 @@ impl ContactStage {
         for h in 0..2 {
             let wrist = joints[ARMS[h][3]];
             let arm = arm_length(skeleton, h);
-            let grip_target = |grip: &Vec3| add(&self.centre(&self.rot, &self.pos), &mat_vec(&self.rot, grip));
             let hand = &self.hands[h];
             let (mut on, mut off) = (hand.on, hand.off);
             if pose.contact[h] {
@@ -358,7 +362,7 @@ impl ContactStage {
                     });
                     let grip =
                         grip_offset(&pose.wrist_to_object[h], &self.shape, &self.rot, &wrist, &self.pos, &hand_joints);
-                    let target = grip_target(&grip);
+                    let target = self.shape.point_at(&self.rot, &self.pos, &grip);
                     if needed_bow(&joints, h, &target, REACH_LIMIT * arm).is_some() {
                         let gap = norm(&sub(&target, &add(&wrist, &hand.correction)));
                         let frames =
@@ -379,7 +383,7 @@ impl ContactStage {
             if let Phase::Reaching { frame, frames, bow_from, grip, .. } = &mut self.hands[h].phase {
                 *frame += 1;
                 let s = smoothstep(*frame as f64 / *frames as f64);
-                let target = add(&add(&self.pos, &mat_vec(&self.rot, &self.shape.centre)), &mat_vec(&self.rot, grip));
+                let target = self.shape.point_at(&self.rot, &self.pos, grip);
                 let (need, axis) =
                     needed_bow(&joints, h, &target, BOW_REACH * arm).unwrap_or((MAX_BOW, bow_axis(&joints, &target)));
                 let angle = *bow_from + (need - *bow_from) * s;
@@ -405,12 +409,11 @@ impl ContactStage {
         let mut moved = false;
         for h in 0..2 {
             let wrist = joints[ARMS[h][3]];
-            let centre = self.centre(&self.rot, &self.pos);
             let hand = &mut self.hands[h];
             match &mut hand.phase {
                 Phase::Reaching { frame, frames, from, grip, .. } => {
                     let s = smoothstep(*frame as f64 / *frames as f64);
-                    let to = sub(&add(&centre, &mat_vec(&self.rot, grip)), &wrist);
+                    let to = sub(&self.shape.point_at(&self.rot, &self.pos, grip), &wrist);
                     hand.correction = add(&scale(from, 1.0 - s), &scale(&to, s));
                 }
                 _ => {
@@ -434,8 +437,8 @@ impl ContactStage {
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
-                let depth = self.table.height - self.bottom(&rot, &pos);
-                if !self.lifted && depth > 0.0 && self.table.over(&self.centre(&rot, &pos)) {
+                let depth = self.table.height - self.shape.bottom_at(&rot, &pos);
+                if !self.lifted && depth > 0.0 && self.table.over(&self.shape.centre_at(&rot, &pos)) {
                     for h in 0..2 {
                         if self.hands[h].phase == Phase::Holding {
                             let hand = &mut self.hands[h];
@@ -469,8 +472,7 @@ impl ContactStage {
         for h in 0..2 {
             if let Phase::Reaching { frame, frames, grip, .. } = self.hands[h].phase {
                 if frame >= frames {
-                    let centre = self.centre(&self.rot, &self.pos);
-                    let target = add(&centre, &mat_vec(&self.rot, &grip));
+                    let target = self.shape.point_at(&self.rot, &self.pos, &grip);
                     if norm(&sub(&joints[ARMS[h][3]], &target)) <= REACH_MISS {
                         self.capture(h, &global, &joints);
                     } else {
@@ -505,7 +507,7 @@ impl ContactStage {
     fn write(&self, pose: &mut Pose, joints: &[Vec3; CG_NUM_JOINTS]) {
         pose.object_rotation = self.rot;
         pose.object_translation = self.pos;
-        pose.object_centre = self.centre(&self.rot, &self.pos);
+        pose.object_centre = self.shape.centre_at(&self.rot, &self.pos);
         for h in 0..2 {
             pose.wrist_to_object[h] = sub(&joints[ARMS[h][3]], &pose.object_centre);
             pose.contact[h] = self.hands[h].phase == Phase::Holding;
@@ -542,11 +544,12 @@ impl ContactStage {
     /// A held object brought back down onto the table after a lift stays there: it rests on
     /// the top and every hand lets go (latched until its flag goes off).
     fn set_down_on_table(&mut self) {
-        let bottom = self.bottom(&self.rot, &self.pos);
+        let bottom = self.shape.bottom_at(&self.rot, &self.pos);
         if bottom > self.table.height + LIFT_CLEAR {
             self.lifted = true;
         }
-        if !(self.lifted && bottom < self.table.height && self.table.over(&self.centre(&self.rot, &self.pos))) {
+        if !(self.lifted && bottom < self.table.height && self.table.over(&self.shape.centre_at(&self.rot, &self.pos)))
+        {
             return;
         }
         self.pos[2] += self.table.height - bottom;
@@ -577,9 +580,9 @@ impl ContactStage {
     /// when it is over the table and not more than [`SUPPORT_DEPTH`] below its top, else
     /// the ground.
     fn floor(&self) -> (f64, f64) {
-        let bottom = self.bottom(&self.rot, &self.pos);
+        let bottom = self.shape.bottom_at(&self.rot, &self.pos);
         let on_table =
-            self.table.over(&self.centre(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
+            self.table.over(&self.shape.centre_at(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
         (bottom, if on_table { self.table.height } else { GROUND_Z })
     }
 }
@@ -651,7 +654,7 @@ fn arm_length(skeleton: &Skeleton, h: usize) -> f64 {
 /// [`GRIP_GAP`] off the object's box: touching it, no joint inside. At most the box's
 /// half diagonal + [`GRIP_MARGIN`].
 fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos: &Vec3, hand: &[Vec3; 16]) -> Vec3 {
-    let centre = add(pos, &mat_vec(rot, &shape.centre));
+    let centre = shape.centre_at(rot, pos);
     let mut v = *model;
     if !(norm(&v) > 1e-6 && v.iter().all(|x| x.is_finite())) {
         v = sub(wrist, &centre);

@@ -9,7 +9,7 @@
 //! right-handed, metres) with the inverse basis change first, so the camera logic exists
 //! once. The camera is fixed for the whole strip (placed from the first frame's hips),
 //! so the panels compare directly.
-use comgrasp::skeleton::{mat_vec, quaternion_to_matrix, transpose};
+use comgrasp::skeleton::{mat_vec, quaternion_to_matrix};
 use comgrasp::Frame;
 
 use crate::png::Image;
@@ -87,9 +87,7 @@ pub fn render(scene: &Scene, frames: &[Frame]) -> Result<Preview, String> {
     if frames.iter().any(|f| f.has_joint_positions == 0) {
         return Err("the preview needs joint positions (forward kinematics was off)".into());
     }
-    let (s, c) = scene.coords.basis();
-    let st = transpose(&s);
-    let native = |p: [f64; 3]| mat_vec(&st, &p).map(|v| v / c);
+    let native = |p: [f64; 3]| scene.coords.to_native_point(&p);
     let keys = key_frames(frames.len(), KEY_FRAMES);
 
     // World-space (native) geometry of each key frame.

@@ -6,7 +6,7 @@
 //! them correctly, so the conversion happens once here and nowhere else.
 use comgrasp::bundle::choose_object;
 use comgrasp::contact::{ObjectShape, Table};
-use comgrasp::skeleton::{mat_mul, mat_vec, quaternion_to_matrix, transpose};
+use comgrasp::skeleton::{mat_vec, quaternion_to_matrix};
 use comgrasp::Bundle;
 use comgrasp::CoordinateSystem;
 use comgrasp::Frame;
@@ -62,10 +62,8 @@ impl Scene {
     /// the first frame), its corners in the NATIVE world; `None` when the object starts on
     /// the ground.
     pub fn table(&self, first: &Frame) -> Option<[[f64; 3]; 4]> {
-        let (s, c) = self.coords.basis();
-        let st = transpose(&s);
-        let point = |p: &[f32; 3]| mat_vec(&st, &p.map(f64::from)).map(|v| v / c);
-        let rotation = |q: &[f32; 4]| mat_mul(&mat_mul(&st, &quaternion_to_matrix(&q.map(f64::from))), &s);
+        let point = |p: &[f32; 3]| self.coords.to_native_point(&p.map(f64::from));
+        let rotation = |q: &[f32; 4]| self.coords.to_native_rotation(&quaternion_to_matrix(&q.map(f64::from)));
         let table = Table::new(
             &point(&first.root_translation),
             &rotation(&first.root_rotation),
