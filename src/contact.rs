@@ -587,7 +587,8 @@ impl ContactStage {
     }
 }
 
-fn smoothstep(t: f64) -> f64 {
+/// 3t² − 2t³ on t clamped to [0, 1]: an ease-in-out weight.
+pub fn smoothstep(t: f64) -> f64 {
     let t = t.clamp(0.0, 1.0);
     t * t * (3.0 - 2.0 * t)
 }

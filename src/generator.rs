@@ -50,7 +50,7 @@ use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
-use crate::contact::{heading, ContactStage, ObjectShape};
+use crate::contact::{heading, smoothstep, ContactStage, ObjectShape};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
@@ -469,26 +469,18 @@ impl ChunkSource for Generator {
                 // The previous chunk was the last one: release its held frame, marked.
                 self.done = true;
                 if let Some(mut f) = self.held.take() {
-                    match &mut self.contact {
-                        Some(stage) => {
-                            let (assembler, pose) = (&self.pipe.assembler, &mut self.held_pose);
-                            stage.finish(assembler.skeleton(), pose);
-                            if let Some(anchor) = &self.anchor {
-                                anchor.apply(pose);
-                            }
-                            assembler.emit(pose, f.stream_id, f.frame_index, true, &mut f);
-                            let pose = *pose;
-                            self.remember(&pose);
-                        }
-                        None => {
-                            f.is_last = 1;
-                            let mut pose = self.held_pose;
-                            if let Some(anchor) = &self.anchor {
-                                anchor.apply(&mut pose);
-                            }
-                            self.remember(&pose);
-                        }
+                    // The contact stage's last word (an object still falling lands), then
+                    // the same frame again, marked.
+                    let assembler = &self.pipe.assembler;
+                    let mut pose = self.held_pose;
+                    if let Some(stage) = &mut self.contact {
+                        stage.finish(assembler.skeleton(), &mut pose);
                     }
+                    if let Some(anchor) = &self.anchor {
+                        anchor.apply(&mut pose);
+                    }
+                    assembler.emit(&pose, f.stream_id, f.frame_index, true, &mut f);
+                    self.remember(&pose);
                     out.push(f);
                 }
                 return Ok(false);
@@ -570,8 +562,7 @@ impl ChunkSource for Generator {
             }
             if let Some(from) = &self.blend_from {
                 if self.next_frame < BLEND_FRAMES {
-                    let t = (self.next_frame + 1) as f64 / (BLEND_FRAMES + 1) as f64;
-                    pose.blend_from(from, t * t * (3.0 - 2.0 * t));
+                    pose.blend_from(from, smoothstep((self.next_frame + 1) as f64 / (BLEND_FRAMES + 1) as f64));
                     // The model does not know it holds the object: the hands keep it while
                     // they blend.
                     if let Some(stage) = &self.contact {
