@@ -405,15 +405,19 @@ impl ContactStage {
             skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
         }
 
-        // Corrections (from the bowed wrist) and IK.
+        // Corrections (from the bowed wrist) and IK. `aimed`: where each reach puts the wrist
+        // this frame (the grip on the object as it was before the other hand moves it).
         let mut moved = false;
+        let mut aimed: [Option<Vec3>; 2] = [None; 2];
         for h in 0..2 {
             let wrist = joints[ARMS[h][3]];
             let hand = &mut self.hands[h];
             match &mut hand.phase {
                 Phase::Reaching { frame, frames, from, grip, .. } => {
                     let s = smoothstep(*frame as f64 / *frames as f64);
-                    let to = sub(&self.shape.point_at(&self.rot, &self.pos, grip), &wrist);
+                    let target = self.shape.point_at(&self.rot, &self.pos, grip);
+                    aimed[h] = Some(target);
+                    let to = sub(&target, &wrist);
                     hand.correction = add(&scale(from, 1.0 - s), &scale(&to, s));
                 }
                 _ => {
@@ -469,10 +473,11 @@ impl ContactStage {
                 }
             }
         }
+        // A reach is judged against where it aimed: an object the other hand carries has
+        // moved on by now (a hand-over), and the grasp captures it where it is.
         for h in 0..2 {
-            if let Phase::Reaching { frame, frames, grip, .. } = self.hands[h].phase {
+            if let (Phase::Reaching { frame, frames, .. }, Some(target)) = (self.hands[h].phase, aimed[h]) {
                 if frame >= frames {
-                    let target = self.shape.point_at(&self.rot, &self.pos, &grip);
                     if norm(&sub(&joints[ARMS[h][3]], &target)) <= REACH_MISS {
                         self.capture(h, &global, &joints);
                     } else {
@@ -1030,5 +1035,27 @@ mod tests {
         // The left hand carries it up: held 25+ cm above the table at the end.
         let end = frames.last().unwrap().0;
         assert!(end.object_translation[2] > OBJECT[2] + 0.2, "{:?}", end.object_translation);
+    }
+
+    #[test]
+    fn a_hand_takes_an_object_the_other_hand_is_moving() {
+        // The right hand holds from frame 5 and swings the object sideways at up to ~3.5 cm a
+        // frame (more than REACH_MISS) from frame 40; the left hand's model path follows it
+        // and grasps from 45; the right lets go at 90. The left reach must end in a grasp
+        // of the moving object, so the object is never let fall between the hands.
+        let swing = |t: usize| if t >= 40 { 0.1 * (0.35 * (t - 40) as f64).sin() } else { 0.0 };
+        let s = Script {
+            frames: 120,
+            wrist: Box::new(move |t| [-0.05 + swing(t), 0.35, 0.92]),
+            contact: Box::new(|t| [t >= 45, (5..90).contains(&t)]),
+            object: Box::new(|_| [0.0, 0.4, 0.84]),
+        };
+        let left = move |t: usize| -> Vec3 { [0.08 + swing(t), 0.37, 0.92] };
+        let frames = run(&s, Some(&left));
+        assert_eq!(frames[85].0.contact, [true, true]);
+        let first = frames.iter().position(|f| f.0.contact != [false, false]).unwrap();
+        for (t, f) in frames.iter().enumerate().skip(first) {
+            assert_ne!(f.0.contact, [false, false], "frame {t}: nobody holds the object");
+        }
     }
 }

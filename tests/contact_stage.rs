@@ -243,3 +243,83 @@ fn a_continued_stream_starts_where_the_earlier_one_left_off() {
         assert!(matches!(err, comgrasp::Error::InvalidArgument(_)), "{err}");
     }
 }
+
+/// The Python reference (`comgrasp_train.contact_stage`, which `evaluate` runs) and this
+/// stage give the same frames: tests/fixtures/contact_stage holds real raw motions
+/// (`input`, de-normalized 335-D) and what the Python stage made of them (`output`;
+/// scripts/contact_fixture.py, which also checks that every rule fires in some case). Both
+/// are decoded as the engine decodes a frame (mean 0, std 1: the values themselves); every
+/// field the stage writes must agree within the manifest's frame tolerance, the contact
+/// flags exactly.
+#[test]
+fn the_python_reference_stage_gives_the_same_frames() {
+    use comgrasp::assemble::{FrameAssembler, Pose};
+    use comgrasp::bundle::npy;
+    use comgrasp::contact::{ContactStage, ObjectShape};
+    use comgrasp::skeleton::SMPLX_PARENTS;
+
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/contact_stage");
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("index.json")).unwrap()).unwrap();
+    let read = |name: &serde_json::Value| {
+        let path = dir.join(name.as_str().unwrap());
+        npy::read(&path).unwrap().to_f32(&path).unwrap()
+    };
+    let rest: Vec<[f32; 3]> = read(&index["rest_joints"]).chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    let fps = index["fps"].as_f64().unwrap();
+    let tol = index["tolerance"].as_f64().unwrap();
+    let width = comgrasp::bundle::manifest::FRAME_DIM;
+    let coords = comgrasp::CoordinateSystem::default();
+    let asm =
+        FrameAssembler::new(&vec![0.0; width], &vec![1.0; width], &SMPLX_PARENTS, &rest, coords, true, fps).unwrap();
+    let vec3 = |v: &serde_json::Value| -> [f64; 3] { std::array::from_fn(|i| v[i].as_f64().unwrap() as f32 as f64) };
+    let cases = index["cases"].as_array().unwrap();
+    assert!(cases.len() >= 4);
+    for case in cases {
+        let (input, output) = (read(&case["input"]), read(&case["output"]));
+        assert_eq!(input.len(), output.len());
+        let shape =
+            ObjectShape { centre: vec3(&case["centre"]), half_extents: vec3(&case["half_extents"]).map(f64::abs) };
+        let mut stage = ContactStage::new(shape, fps);
+        let n = input.len() / width;
+        let mut worst = 0.0f64;
+        for t in 0..n {
+            let at = format!("{} frame {t}", case["prompt"]);
+            let (mut pose, mut want) = (Pose::default(), Pose::default());
+            asm.decode(&input[t * width..(t + 1) * width], &mut pose);
+            asm.decode(&output[t * width..(t + 1) * width], &mut want);
+            stage.apply(asm.skeleton(), &mut pose);
+            if t + 1 == n {
+                stage.finish(asm.skeleton(), &mut pose);
+            }
+            assert_eq!(pose.contact, want.contact, "{at}: contact");
+            let pairs = pose
+                .local
+                .iter()
+                .chain([&pose.object_rotation])
+                .zip(want.local.iter().chain([&want.object_rotation]))
+                .flat_map(|(a, b)| (0..3).flat_map(move |i| (0..3).map(move |j| (a[i][j], b[i][j]))));
+            let points = [
+                pose.pelvis,
+                pose.object_translation,
+                pose.object_centre,
+                pose.wrist_to_object[0],
+                pose.wrist_to_object[1],
+            ]
+            .into_iter()
+            .zip([
+                want.pelvis,
+                want.object_translation,
+                want.object_centre,
+                want.wrist_to_object[0],
+                want.wrist_to_object[1],
+            ])
+            .flat_map(|(a, b)| (0..3).map(move |i| (a[i], b[i])));
+            for (a, b) in pairs.chain(points) {
+                worst = worst.max((a - b).abs());
+                assert!((a - b).abs() <= tol, "{at}: {a} vs the Python reference's {b} (tolerance {tol})");
+            }
+        }
+        eprintln!("{}: {n} frames, largest difference {worst:.1e}", case["prompt"]);
+    }
+}

@@ -233,7 +233,7 @@ def test_evaluate_reports_prompt_checks(synth):
         def generate(self, prompts, params, seed=0):
             return [fs.features[texts[p]] for p in prompts]
 
-    reps = evaluate_generation(Oracle(), fs, repeats=1, limit=4)
+    reps = evaluate_generation(Oracle(), fs, repeats=1, limit=4)["raw"]
     assert all(row["intent_ok"] == 1.0 and "mpjpe_mm" in row for row in reps[0])
     assert summarize_repeats(reps)["intent_ok"].mean == 1.0
     gt = evaluate_ground_truth_intent(fs, limit=4)

@@ -52,8 +52,15 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert train_main(["evaluate", "--data", str(prepared), "--vq", str(vq), "--gpt", str(gpt), "--out", str(table),
                        "--repeats", "2", "--max-len", "3", "--min-len", "1", "--prompts", "template,held_out"]) == 0
     res = json.loads(table.with_suffix(".json").read_text())
-    assert set(res) == {"VQ reconstruction", "generation (2 repeats)", "generation, held-out prompts (2 repeats)",
-                        "ground truth (prompt checks)"}
+    # raw and through the contact stage, side by side on the same samples
+    assert set(res) == {"VQ reconstruction", "VQ reconstruction, contact stage", "generation (2 repeats)",
+                        "generation, contact stage (2 repeats)", "generation, held-out prompts (2 repeats)",
+                        "generation, held-out prompts, contact stage (2 repeats)", "ground truth (prompt checks)"}
+    for name in ("VQ reconstruction", "generation (2 repeats)"):
+        staged = name.replace(" (", ", contact stage (") if "(" in name else f"{name}, contact stage"
+        assert res[staged]["mpjpe_mm"]["n"] == res[name]["mpjpe_mm"]["n"]
+    text = table.read_text()
+    assert text.index("| generation (2 repeats) |") < text.index("| generation, contact stage (2 repeats) |")
     assert res["generation, held-out prompts (2 repeats)"]["intent_grasp"]["n"] == 2
     assert res["VQ reconstruction"]["mpjpe_mm"]["n"] == 2 and res["generation (2 repeats)"]["mpjpe_mm"]["n"] == 2
     for row in ("generation (2 repeats)", "ground truth (prompt checks)"):

@@ -45,11 +45,11 @@ def _run_evaluate(tmp_path, monkeypatch, flags: list[str]) -> dict[str, dict[str
 
     def reconstruction(vq, *_a, **_k):
         seen["reconstruction"] = decoder_state_dict(vq)
-        return [{"mpjpe_mm": 1.0}]
+        return {o: [{"mpjpe_mm": 1.0}] for o in _k["outputs"]}
 
     def generation(model, *_a, **_k):
         seen["generation"] = {**model.gpt.state_dict(), **decoder_state_dict(model.vq)}
-        return [[{"mpjpe_mm": 1.0}]]
+        return {o: [[{"mpjpe_mm": 1.0}]] for o in _k["outputs"]}
 
     monkeypatch.setattr(vq_trainer, "load_prepared", lambda *_a, **_k: (None, None))
     monkeypatch.setattr(vq_trainer, "load_vq", fresh_vq)

@@ -9,6 +9,10 @@ probability > 0.5 vs the labels, over frames x hands), and generation the share 
 that obey their prompt (``intent_ok``, the whole generated motion through
 ``intent_check``; per-rule rates ``intent_<rule>`` in the JSON), with the ground truth's
 for reference.
+
+Both run the motion as the model makes it (``raw``) and, with ``outputs`` naming it, through
+the engine's contact-consistency stage (``stage``: ``contact_stage``, the same frames the
+engine streams by default), measured on the same samples side by side.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import numpy as np
 import torch
 
 from .body_model import BodyModelConfig, make_body_model
+from .contact_stage import ObjectShape, apply_contact_stage
 from .dataset import FeatureSet
 from .grab.paraphrase import Meaning, paraphrases
 from .intent_check import check_feature_set, check_features, intent_of
@@ -45,20 +50,35 @@ def _pair_metrics(pred: np.ndarray, gt: np.ndarray, meta: dict, rest: np.ndarray
     return compute_metrics(_sample(pred[:T], meta, rest, body, fps), _sample(gt[:T], meta, rest, body, fps), cfg)
 
 
+OUTPUTS = ("raw", "stage")
+
+
+def outputs_of(pred: np.ndarray, meta: dict, rest: np.ndarray, fps: float, outputs=("raw",)) -> dict[str, np.ndarray]:
+    """A de-normalized motion as each of ``outputs`` shows it: ``raw`` (the model's) and/or
+    ``stage`` (through the engine's contact-consistency stage, the whole motion streamed)."""
+    if unknown := set(outputs) - set(OUTPUTS):
+        raise ValueError(f"outputs must be among {OUTPUTS}, got {sorted(unknown)}")
+    out = {}
+    for o in outputs:
+        out[o] = pred if o == "raw" else apply_contact_stage(pred, rest, fps, ObjectShape.for_meta(meta))
+    return out
+
+
 @torch.no_grad()
 def evaluate_reconstruction(vq, norm: Normalizer, fs: FeatureSet, body=None, cfg=MetricConfig(),
-                            limit: int | None = None) -> list[dict]:
-    """Runs on the model's own device (the inputs follow the weights)."""
+                            limit: int | None = None, outputs=("raw",)) -> dict[str, list[dict]]:
+    """Runs on the model's own device (the inputs follow the weights). Rows per output."""
     body = body or make_body_model(BodyModelConfig())
     device = next(vq.parameters()).device
-    rows = []
+    rows = {o: [] for o in outputs}
     for i, gt in enumerate(fs.features[:limit]):
         x = torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None].to(device)
         x = fit_to_tokens(x, vq.frames_per_token, "pad")
         rec = norm.denormalize(vq.decode(vq.encode(x))[0].cpu().numpy())[: len(gt)]
-        row = _pair_metrics(rec, gt, fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg)
-        row["contact_accuracy"] = float(((rec[:, [240, 334]] > 0.5) == (gt[:, [240, 334]] > 0.5)).mean())
-        rows.append(row)
+        for o, pred in outputs_of(rec, fs.meta[i], fs.rest_joints[i], fs.fps, outputs).items():
+            row = _pair_metrics(pred, gt, fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg)
+            row["contact_accuracy"] = float(((pred[:, [240, 334]] > 0.5) == (gt[:, [240, 334]] > 0.5)).mean())
+            rows[o].append(row)
     return rows
 
 
@@ -77,23 +97,26 @@ def prompt_for(fs: FeatureSet, i: int, prompts: str = "template") -> str:
 
 def evaluate_generation(model, fs: FeatureSet, repeats: int = 3, params: SamplingParams = SamplingParams(),
                         seed: int = 0, body=None, cfg=MetricConfig(), limit: int | None = None,
-                        batch: int = 32, prompts: str = "template") -> list[list[dict]]:
+                        batch: int = 32, prompts: str = "template", outputs=("raw",)) -> dict[str, list[list[dict]]]:
     """Generation from each test sequence's prompt (``prompt_for``), ``repeats`` seeds; the
-    prompt checks read the sequence's own intent, hand(s) and object (``intent_of``)."""
+    prompt checks read the sequence's own intent, hand(s) and object (``intent_of``). Rows
+    per output (the same samples), then per repeat."""
     body = body or make_body_model(BodyModelConfig())
     n = len(fs.features[:limit])
     texts = [prompt_for(fs, i, prompts) for i in range(n)]
-    out = []
+    out = {o: [] for o in outputs}
     for r in range(repeats):
-        rows = []
+        rows = {o: [] for o in outputs}
         for a in range(0, n, batch):
             idx = range(a, min(n, a + batch))
             preds = model.generate([texts[i] for i in idx], params, seed=seed + 100_003 * r + a)
-            rows += [{**_pair_metrics(p, fs.features[i], fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg),
-                      **check_features(p, texts[i], fs.meta[i], fs.rest_joints[i], fs.fps,
-                                       intent=intent_of(fs.meta[i])).row()}
-                     for p, i in zip(preds, idx)]
-        out.append(rows)
+            for p, i in zip(preds, idx):
+                meta, rest = fs.meta[i], fs.rest_joints[i]
+                for o, pred in outputs_of(p, meta, rest, fs.fps, outputs).items():
+                    rows[o].append({**_pair_metrics(pred, fs.features[i], meta, rest, body, fs.fps, cfg),
+                                    **check_features(pred, texts[i], meta, rest, fs.fps, intent=intent_of(meta)).row()})
+        for o in outputs:
+            out[o].append(rows[o])
     return out
 
 
@@ -118,5 +141,5 @@ def write_report(results: dict[str, dict], path_md: Path,
         indent=1))
 
 
-__all__ = ["evaluate_reconstruction", "evaluate_generation", "evaluate_ground_truth_intent", "write_report",
-           "summarize", "summarize_repeats"]
+__all__ = ["OUTPUTS", "outputs_of", "evaluate_reconstruction", "evaluate_generation", "evaluate_ground_truth_intent",
+           "write_report", "summarize", "summarize_repeats"]

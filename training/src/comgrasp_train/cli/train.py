@@ -93,6 +93,7 @@ def cmd_generate(args) -> int:
 
 def cmd_evaluate(args) -> int:
     from ..evaluate import (
+        OUTPUTS,
         evaluate_generation,
         evaluate_ground_truth_intent,
         evaluate_reconstruction,
@@ -104,6 +105,9 @@ def cmd_evaluate(args) -> int:
     from ..normalization import Normalizer
     from ..train.vq_trainer import load_prepared, load_vq
 
+    outputs = tuple(o for o in args.outputs.split(",") if o)
+    if not outputs or set(outputs) - set(OUTPUTS):
+        raise SystemExit(f"--outputs: a comma list of {', '.join(OUTPUTS)}, got {args.outputs!r}")
     fs, _ = load_prepared(Path(args.data), args.part)
     vq, _, _ = load_vq(Path(args.vq), _device(args))
     if args.int8_weights:
@@ -111,18 +115,24 @@ def cmd_evaluate(args) -> int:
 
         fake_quantize_bundle_int8(vq)
     norm = Normalizer.load(Path(args.vq) / "stats.npz")
-    rows = {"VQ reconstruction": evaluate_reconstruction(vq, norm, fs, limit=args.limit)}
-    results = {"VQ reconstruction": summarize(rows["VQ reconstruction"])}
+    # One row per setting and output; the raw output keeps the setting's plain name.
+    named = {"raw": "", "stage": ", contact stage"}
+    rows, results = {}, {}
+    for o, r in evaluate_reconstruction(vq, norm, fs, limit=args.limit, outputs=outputs).items():
+        rows[f"VQ reconstruction{named[o]}"] = r
+        results[f"VQ reconstruction{named[o]}"] = summarize(r)
     if args.gpt:
         model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
         if args.int8_weights:
             fake_quantize_bundle_int8(model.vq, model.gpt)
         for prompts in args.prompts.split(","):
-            reps = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
-                                       limit=args.limit, prompts=prompts)
-            name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
-            rows[name] = reps
-            results[f"{name} ({args.repeats} repeats)"] = summarize_repeats(reps)
+            by_output = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
+                                            limit=args.limit, prompts=prompts, outputs=outputs)
+            for o, reps in by_output.items():
+                name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
+                name += named[o]
+                rows[name] = reps
+                results[f"{name} ({args.repeats} repeats)"] = summarize_repeats(reps)
         results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs, args.limit))
     write_report(results, Path(args.out))
     if args.rows:
@@ -219,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--prompts", default="template",
                    help="comma list: template (each test sequence's canonical text) and/or held_out "
                         "(a wording from grab.paraphrase's held-out set)")
+    s.add_argument("--outputs", default="raw,stage",
+                   help="comma list: raw (the model's output) and/or stage (through the engine's contact-consistency "
+                        "stage, as the engine streams by default); each gets its own rows, on the same samples")
     s.add_argument("--rows", action="store_true",
                    help="also write every sequence's metrics to OUT's stem + .rows.json (same order, same seeds)")
     s.add_argument("--out", required=True)

@@ -1,0 +1,80 @@
+"""Rebuild tests/fixtures/contact_stage: frames that pin the engine's contact stage
+(src/contact.rs) and its Python reference (comgrasp_train.contact_stage) to each other.
+
+Each case is a real motion: the release engine's raw output (`comgrasp generate --raw`) for
+one prompt and seed on models/default, as de-normalized 335-D features (`input`), and what
+the Python stage makes of it (`output`). training/tests/test_contact_stage.py checks that
+the Python stage still gives `output`; tests/contact_stage.rs that the engine's stage gives
+it within the manifest's frame tolerance. The motions do not need to come from the current
+default model: they only have to exercise the stage's rules, which this script checks
+(every rule below must fire in some case).
+
+    cargo build --release && .venv/bin/python scripts/contact_fixture.py
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import tempfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from comgrasp_train.contact_stage import ObjectShape, apply_contact_stage, features_from_engine
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "tests" / "fixtures" / "contact_stage"
+BUNDLE = ROOT / "models" / "default"
+CASES = (  # prompt, seed: together they make every rule in RULES fire
+    ("Pick up the apple and put it back", 3),
+    ("The man pours from the bowl", 4),
+    ("A woman inspects the small cylinder", 5),
+    ("Someone lifts the large sphere with both hands", 6),
+)
+RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
+         "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach")
+
+
+def main() -> int:
+    manifest = json.loads((BUNDLE / "manifest.json").read_text())
+    rest = np.asarray(manifest["skeleton"]["rest_joints"], np.float32)
+    objects = {o["name"]: o for o in manifest["objects"]}
+    OUT.mkdir(parents=True, exist_ok=True)
+    np.save(OUT / "rest_joints.npy", rest)
+    cases, total = [], Counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (prompt, seed) in enumerate(CASES):
+            npz = Path(tmp) / f"{k}.npz"
+            run = subprocess.run([str(ROOT / "target/release/comgrasp"), "generate", "--bundle", str(BUNDLE),
+                                  "--text", prompt, "--seed", str(seed), "--raw", "--out", str(npz)],
+                                 check=True, capture_output=True, text=True)
+            name = re.search(r"; object (\S+) ", run.stdout + run.stderr).group(1)
+            frames = dict(np.load(npz))
+            obj = objects[name]
+            x = features_from_engine(frames)
+            events = Counter()
+            y = apply_contact_stage(x, rest, float(frames["fps"]), ObjectShape.of(obj["centre"], obj["half_extents"]),
+                                    events)
+            np.save(OUT / f"case{k}_input.npy", x)
+            np.save(OUT / f"case{k}_output.npy", y)
+            cases.append({"prompt": prompt, "seed": seed, "object": name, "centre": obj["centre"],
+                          "half_extents": obj["half_extents"], "input": f"case{k}_input.npy",
+                          "output": f"case{k}_output.npy", "frames": len(x), "events": dict(sorted(events.items()))})
+            total += events
+            print(f"case{k}: {prompt!r} seed {seed}, {name}, {len(x)} frames: {dict(events)}")
+    missing = [r for r in RULES if not total[r]]
+    if missing:
+        print(f"no case makes these rules fire: {missing}", file=sys.stderr)
+        return 1
+    index = {"fps": float(manifest["fps"]), "rest_joints": "rest_joints.npy",
+             "tolerance": manifest["parity"]["tolerances"]["frames"], "rules": list(RULES), "cases": cases}
+    (OUT / "index.json").write_text(json.dumps(index, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

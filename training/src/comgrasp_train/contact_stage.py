@@ -1,0 +1,669 @@
+"""The engine's contact-consistency stage (``src/contact.rs``), as the Python reference.
+
+The engine rewrites every frame of a stream so that the object obeys the hands: contact
+debounced, an unheld object resting (or falling onto its support), a reach correction
+(two-bone arm IK plus a spine bow) that brings the wrist to the object when a grasp
+starts, the object carried rigidly while held. ``evaluate`` runs it over PyTorch's output
+so that the raw and the consistent motion are measured side by side, and
+``tests/fixtures/contact_stage`` pins this code and the engine's to the same frames
+(``training/tests/test_contact_stage.py`` here, ``tests/contact_stage.rs`` there).
+
+This is a line-by-line port: same constants, same order of operations, float64 on frames
+decoded from float32 features, so the engine's frames match within the manifest's
+``frames`` tolerance. docs/engine.md ("Contact consistency") says what the rules are and
+why; the comments here only mark where the code must stay in step with the Rust.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import skeleton as sk
+from .layout import CONTACT_CHANNELS, FIELD, FRAME_DIM, ROT6D_JOINT_COLUMNS
+
+ON_FRAMES = 2
+OFF_FRAMES = 4
+REACH_SPEED = 0.6
+MIN_REACH_FRAMES = 4
+MAX_REACH_FRAMES = 30
+FADE_SPEED = 0.3
+REACH_LIMIT = 0.98
+REACH_MISS = 0.02
+GRIP_GAP = 0.005
+GRIP_MARGIN = 0.12
+MAX_BOW = 0.6
+BOW_REACH = 0.94
+BOW_FADE = 0.5
+SPINE = (3, 6, 9)
+TABLE_NEAR = 0.15
+TABLE_FAR = 1.1
+TABLE_HALF_WIDTH = 0.7
+SUPPORT_RADIUS = 0.3
+TABLE_MIN_HEIGHT = 0.05
+LIFT_CLEAR = 0.03
+SUPPORT_DEPTH = 0.1
+GROUND_Z = 0.0
+GRAVITY = 9.81
+CONTACT_THRESHOLD = 0.5
+NORM_EPS = 1e-12
+
+ARMS = ((13, 16, 18, 20), (14, 17, 19, 21))
+HAND_FIRST = (25, 40)
+IDENTITY = np.eye(3)
+
+
+# ---- small geometry, as src/skeleton.rs --------------------------------------------------
+
+
+def _norm(v: np.ndarray) -> float:
+    return math.sqrt(float(v @ v))
+
+
+def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    s, c = math.sin(angle), math.cos(angle)
+    t = 1.0 - c
+    x, y, z = axis
+    return np.array([[t * x * x + c, t * x * y - s * z, t * x * z + s * y],
+                     [t * x * y + s * z, t * y * y + c, t * y * z - s * x],
+                     [t * x * z - s * y, t * y * z + s * x, t * z * z + c]])
+
+
+def orthogonal(v: np.ndarray) -> np.ndarray:
+    e = np.zeros(3)
+    e[int(np.argmin(np.abs(v)))] = 1.0
+    c = np.cross(v, e)
+    return c / _norm(c)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    na, nb = _norm(a), _norm(b)
+    if not (na > NORM_EPS and nb > NORM_EPS):
+        return IDENTITY.copy()
+    a, b = a / na, b / nb
+    axis = np.cross(a, b)
+    s, c = _norm(axis), float(a @ b)
+    if s > 1e-12:
+        return axis_angle(axis / s, math.atan2(s, c))
+    return IDENTITY.copy() if c > 0.0 else axis_angle(orthogonal(a), math.pi)
+
+
+def rot6d_to_matrix(d: np.ndarray) -> np.ndarray:
+    """6D (first two rows) -> rotation, with the engine's fallbacks for degenerate input."""
+    a1, a2 = d[:3], d[3:]
+    n1 = _norm(a1)
+    b1 = a1 / n1 if n1 > NORM_EPS and math.isfinite(n1) else np.array([1.0, 0.0, 0.0])
+    a2 = a2 if np.isfinite(a2).all() else np.zeros(3)
+    r = a2 - float(b1 @ a2) * b1
+    n2 = _norm(r)
+    b2 = r / n2 if n2 > NORM_EPS and math.isfinite(n2) else orthogonal(b1)
+    return np.stack((b1, b2, np.cross(b1, b2)))
+
+
+def matrix_to_quaternion(m: np.ndarray) -> np.ndarray:
+    """Rotation -> unit quaternion (x, y, z, w), w >= 0 (Shepperd, as the engine)."""
+    t = (1.0 + m[0, 0] + m[1, 1] + m[2, 2], 1.0 + m[0, 0] - m[1, 1] - m[2, 2],
+         1.0 - m[0, 0] + m[1, 1] - m[2, 2], 1.0 - m[0, 0] - m[1, 1] + m[2, 2])
+    best = max(range(4), key=lambda i: (t[i], -i))
+    s = math.sqrt(max(t[best], 0.0)) or 1.0
+    if best == 0:
+        w, x, y, z = s * s, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]
+    elif best == 1:
+        w, x, y, z = m[2, 1] - m[1, 2], s * s, m[1, 0] + m[0, 1], m[0, 2] + m[2, 0]
+    elif best == 2:
+        w, x, y, z = m[0, 2] - m[2, 0], m[1, 0] + m[0, 1], s * s, m[1, 2] + m[2, 1]
+    else:
+        w, x, y, z = m[1, 0] - m[0, 1], m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], s * s
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not (math.isfinite(n) and n > 0.0):
+        return np.array([0.0, 0.0, 0.0, 1.0])
+    k = (-1.0 if w < 0.0 else 1.0) / n
+    return np.array([x * k, y * k, z * k, w * k])
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def smoothstep(t: float) -> float:
+    t = min(max(t, 0.0), 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+class Skeleton:
+    """The bundle's skeleton (SMPL-X parents, rest joints): FK as the engine does it."""
+
+    def __init__(self, rest_joints: np.ndarray, parents: tuple[int, ...] = sk.PARENTS):
+        self.parents = tuple(int(p) for p in parents)
+        self.rest = np.asarray(rest_joints, dtype=np.float32).astype(np.float64)
+        self.offsets = self.rest.copy()
+        for j in range(1, sk.NUM_JOINTS):
+            self.offsets[j] = self.rest[j] - self.rest[self.parents[j]]
+
+    def forward(self, local: np.ndarray, pelvis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        glob = np.empty((sk.NUM_JOINTS, 3, 3))
+        pos = np.empty((sk.NUM_JOINTS, 3))
+        glob[0], pos[0] = local[0], pelvis
+        for j in range(1, sk.NUM_JOINTS):
+            p = self.parents[j]
+            pos[j] = pos[p] + glob[p] @ self.offsets[j]
+            glob[j] = glob[p] @ local[j]
+        return glob, pos
+
+    def arm_length(self, h: int) -> float:
+        _, s, e, w = ARMS[h]
+        return _norm(self.rest[e] - self.rest[s]) + _norm(self.rest[w] - self.rest[e])
+
+
+# ---- frames ------------------------------------------------------------------------------
+
+
+@dataclass
+class Pose:
+    """One frame in the native world (z up, metres), as ``assemble::Pose``."""
+
+    local: np.ndarray  # (55, 3, 3); 0 = the root's global rotation
+    pelvis: np.ndarray
+    object_rotation: np.ndarray
+    object_translation: np.ndarray
+    object_centre: np.ndarray
+    wrist_to_object: np.ndarray  # (2, 3) [left, right]
+    contact_probability: np.ndarray  # (2,)
+    contact: np.ndarray  # (2,) bool
+
+    @staticmethod
+    def from_features(x: np.ndarray) -> Pose:
+        """A de-normalized 335-D frame (float32 values, as the engine decodes them)."""
+        f = np.asarray(x, dtype=np.float32).astype(np.float64)
+        local = np.tile(IDENTITY, (sk.NUM_JOINTS, 1, 1))
+        for j, col in ROT6D_JOINT_COLUMNS.items():
+            local[j] = rot6d_to_matrix(f[col:col + 6])
+        prob = np.clip(np.nan_to_num(f[list(CONTACT_CHANNELS)], nan=0.0), 0.0, 1.0)
+        return Pose(local, f[FIELD["root_transl"].slice].copy(), rot6d_to_matrix(f[FIELD["object_rot6d"].slice]),
+                    f[FIELD["object_transl"].slice].copy(), f[FIELD["object_centre"].slice].copy(),
+                    np.stack((f[FIELD["lwrist_to_object"].slice], f[FIELD["rwrist_to_object"].slice])),
+                    prob, prob > CONTACT_THRESHOLD)
+
+    def to_features(self) -> np.ndarray:
+        """Back to 335-D; the contact channels carry the stage's held flags (0 or 1)."""
+        x = np.zeros(FRAME_DIM)
+        for j, col in ROT6D_JOINT_COLUMNS.items():
+            x[col:col + 6] = self.local[j][:2].reshape(6)
+        x[FIELD["root_transl"].slice] = self.pelvis
+        x[FIELD["object_rot6d"].slice] = self.object_rotation[:2].reshape(6)
+        x[FIELD["object_transl"].slice] = self.object_translation
+        x[FIELD["object_centre"].slice] = self.object_centre
+        x[FIELD["lwrist_to_object"].slice] = self.wrist_to_object[0]
+        x[FIELD["rwrist_to_object"].slice] = self.wrist_to_object[1]
+        x[list(CONTACT_CHANNELS)] = self.contact.astype(np.float64)
+        return x
+
+
+@dataclass(frozen=True)
+class ObjectShape:
+    """The object's box in its own frame: bounding-box centre and half extents, m."""
+
+    centre: np.ndarray
+    half_extents: np.ndarray
+
+    @staticmethod
+    def of(centre, half_extents) -> ObjectShape:
+        # The bundle stores both as float32, and so do the fixtures.
+        return ObjectShape(np.asarray(centre, np.float32).astype(np.float64),
+                           np.abs(np.asarray(half_extents, np.float32).astype(np.float64)))
+
+    @staticmethod
+    def for_meta(meta: dict) -> ObjectShape:
+        """A prepared sequence's object: its catalogue entry (as the bundle's ``objects``
+        section: mesh bounds centre, the catalogue's half extents), else its mesh's bounds."""
+        from .objects.catalogue import CATALOGUE
+
+        spec = CATALOGUE.get(meta.get("object", ""))
+        if spec is not None:
+            lo, hi = spec.shape.mesh().bounds
+            return ObjectShape.of((lo + hi) / 2.0, spec.half_extents)
+        import trimesh
+
+        lo, hi = trimesh.load(Path(meta["object_mesh"]), force="mesh", process=False).bounds
+        return ObjectShape.of((lo + hi) / 2.0, (hi - lo) / 2.0)
+
+    def centre_at(self, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        return pos + rot @ self.centre
+
+    def point_at(self, rot: np.ndarray, pos: np.ndarray, local: np.ndarray) -> np.ndarray:
+        return self.centre_at(rot, pos) + rot @ local
+
+    def bottom_at(self, rot: np.ndarray, pos: np.ndarray) -> float:
+        return float(self.centre_at(rot, pos)[2] - sum(abs(rot[2, k]) * self.half_extents[k] for k in range(3)))
+
+
+def heading(pelvis: np.ndarray, root: np.ndarray, toward: np.ndarray) -> np.ndarray:
+    f = root @ np.array([0.0, 0.0, 1.0])
+    to = toward[:2] - pelvis[:2]
+    fl, tl = math.hypot(f[0], f[1]), math.hypot(to[0], to[1])
+    if fl > 0.5:
+        return np.array([f[0] / fl, f[1] / fl])
+    if tl > 1e-6:
+        return to / tl
+    return np.array([0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Table:
+    """The support the object starts on (``contact::Table``)."""
+
+    height: float
+    start: np.ndarray
+    origin: np.ndarray
+    forward: np.ndarray
+
+    @staticmethod
+    def new(pelvis, root, object_rot, object_pos, shape: ObjectShape) -> Table:
+        c = shape.centre_at(object_rot, object_pos)
+        bottom = shape.bottom_at(object_rot, object_pos)
+        height = GROUND_Z if bottom < GROUND_Z + TABLE_MIN_HEIGHT else bottom
+        return Table(height, c[:2].copy(), np.asarray(pelvis[:2], np.float64).copy(), heading(pelvis, root, c))
+
+    def is_ground(self) -> bool:
+        return self.height <= GROUND_Z
+
+    def over(self, p: np.ndarray) -> bool:
+        if self.is_ground():
+            return False
+        dx, dy = p[0] - self.start[0], p[1] - self.start[1]
+        fx, fy = self.forward
+        rx, ry = p[0] - self.origin[0], p[1] - self.origin[1]
+        ahead = rx * fx + ry * fy
+        side = abs(rx * fy - ry * fx)
+        return math.hypot(dx, dy) <= SUPPORT_RADIUS or (TABLE_NEAR <= ahead <= TABLE_FAR and side <= TABLE_HALF_WIDTH)
+
+
+# ---- the stage ---------------------------------------------------------------------------
+
+
+@dataclass
+class _Reach:
+    frame: int
+    frames: int
+    start: np.ndarray  # the correction when the reach started
+    bow_from: float
+    grip: np.ndarray  # wrist minus object centre, object frame
+
+
+@dataclass
+class _Hand:
+    on: int = 0
+    off: int = 0
+    phase: str = "free"  # "free" | "reaching" | "holding"
+    reach: _Reach | None = None
+    correction: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    latched: bool = False
+    rel_rot: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
+    rel_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+class ContactStage:
+    """One stream's contact state; feed every frame in order (``apply``), then ``finish``
+    the last one."""
+
+    def __init__(self, shape: ObjectShape, fps: float):
+        self.shape = shape
+        self.dt = 1.0 / fps
+        self.started = False
+        self.rot = IDENTITY.copy()
+        self.pos = np.zeros(3)
+        self.fall = 0.0
+        self.table = Table(GROUND_Z, np.zeros(2), np.zeros(2), np.array([0.0, 1.0]))
+        self.lifted = False
+        self.hands = [_Hand(), _Hand()]
+        self.bow = 0.0
+        self.bow_axis = np.array([1.0, 0.0, 0.0])
+        # How often each rule fired (the reference only: tests check what a fixture covers).
+        self.events: Counter[str] = Counter()
+
+    def holding(self) -> list[bool]:
+        return [h.phase == "holding" for h in self.hands]
+
+    def apply(self, skel: Skeleton, pose: Pose) -> None:
+        glob, joints = skel.forward(pose.local, pose.pelvis)
+        if not self.started:
+            self.started = True
+            self.rot, self.pos = pose.object_rotation.copy(), pose.object_translation.copy()
+            self.table = Table.new(pose.pelvis, pose.local[0], self.rot, self.pos, self.shape)
+
+        for h in range(2):
+            wrist = joints[ARMS[h][3]]
+            arm = skel.arm_length(h)
+            hand = self.hands[h]
+            if pose.contact[h]:
+                hand.on, hand.off = hand.on + 1, 0
+            else:
+                hand.off, hand.on = hand.off + 1, 0
+            hand.latched = hand.latched and hand.off < OFF_FRAMES
+            if hand.phase == "reaching" and hand.off >= OFF_FRAMES:
+                hand.phase, hand.reach = "free", None
+                self.events["reach_abandoned"] += 1
+            elif hand.phase == "free" and hand.on >= ON_FRAMES and not hand.latched:
+                offsets = np.stack([joints[ARMS[h][3] if k == 0 else HAND_FIRST[h] + k - 1] - wrist for k in range(16)])
+                grip = grip_offset(pose.wrist_to_object[h], self.shape, self.rot, wrist, self.pos, offsets)
+                target = self.shape.point_at(self.rot, self.pos, grip)
+                if needed_bow(joints, h, target, REACH_LIMIT * arm) is not None:
+                    gap = _norm(target - (wrist + hand.correction))
+                    frames = min(max(math.ceil(gap / (REACH_SPEED * self.dt)), MIN_REACH_FRAMES), MAX_REACH_FRAMES)
+                    hand.phase = "reaching"
+                    hand.reach = _Reach(0, frames, hand.correction.copy(), self.bow, grip)
+                    self.events["reach"] += 1
+                else:
+                    self.events["out_of_reach"] += 1
+
+        bow = None
+        for h in range(2):
+            r = self.hands[h].reach
+            if self.hands[h].phase != "reaching":
+                continue
+            r.frame += 1
+            s = smoothstep(r.frame / r.frames)
+            target = self.shape.point_at(self.rot, self.pos, r.grip)
+            need = needed_bow(joints, h, target, BOW_REACH * skel.arm_length(h))
+            need, axis = need if need is not None else (MAX_BOW, bow_axis(joints, target))
+            angle = r.bow_from + (need - r.bow_from) * s
+            if bow is None or angle > bow[0]:
+                bow = (angle, axis)
+        if bow is not None:
+            self.bow, self.bow_axis = bow
+        else:
+            self.bow = max(self.bow - BOW_FADE * self.dt, 0.0)
+        if self.bow > 0.0:
+            self.events["bow_frames"] += 1
+            step = axis_angle(self.bow_axis, self.bow / len(SPINE))
+            for j in SPINE:
+                gp = glob[skel.parents[j]]
+                pose.local[j] = (gp.T @ (step @ gp)) @ pose.local[j]
+            glob, joints = skel.forward(pose.local, pose.pelvis)
+
+        moved = False
+        aimed = [None, None]  # where each reach puts the wrist (before the other hand moves the object)
+        for h in range(2):
+            wrist = joints[ARMS[h][3]]
+            hand = self.hands[h]
+            if hand.phase == "reaching":
+                r = hand.reach
+                s = smoothstep(r.frame / r.frames)
+                aimed[h] = self.shape.point_at(self.rot, self.pos, r.grip)
+                to = aimed[h] - wrist
+                hand.correction = r.start * (1.0 - s) + to * s
+            else:
+                n = _norm(hand.correction)
+                step = FADE_SPEED * self.dt
+                hand.correction = hand.correction * ((n - step) / n) if n > step else np.zeros(3)
+            if hand.correction.any():
+                arm_ik(pose.local, glob, joints, h, wrist + hand.correction)
+                moved = True
+        if moved:
+            glob, joints = skel.forward(pose.local, pose.pelvis)
+
+        carried = self._carried(glob, joints)
+        if carried is not None:
+            self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
+            depth = self.table.height - self.shape.bottom_at(*carried)
+            if not self.lifted and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
+                self.events["press_up"] += 1
+                for h in range(2):
+                    if self.hands[h].phase == "holding":
+                        self.hands[h].correction[2] += depth
+                        arm_ik(pose.local, glob, joints, h, joints[ARMS[h][3]] + np.array([0.0, 0.0, depth]))
+                glob, joints = skel.forward(pose.local, pose.pelvis)
+                again = self._carried(glob, joints)
+                if again is not None:
+                    self.rot, self.pos = again
+            self._set_down_on_table()
+        else:
+            self._settle()
+
+        for h in range(2):
+            if self.hands[h].phase == "holding" and self.hands[h].off >= OFF_FRAMES:
+                self.hands[h].phase = "free"
+                self.events["release"] += 1
+                if self.hands[1 - h].phase == "holding":
+                    self._capture(1 - h, glob, joints)
+                    self.events["recapture"] += 1
+        for h in range(2):
+            hand = self.hands[h]
+            if hand.phase == "reaching" and hand.reach.frame >= hand.reach.frames:
+                if _norm(joints[ARMS[h][3]] - aimed[h]) <= REACH_MISS:
+                    self._capture(h, glob, joints)
+                else:
+                    hand.phase = "free"
+                    self.events["reach_missed"] += 1
+                hand.reach = None if hand.phase != "reaching" else hand.reach
+
+        self._write(pose, joints)
+
+    def finish(self, skel: Skeleton, pose: Pose) -> None:
+        if any(h.phase == "holding" for h in self.hands):
+            return
+        bottom, floor = self._floor()
+        if bottom != floor:
+            self.pos = self.pos + np.array([0.0, 0.0, floor - bottom])
+            self.fall = 0.0
+            self.events["landed_at_finish"] += 1
+            self._write(pose, skel.forward(pose.local, pose.pelvis)[1])
+
+    def _write(self, pose: Pose, joints: np.ndarray) -> None:
+        pose.object_rotation = self.rot.copy()
+        pose.object_translation = self.pos.copy()
+        pose.object_centre = self.shape.centre_at(self.rot, self.pos)
+        pose.wrist_to_object = np.stack([joints[ARMS[h][3]] - pose.object_centre for h in range(2)])
+        pose.contact = np.array(self.holding())
+
+    def _carried(self, glob: np.ndarray, joints: np.ndarray):
+        carried = [(glob[ARMS[h][3]] @ hand.rel_rot, joints[ARMS[h][3]] + glob[ARMS[h][3]] @ hand.rel_pos)
+                   if hand.phase == "holding" else None for h, hand in enumerate(self.hands)]
+        a, b = carried
+        if a is not None and b is not None:
+            self.events["two_hand_frames"] += 1
+            return blend_rotations(a[0], b[0]), (a[1] + b[1]) * 0.5
+        return a if a is not None else b
+
+    def _capture(self, h: int, glob: np.ndarray, joints: np.ndarray) -> None:
+        gt = glob[ARMS[h][3]].T
+        hand = self.hands[h]
+        hand.rel_rot = gt @ self.rot
+        hand.rel_pos = gt @ (self.pos - joints[ARMS[h][3]])
+        hand.phase, hand.reach = "holding", None
+        self.lifted = False
+        self.events["capture"] += 1
+
+    def _set_down_on_table(self) -> None:
+        bottom = self.shape.bottom_at(self.rot, self.pos)
+        if bottom > self.table.height + LIFT_CLEAR:
+            self.lifted = True
+        if not (self.lifted and bottom < self.table.height and self.table.over(self.shape.centre_at(self.rot, self.pos))):
+            return
+        self.pos = self.pos + np.array([0.0, 0.0, self.table.height - bottom])
+        self.lifted = False
+        self.events["set_down"] += 1
+        for hand in self.hands:
+            if hand.phase == "holding":
+                hand.phase, hand.latched = "free", True
+
+    def _settle(self) -> None:
+        bottom, floor = self._floor()
+        p = self.pos.copy()
+        if bottom > floor:
+            self.events["fall_frames"] += 1
+            self.fall += GRAVITY * self.dt
+            p[2] -= min(self.fall * self.dt, bottom - floor)
+        else:
+            self.fall = 0.0
+            if bottom < floor:
+                self.events["rise_frames"] += 1
+            p[2] += min(FADE_SPEED * self.dt, floor - bottom)
+        self.pos = p
+
+    def _floor(self) -> tuple[float, float]:
+        bottom = self.shape.bottom_at(self.rot, self.pos)
+        on_table = self.table.over(self.shape.centre_at(self.rot, self.pos)) and bottom >= self.table.height - SUPPORT_DEPTH
+        return bottom, self.table.height if on_table else GROUND_Z
+
+
+def bow_axis(joints: np.ndarray, target: np.ndarray) -> np.ndarray:
+    d = target - joints[SPINE[0]]
+    a = np.array([-d[1], d[0], 0.0])
+    n = _norm(a)
+    return a / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])
+
+
+def needed_bow(joints: np.ndarray, h: int, target: np.ndarray, reach: float):
+    axis = bow_axis(joints, target)
+    shoulder = ARMS[h][1]
+
+    def gap(bow: float) -> float:
+        r = axis_angle(axis, bow / len(SPINE))
+        p, turn = joints[SPINE[0]].copy(), IDENTITY
+        for k, j in enumerate(SPINE):
+            turn = r @ turn
+            nxt = joints[SPINE[k + 1]] if k + 1 < len(SPINE) else joints[shoulder]
+            p = p + turn @ (nxt - joints[j])
+        return _norm(target - p)
+
+    if gap(0.0) <= reach:
+        return 0.0, axis
+    if gap(MAX_BOW) > reach:
+        return None
+    lo, hi = 0.0, MAX_BOW
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        if gap(mid) <= reach:
+            hi = mid
+        else:
+            lo = mid
+    return hi, axis
+
+
+def box_distance(p: np.ndarray, half: np.ndarray) -> float:
+    q = np.abs(p) - half
+    return _norm(np.maximum(q, 0.0)) + min(float(q.max()), 0.0)
+
+
+def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: np.ndarray, pos: np.ndarray,
+                hand: np.ndarray) -> np.ndarray:
+    centre = shape.centre_at(rot, pos)
+    v = np.asarray(model, np.float64).copy()
+    if not (_norm(v) > 1e-6 and np.isfinite(v).all()):
+        v = wrist - centre
+    v[2] = max(v[2], 0.0)
+    n = _norm(v)
+    direction = v / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
+    rt = rot.T
+
+    def gap(length: float) -> float:
+        w = direction * length
+        return min(box_distance(rt @ (w + o), shape.half_extents) for o in hand)
+
+    hi = _norm(shape.half_extents) + GRIP_MARGIN
+    lo, up = 0.0, hi
+    if gap(hi) >= GRIP_GAP:
+        for _ in range(30):
+            mid = 0.5 * (lo + up)
+            if gap(mid) >= GRIP_GAP:
+                up = mid
+            else:
+                lo = mid
+    return rt @ (direction * up)
+
+
+def blend_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    qa, qb = matrix_to_quaternion(a), matrix_to_quaternion(b)
+    q = qa + (-1.0 if float(qa @ qb) < 0.0 else 1.0) * qb
+    n = _norm(q)
+    return quaternion_to_matrix(q / n) if n > 1e-12 else a
+
+
+def arm_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, h: int, target: np.ndarray) -> None:
+    """Two-bone IK on arm ``h`` (``contact::arm_ik``); rewrites ``local`` in place."""
+    c, s, e, w = ARMS[h]
+    ps, pe, pw = joints[s], joints[e], joints[w]
+    u, f = pe - ps, pw - pe
+    a, b = _norm(u), _norm(f)
+    if not (a > 1e-6 and b > 1e-6 and np.isfinite(target).all()):
+        return
+    lo, hi = abs(a - b) + 1e-4, (a + b) * 0.999
+    d = min(max(_norm(target - ps), lo), hi)
+    axis = np.cross(u, f)
+    n = _norm(axis)
+    if n > 1e-9 * a * b:
+        axis = axis / n
+    else:
+        t = np.cross(u, target - ps)
+        axis = t / _norm(t) if _norm(t) > 1e-9 else orthogonal(u / a)
+    beta = math.atan2(_norm(np.cross(u, f)), float(u @ f))
+    cos_new = min(max((d * d - a * a - b * b) / (2.0 * a * b), -1.0), 1.0)
+    bend = axis_angle(axis, math.acos(cos_new) - beta)
+    wrist1 = pe + bend @ f
+    swing = rotation_between(wrist1 - ps, target - ps)
+    gs = swing @ glob[s]
+    ge = swing @ (bend @ glob[e])
+    local[s] = glob[c].T @ gs
+    local[e] = gs.T @ ge
+    local[w] = ge.T @ glob[w]
+
+
+def apply_contact_stage(x: np.ndarray, rest_joints: np.ndarray, fps: float, shape: ObjectShape,
+                        events: Counter | None = None) -> np.ndarray:
+    """A whole de-normalized (T, 335) motion through the stage, frame by frame as the engine
+    streams it (the last frame finished); returns the consistent motion as (T, 335) float32.
+    ``events``, when given, is updated with how often each rule fired."""
+    skel, stage = Skeleton(rest_joints), ContactStage(shape, fps)
+    x = np.asarray(x)
+    out = np.empty((len(x), FRAME_DIM), np.float32)
+    for t in range(len(x)):
+        pose = Pose.from_features(x[t])
+        stage.apply(skel, pose)
+        if t + 1 == len(x):
+            stage.finish(skel, pose)
+        out[t] = pose.to_features()
+    if events is not None:
+        events.update(stage.events)
+    return out
+
+
+def features_from_engine(frames: dict) -> np.ndarray:
+    """The engine's frames (``comgrasp generate --out motion.npz``, native coordinates;
+    quaternions x, y, z, w) as de-normalized (T, 335) features; contact channels carry
+    ``contact_probability``."""
+    def rot6d(q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, np.float64)
+        x, y, z, w = np.moveaxis(q, -1, 0)
+        rows = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                         2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1)
+        return rows
+
+    T = len(frames["root_translation"])
+    out = np.zeros((T, FRAME_DIM))
+    out[:, 0:6] = rot6d(frames["root_rotation"])
+    groups = (("body_rotations", range(1, 22)), ("left_hand_rotations", range(25, 40)),
+              ("right_hand_rotations", range(40, 55)))
+    for key, joints in groups:
+        six = rot6d(frames[key])
+        for k, j in enumerate(joints):
+            out[:, ROT6D_JOINT_COLUMNS[j]:ROT6D_JOINT_COLUMNS[j] + 6] = six[:, k]
+    out[:, FIELD["root_transl"].slice] = frames["root_translation"]
+    out[:, FIELD["object_rot6d"].slice] = rot6d(frames["object_rotation"])
+    out[:, FIELD["object_transl"].slice] = frames["object_translation"]
+    out[:, FIELD["object_centre"].slice] = frames["object_centre"]
+    out[:, FIELD["lwrist_to_object"].slice] = frames["left_wrist_to_object"]
+    out[:, FIELD["rwrist_to_object"].slice] = frames["right_wrist_to_object"]
+    out[:, list(CONTACT_CHANNELS)] = frames["contact_probability"]
+    return out.astype(np.float32)
+
+
+__all__ = ["ContactStage", "ObjectShape", "Pose", "Skeleton", "Table", "apply_contact_stage", "arm_ik",
+           "features_from_engine"]

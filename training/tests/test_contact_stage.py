@@ -1,0 +1,219 @@
+"""The Python reference of the engine's contact-consistency stage (comgrasp_train.contact_stage).
+
+Parity with the engine runs on both sides of tests/fixtures/contact_stage: here, that this
+code still turns each fixture input into its output (and that the fixtures make every rule
+fire); in tests/contact_stage.rs, that the engine's stage does the same within the
+manifest's tolerance. The rest checks the stage's guarantees on those real motions and on
+hand-made ones.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from comgrasp_train.contact_stage import (
+    ContactStage,
+    ObjectShape,
+    Pose,
+    Skeleton,
+    apply_contact_stage,
+    arm_ik,
+    features_from_engine,
+    quaternion_to_matrix,
+)
+from comgrasp_train.layout import CONTACT_CHANNELS, FIELD, ROT6D_JOINT_COLUMNS
+
+FIXTURES = Path(__file__).resolve().parents[2] / "tests" / "fixtures" / "contact_stage"
+
+
+@pytest.fixture(scope="module")
+def fixture():
+    index = json.loads((FIXTURES / "index.json").read_text())
+    rest = np.load(FIXTURES / index["rest_joints"])
+    cases = [(c, np.load(FIXTURES / c["input"]), np.load(FIXTURES / c["output"])) for c in index["cases"]]
+    return index, rest, cases
+
+
+def _shape(case: dict) -> ObjectShape:
+    return ObjectShape.of(case["centre"], case["half_extents"])
+
+
+def test_the_fixtures_are_what_the_stage_makes_and_every_rule_fires(fixture):
+    index, rest, cases = fixture
+    total = Counter()
+    for case, x, y in cases:
+        events = Counter()
+        got = apply_contact_stage(x, rest, index["fps"], _shape(case), events)
+        np.testing.assert_allclose(got, y, rtol=0, atol=1e-6, err_msg=case["prompt"])
+        total += events
+    assert [r for r in index["rules"] if not total[r]] == []
+
+
+def _fk(rest, x):
+    skel = Skeleton(rest)
+    return np.stack([skel.forward(p.local, p.pelvis)[1] for p in map(Pose.from_features, x)])
+
+
+def test_staged_frames_keep_their_promises(fixture):
+    index, rest, cases = fixture
+    fps = index["fps"]
+    for case, x, y in cases:
+        shape = _shape(case)
+        poses = [Pose.from_features(f) for f in y]
+        joints = _fk(rest, y)
+        held = y[:, list(CONTACT_CHANNELS)] > 0.5
+        assert held.any(), case["prompt"]
+        for t, p in enumerate(poses):
+            # every field agrees: wrist-to-object is the FK wrist minus the box centre
+            assert np.allclose(p.object_centre, shape.centre_at(p.object_rotation, p.object_translation), atol=1e-5)
+            assert np.allclose(p.wrist_to_object, joints[t, [20, 21]] - p.object_centre, atol=1e-5)
+        for t in range(len(y) - 1):
+            a, b = poses[t], poses[t + 1]
+            if not held[t].any() and not held[t + 1].any():
+                # unheld: no drift or turn; only falling or rising onto its support
+                assert np.array_equal(a.object_translation[:2], b.object_translation[:2]), (case["prompt"], t)
+                assert np.array_equal(a.object_rotation, b.object_rotation), (case["prompt"], t)
+            for h, w in ((0, 20), (1, 21)):
+                if held[t, h] and held[t + 1, h] and not held[t:t + 2, 1 - h].any():
+                    # one hand holds: the object is rigid in its frame
+                    da = np.linalg.norm(joints[t, w] - a.object_centre)
+                    db = np.linalg.norm(joints[t + 1, w] - b.object_centre)
+                    assert abs(da - db) < 1e-4, (case["prompt"], t)
+        # the stage never moves what it does not own: the pelvis and the legs
+        legs = [ROT6D_JOINT_COLUMNS[j] for j in (1, 2, 4, 5, 7, 8, 10, 11)]
+        for col in legs + [FIELD["root_transl"].start]:
+            np.testing.assert_array_equal(y[:, col:col + 3], x[:, col:col + 3])
+        assert len(y) == len(x) and fps > 0
+
+
+def test_engine_frames_round_trip_through_features(fixture):
+    """features_from_engine reads the frame fields as the engine writes them."""
+    _, rest, cases = fixture
+    x = cases[0][1][:20]
+    poses = [Pose.from_features(f) for f in x]
+    from comgrasp_train.contact_stage import matrix_to_quaternion
+
+    q = lambda ms: np.stack([matrix_to_quaternion(m) for m in ms])  # noqa: E731
+    frames = {
+        "root_translation": np.stack([p.pelvis for p in poses]),
+        "root_rotation": q([p.local[0] for p in poses]),
+        "body_rotations": np.stack([q(p.local[1:22]) for p in poses]),
+        "left_hand_rotations": np.stack([q(p.local[25:40]) for p in poses]),
+        "right_hand_rotations": np.stack([q(p.local[40:55]) for p in poses]),
+        "object_translation": np.stack([p.object_translation for p in poses]),
+        "object_rotation": q([p.object_rotation for p in poses]),
+        "object_centre": np.stack([p.object_centre for p in poses]),
+        "left_wrist_to_object": np.stack([p.wrist_to_object[0] for p in poses]),
+        "right_wrist_to_object": np.stack([p.wrist_to_object[1] for p in poses]),
+        "contact_probability": np.stack([p.contact_probability for p in poses]),
+    }
+    back = [Pose.from_features(f) for f in features_from_engine(frames)]
+    for a, b in zip(poses, back):
+        np.testing.assert_allclose(b.local, a.local, atol=1e-6)
+        np.testing.assert_allclose(b.object_rotation, a.object_rotation, atol=1e-6)
+        np.testing.assert_allclose(b.pelvis, a.pelvis, atol=1e-6)
+        assert np.array_equal(b.contact, a.contact)
+    assert np.allclose(quaternion_to_matrix(np.array([0.0, 0.0, 0.0, 1.0])), np.eye(3))
+
+
+# ---- hand-made motions ---------------------------------------------------------------------
+
+
+def _still_motion(rest, T: int, object_at, contact_right) -> np.ndarray:
+    """A subject standing still in the rest pose (turned z up, facing +y), a cube at
+    ``object_at``, the right hand's contact flag per frame."""
+    root = np.array([[-1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # rest (y up, z forward) -> z up, +y forward
+    x = np.zeros((T, 335), np.float32)
+    for j, col in ROT6D_JOINT_COLUMNS.items():
+        m = root if j == 0 else np.eye(3)
+        x[:, col:col + 6] = m[:2].reshape(6)
+    x[:, FIELD["root_transl"].slice] = [0.0, 0.0, 1.0]
+    x[:, FIELD["object_rot6d"].slice] = np.eye(3)[:2].reshape(6)
+    x[:, FIELD["object_transl"].slice] = object_at
+    x[:, FIELD["object_centre"].slice] = object_at
+    x[:, CONTACT_CHANNELS[1]] = np.asarray(contact_right, np.float32)
+    return x
+
+
+@pytest.fixture(scope="module")
+def rest(fixture):
+    return fixture[1]
+
+
+def _right_wrist(rest, x):
+    return _fk(rest, x)[:, 21]
+
+
+def test_a_flicker_changes_nothing_and_an_object_out_of_reach_is_not_grasped(rest):
+    shape = ObjectShape.of([0, 0, 0], [0.03, 0.03, 0.03])
+    flick = np.zeros(40)
+    flick[10] = flick[20:22] = 1.0  # one and two frames: below ON_FRAMES... and a reach abandoned
+    wrist = _right_wrist(rest, _still_motion(rest, 1, [0, 0, 0], [0]))[0]
+    near = wrist + np.array([0.0, 0.25, -0.05])
+    x = _still_motion(rest, 40, near, flick)
+    events = Counter()
+    y = apply_contact_stage(x, rest, 30.0, shape, events)
+    assert not (y[:, list(CONTACT_CHANNELS)] > 0.5).any()
+    assert events["reach"] == 1 and events["reach_abandoned"] == 1 and events["capture"] == 0
+    np.testing.assert_array_equal(y[:, FIELD["object_transl"].slice], x[:, FIELD["object_transl"].slice])
+    # far away (3 m): no reach at all, the arm is untouched
+    far = _still_motion(rest, 40, wrist + np.array([0.0, 3.0, 0.0]), np.ones(40))
+    events = Counter()
+    y = apply_contact_stage(far, rest, 30.0, shape, events)
+    assert events["reach"] == 0 and events["out_of_reach"] > 0
+    np.testing.assert_array_equal(y[:, 21:147], far[:, 21:147])
+
+
+def test_a_grasp_reaches_holds_rigidly_and_lets_go_onto_the_support(rest):
+    shape = ObjectShape.of([0, 0, 0], [0.03, 0.03, 0.03])
+    wrist = _right_wrist(rest, _still_motion(rest, 1, [0, 0, 0], [0]))[0]
+    start = wrist + np.array([0.0, 0.2, -0.1])  # in reach, not touching
+    flags = np.zeros(90)
+    flags[5:60] = 1.0
+    x = _still_motion(rest, 90, start, flags)
+    events = Counter()
+    y = apply_contact_stage(x, rest, 30.0, shape, events)
+    held = y[:, CONTACT_CHANNELS[1]] > 0.5
+    assert events["capture"] == 1 and events["release"] == 1 and held.any()
+    wrists = _right_wrist(rest, y)
+    centre = y[:, FIELD["object_centre"].slice]
+    d = np.linalg.norm(wrists - centre, axis=1)
+    assert d[held].max() - d[held].min() < 1e-4  # rigid
+    assert d[held].max() < 0.03 + 0.12  # the wrist came to the object
+    # it started on a support at its first height (a table top); let go near there, it
+    # lands back on it and never hangs in the air
+    after = np.nonzero(held)[0][-1] + 1
+    assert centre[after:, 2].max() <= centre[after, 2] + 1e-9
+    last = Pose.from_features(y[-1])
+    bottom = shape.bottom_at(last.object_rotation, last.object_translation)
+    assert abs(bottom - (start[2] - 0.03)) < 1e-5
+
+
+def test_arm_ik_puts_the_wrist_on_target_and_keeps_the_hand(rest):
+    skel = Skeleton(rest)
+    pose = Pose.from_features(_still_motion(rest, 1, [0, 0, 0], [0])[0])
+    glob, joints = skel.forward(pose.local, pose.pelvis)
+    target = joints[21] + np.array([-0.15, 0.15, -0.1])  # inward, forward, down: in reach
+    arm_ik(pose.local, glob, joints, 1, target)
+    glob2, joints2 = skel.forward(pose.local, pose.pelvis)
+    assert np.linalg.norm(joints2[21] - target) < 1e-9
+    np.testing.assert_allclose(glob2[21], glob[21], atol=1e-12)  # the hand keeps its rotation
+    np.testing.assert_allclose(joints2[40:55] - joints2[21], joints[40:55] - joints[21], atol=1e-12)
+
+
+def test_a_stage_is_per_stream(rest):
+    """Two stages never share state: the same input gives the same output."""
+    shape = ObjectShape.of([0, 0, 0], [0.03, 0.03, 0.03])
+    x = _still_motion(rest, 30, [0.2, 0.4, 0.8], np.r_[np.zeros(5), np.ones(25)])
+    a, b = ContactStage(shape, 30.0), ContactStage(shape, 30.0)
+    skel = Skeleton(rest)
+    for f in x:
+        pa, pb = Pose.from_features(f), Pose.from_features(f)
+        a.apply(skel, pa)
+        b.apply(skel, pb)
+        np.testing.assert_array_equal(pa.to_features(), pb.to_features())
