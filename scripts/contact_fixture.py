@@ -2,8 +2,9 @@
 (src/contact.rs) and its Python reference (comgrasp_train.contact_stage) to each other.
 
 Each case is a real motion: the release engine's raw output (`comgrasp generate --raw`) for
-one prompt and seed on models/default, as de-normalized 335-D features (`input`), and what
-the Python stage makes of it (`output`). training/tests/test_contact_stage.py checks that
+one prompt and seed on models/default, as de-normalized 335-D features (`input`), the
+object's surface samples from the bundle's mesh (`surface`: points and normals, float32),
+and what the Python stage makes of it (`output`). training/tests/test_contact_stage.py checks that
 the Python stage still gives `output`; tests/contact_stage.rs that the engine's stage gives
 it within the manifest's frame tolerance. The motions do not need to come from the current
 default model: they only have to exercise the stage's rules, which this script checks
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from comgrasp_train.contact_stage import ObjectShape, apply_contact_stage, features_from_engine
+from comgrasp_train.contact_stage import ObjectShape, apply_contact_stage, features_from_engine, read_obj, surface_from_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "tests" / "fixtures" / "contact_stage"
@@ -56,14 +57,20 @@ def main() -> int:
             frames = dict(np.load(npz))
             obj = objects[name]
             x = features_from_engine(frames)
+            # The surface as the engine samples the bundle's mesh, stored (and used) as float32.
+            surface = np.concatenate(surface_from_mesh(*read_obj((BUNDLE / obj["mesh"]).read_text())), 1)
+            surface = surface.astype(np.float32)
+            shape = ObjectShape.of(obj["centre"], obj["half_extents"],
+                                   (surface[:, :3].astype(np.float64), surface[:, 3:].astype(np.float64)))
             events = Counter()
-            y = apply_contact_stage(x, rest, float(frames["fps"]), ObjectShape.of(obj["centre"], obj["half_extents"]),
-                                    events)
+            y = apply_contact_stage(x, rest, float(frames["fps"]), shape, events)
             np.save(OUT / f"case{k}_input.npy", x)
             np.save(OUT / f"case{k}_output.npy", y)
-            cases.append({"prompt": prompt, "seed": seed, "object": name, "centre": obj["centre"],
-                          "half_extents": obj["half_extents"], "input": f"case{k}_input.npy",
-                          "output": f"case{k}_output.npy", "frames": len(x), "events": dict(sorted(events.items()))})
+            np.save(OUT / f"case{k}_surface.npy", surface)
+            cases.append({"prompt": prompt, "seed": seed, "object": name, "mesh": obj["mesh"], "centre": obj["centre"],
+                          "half_extents": obj["half_extents"], "surface": f"case{k}_surface.npy",
+                          "input": f"case{k}_input.npy", "output": f"case{k}_output.npy", "frames": len(x),
+                          "events": dict(sorted(events.items()))})
             total += events
             print(f"case{k}: {prompt!r} seed {seed}, {name}, {len(x)} frames: {dict(events)}")
     missing = [r for r in RULES if not total[r]]

@@ -14,7 +14,7 @@
 //!   it falls under gravity and lands there; it never hangs in the air.
 //! * **Reach correction.** When a grasp starts, the wrist's target lies from the object's
 //!   centre along the model's own wrist-to-object vector (its predicted grasp), as far out
-//!   as puts the hand's nearest joint [`GRIP_GAP`] off the object's box. Two-bone IK on the
+//!   as puts the hand's nearest joint [`GRIP_GAP`] off the object's surface. Two-bone IK on the
 //!   shoulder and elbow (plus a spine bow up to [`MAX_BOW`] when the arm alone is too short)
 //!   blends the wrist onto it over a few frames; the wrist keeps its global rotation, so
 //!   the hand's orientation and the fingers are the model's. A target beyond
@@ -31,7 +31,10 @@
 //! object pose and the catalogue's centre offset, and `wrist_to_object` is the FK wrist
 //! minus that centre.
 
+use std::sync::Arc;
+
 use crate::assemble::Pose;
+use crate::bundle::obj::Mesh;
 use crate::bundle::ObjectEntry;
 use crate::frame::CG_NUM_JOINTS;
 use crate::skeleton::{
@@ -53,8 +56,11 @@ pub const FADE_SPEED: f64 = 0.3;
 pub const REACH_LIMIT: f64 = 0.98;
 /// A reach that ends this far from its target (the body moved away) is abandoned, m.
 const REACH_MISS: f64 = 0.02;
-/// A grasp puts the hand's nearest joint this far off the object's box, m.
+/// A grasp puts the hand's nearest joint this far off the object's surface (its box when
+/// the surface is unknown), m.
 pub const GRIP_GAP: f64 = 0.005;
+/// Bisection steps of the grip distance (within ~4 µm of the longest grip).
+const GRIP_SEARCH_STEPS: u32 = 16;
 /// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
 pub const GRIP_MARGIN: f64 = 0.12;
 /// Largest forward bow of the spine the reach may add, radians (split over the three
@@ -91,18 +97,107 @@ const ARMS: [[usize; 4]; 2] = [[13, 16, 18, 20], [14, 17, 19, 21]];
 /// First of each hand's 15 finger joints (SMPL-X).
 const HAND_FIRST: [usize; 2] = [25, 40];
 
-/// The object's box in its own frame: what the stage needs to rest it on a support.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// The object's box in its own frame (what the stage needs to rest it on a support) and,
+/// when known, points on its surface (where a hand touches it).
+#[derive(Clone, Debug, PartialEq)]
 pub struct ObjectShape {
     /// Bounding-box centre in the object frame, m.
     pub centre: Vec3,
     /// Half extents of the bounding box along the object's axes, m.
     pub half_extents: Vec3,
+    /// Without it the grasp puts the hand against the box: up to 0.73 r off a sphere.
+    pub surface: Option<Arc<ObjectSurface>>,
+}
+
+/// Points on an object's surface, each with its face's outward unit normal, in the object
+/// frame, at most about [`SURFACE_SPACING`] apart: the surface distance of a point near the
+/// object is its distance to the plane of the nearest sample (exact on flat faces, second
+/// order on curved ones). Built from the bundle's mesh ([`ObjectSurface::from_mesh`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObjectSurface {
+    pub points: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+}
+
+/// Largest spacing of [`ObjectSurface`] samples along a triangle's edges, m.
+pub const SURFACE_SPACING: f64 = 0.01;
+
+impl ObjectSurface {
+    /// Samples each triangle on a grid: with its corners turned so that `ab` is its shortest
+    /// edge, `n1 = ⌈|ab|/s⌉` steps along `ab` and `n2 = ⌈|ac|/s⌉` along `ac` (`s` =
+    /// [`SURFACE_SPACING`]), at `a + u·ab + v·ac` with `u = (i + ½)/n1`, `v = (1 − u)(j + ½)/n2`.
+    /// A long sliver gets a row of samples, not a square grid of them. Zero-area triangles
+    /// have no normal and are skipped.
+    pub fn from_mesh(mesh: &Mesh) -> ObjectSurface {
+        let mut out = ObjectSurface { points: Vec::new(), normals: Vec::new() };
+        let p = |i: u32| mesh.positions[i as usize].map(f64::from);
+        for t in &mesh.triangles {
+            let c = [p(t[0]), p(t[1]), p(t[2])];
+            let edge = |k: usize| norm(&sub(&c[(k + 1) % 3], &c[k]));
+            // the turn (a, b, c) -> (b, c, a) keeps the orientation, so the normal
+            let first = (0..3).fold(0, |best, k| if edge(k) < edge(best) { k } else { best });
+            let (a, b, cc) = (c[first], c[(first + 1) % 3], c[(first + 2) % 3]);
+            let (ab, ac) = (sub(&b, &a), sub(&cc, &a));
+            let n = cross(&ab, &ac);
+            let area2 = norm(&n);
+            let longest = (0..3).map(edge).fold(0.0, f64::max);
+            if !(area2 > 1e-12 * longest * longest && area2.is_finite()) {
+                continue;
+            }
+            let normal = scale(&n, 1.0 / area2);
+            let n1 = ((norm(&ab) / SURFACE_SPACING).ceil() as usize).max(1);
+            let n2 = ((norm(&ac) / SURFACE_SPACING).ceil() as usize).max(1);
+            for i in 0..n1 {
+                let u = (i as f64 + 0.5) / n1 as f64;
+                for j in 0..n2 {
+                    let v = (1.0 - u) * (j as f64 + 0.5) / n2 as f64;
+                    out.points.push(add(&a, &add(&scale(&ab, u), &scale(&ac, v))));
+                    out.normals.push(normal);
+                }
+            }
+        }
+        out
+    }
+
+    /// Signed distance of `p` (object frame) from the plane of the nearest sample: > 0
+    /// outside; `None` without samples.
+    pub fn distance(&self, p: &Vec3) -> Option<f64> {
+        let mut best = (f64::INFINITY, 0usize);
+        for (k, s) in self.points.iter().enumerate() {
+            let d = sub(p, s);
+            let q = dot(&d, &d);
+            if q < best.0 {
+                best = (q, k);
+            }
+        }
+        (best.0.is_finite()).then(|| dot(&sub(p, &self.points[best.1]), &self.normals[best.1]))
+    }
 }
 
 impl ObjectShape {
+    /// The catalogue entry's box; add its mesh's surface with [`Self::with_surface`].
     pub fn from_entry(e: &ObjectEntry) -> ObjectShape {
-        ObjectShape { centre: e.centre.map(f64::from), half_extents: e.half_extents.map(|v| f64::from(v.abs())) }
+        ObjectShape {
+            centre: e.centre.map(f64::from),
+            half_extents: e.half_extents.map(|v| f64::from(v.abs())),
+            surface: None,
+        }
+    }
+
+    pub fn with_surface(mut self, surface: Arc<ObjectSurface>) -> ObjectShape {
+        self.surface = Some(surface);
+        self
+    }
+
+    /// How far `p` (relative to the box centre, in the object frame) is outside the
+    /// object: its box distance, or its surface distance when that is larger (the object
+    /// lies inside its box, so outside the box the larger one is the better estimate).
+    pub fn distance(&self, p: &Vec3) -> f64 {
+        let d = box_distance(p, &self.half_extents);
+        match self.surface.as_deref().and_then(|s| s.distance(&add(p, &self.centre))) {
+            Some(surface) => d.max(surface),
+            None => d,
+        }
     }
 
     /// The box centre in the world, the object's origin at `pos` turned by `rot`.
@@ -457,6 +552,19 @@ impl ContactStage {
                         (self.rot, self.pos) = (rot, pos);
                     }
                 }
+                // Two hands: the object takes the mean of their carried poses, so neither
+                // hand holds it where it grasped it; each is brought (IK) to its own grip on
+                // that pose, the offset joining its correction, which fades once it lets go.
+                if self.hands.iter().all(|h| h.phase == Phase::Holding) {
+                    for h in 0..2 {
+                        let hand = &mut self.hands[h];
+                        let grip = mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0));
+                        let target = add(&self.pos, &mat_vec(&self.rot, &grip));
+                        hand.correction = add(&hand.correction, &sub(&target, &joints[ARMS[h][3]]));
+                        arm_ik(&mut pose.local, &global, &joints, h, &target);
+                    }
+                    skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+                }
                 self.set_down_on_table();
             }
             None => self.settle(),
@@ -657,7 +765,7 @@ fn arm_length(skeleton: &Skeleton, h: usize) -> f64 {
 /// the model's own wrist-to-object vector (its predicted grasp; never from below the
 /// support); its length puts the hand, as the model holds it (`hand`: the wrist's and the
 /// 15 finger joints' offsets from the wrist, world), where its nearest joint is
-/// [`GRIP_GAP`] off the object's box: touching it, no joint inside. At most the box's
+/// [`GRIP_GAP`] off the object ([`ObjectShape::distance`]): touching it, no joint inside. At most the box's
 /// half diagonal + [`GRIP_MARGIN`].
 fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos: &Vec3, hand: &[Vec3; 16]) -> Vec3 {
     let centre = shape.centre_at(rot, pos);
@@ -669,15 +777,24 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
     let n = norm(&v);
     let dir = if n > 1e-6 { scale(&v, 1.0 / n) } else { [0.0, 0.0, 1.0] };
     let rt = transpose(rot);
-    // Nearest hand joint's distance to the box with the wrist at `len` along `dir`.
+    // Nearest hand joint's distance to the object with the wrist at `len` along `dir`. The
+    // box distance bounds a joint's distance from below, so a joint whose box distance is
+    // no nearer than the nearest so far skips the surface search (same result, ~16× less).
     let gap = |len: f64| {
         let w = scale(&dir, len);
-        hand.iter().map(|o| box_distance(&mat_vec(&rt, &add(&w, o)), &shape.half_extents)).fold(f64::INFINITY, f64::min)
+        let mut best = f64::INFINITY;
+        for o in hand {
+            let p = mat_vec(&rt, &add(&w, o));
+            if box_distance(&p, &shape.half_extents) < best {
+                best = best.min(shape.distance(&p));
+            }
+        }
+        best
     };
     let hi = norm(&shape.half_extents) + GRIP_MARGIN;
     let (mut lo, mut up) = (0.0, hi);
     if gap(hi) >= GRIP_GAP {
-        for _ in 0..30 {
+        for _ in 0..GRIP_SEARCH_STEPS {
             let mid = 0.5 * (lo + up);
             if gap(mid) >= GRIP_GAP {
                 up = mid;
@@ -859,8 +976,10 @@ mod tests {
 
     fn run(script: &Script, left_wrist: Option<&dyn Fn(usize) -> Vec3>) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
         let s = skeleton();
-        let mut stage =
-            ContactStage::new(ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05] }, 30.0);
+        let mut stage = ContactStage::new(
+            ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05], surface: None },
+            30.0,
+        );
         let mut out = Vec::new();
         for t in 0..script.frames {
             // The raw pose: arms put by IK where the script says (from the rest pose).
@@ -1035,6 +1154,30 @@ mod tests {
         // The left hand carries it up: held 25+ cm above the table at the end.
         let end = frames.last().unwrap().0;
         assert!(end.object_translation[2] > OBJECT[2] + 0.2, "{:?}", end.object_translation);
+    }
+
+    #[test]
+    fn a_surface_measures_how_far_outside_a_point_is() {
+        // An 8 cm cube as OBJ triangles (outward, counter-clockwise), centred at (0, 0, 0.04).
+        let text = "v -.04 -.04 0\nv .04 -.04 0\nv .04 .04 0\nv -.04 .04 0\n\
+                    v -.04 -.04 .08\nv .04 -.04 .08\nv .04 .04 .08\nv -.04 .04 .08\n\
+                    f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n\
+                    f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
+        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(text).unwrap());
+        // 12 triangles with 8 cm and 11.3 cm edges: 8 x 12 samples each
+        assert_eq!(surface.points.len(), 12 * 8 * 12);
+        for n in &surface.normals {
+            assert!((norm(n) - 1.0).abs() < 1e-12);
+        }
+        let d = |p: Vec3| surface.distance(&p).unwrap();
+        // (the vertices are f32: 1e-6)
+        assert!((d([0.0, 0.0, 0.13]) - 0.05).abs() < 1e-6, "above the top");
+        assert!((d([0.07, 0.01, 0.04]) - 0.03).abs() < 1e-6, "beside a side");
+        assert!((d([0.0, 0.0, 0.05]) + 0.03).abs() < 1e-6, "inside, under the top");
+        assert_eq!(ObjectSurface { points: vec![], normals: vec![] }.distance(&[0.0; 3]), None);
+        // The shape: the box distance where the surface has none, the larger of the two.
+        let shape = ObjectShape { centre: [0.0, 0.0, 0.04], half_extents: [0.04; 3], surface: Some(Arc::new(surface)) };
+        assert!((shape.distance(&[0.0, 0.0, 0.09]) - 0.05).abs() < 1e-6);
     }
 
     #[test]

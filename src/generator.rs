@@ -50,7 +50,7 @@ use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
 use crate::config::{EngineConfig, StreamConfig};
-use crate::contact::{heading, smoothstep, ContactStage, ObjectShape};
+use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurface};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
@@ -133,6 +133,8 @@ pub struct Pipeline {
     group: usize,
     /// Where the most recent ended streams left off, newest last (`continue_from`).
     ended: Mutex<VecDeque<(u64, Arc<Continuation>)>>,
+    /// Each catalogue object's surface (from its mesh), for the contact stage's grasps.
+    surfaces: Vec<Arc<ObjectSurface>>,
 }
 
 /// Ended streams a new one can continue from (the oldest is forgotten first).
@@ -175,7 +177,25 @@ impl Pipeline {
         let overlap = overlap::overlaps(&bundle.step, &bundle.decoder, config.runtime.overlap);
         let group = decode_group::tokens_per_decode(&bundle.step, &bundle.decoder, config.runtime.decode_group);
         let ended = Mutex::new(VecDeque::with_capacity(KEEP_ENDED));
-        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group, ended })
+        let surfaces = m
+            .objects
+            .iter()
+            .map(|o| {
+                let bytes = bundle.file_bytes(&o.mesh)?;
+                let path = bundle.origin().path_of(&o.mesh);
+                let text = std::str::from_utf8(&bytes).map_err(|_| Error::bundle(&path, "mesh is not UTF-8 text"))?;
+                let mesh = crate::bundle::obj::parse(text).map_err(|e| Error::bundle(&path, e))?;
+                Ok(Arc::new(ObjectSurface::from_mesh(&mesh)))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Pipeline { end_ids: m.end_ids(), pad_ids, assembler, bundle, overlap, group, ended, surfaces })
+    }
+
+    /// A fresh contact-consistency stage for catalogue object `index` (its box and the
+    /// surface of its mesh), as a stream on this pipeline runs it.
+    pub fn contact_stage(&self, index: usize) -> ContactStage {
+        let shape = ObjectShape::from_entry(&self.bundle.manifest.objects[index]);
+        ContactStage::new(shape.with_surface(Arc::clone(&self.surfaces[index])), self.bundle.manifest.fps)
     }
 
     fn continuation(&self, id: u64) -> Option<Arc<Continuation>> {
@@ -319,11 +339,7 @@ impl Generator {
                 StreamObject { index, name: objects[index].name.clone(), alias }
             }
         };
-        let contact = if c.raw_output.unwrap_or(false) {
-            None
-        } else {
-            Some(ContactStage::new(ObjectShape::from_entry(&objects[object.index]), b.manifest.fps))
-        };
+        let contact = if c.raw_output.unwrap_or(false) { None } else { Some(pipe.contact_stage(object.index)) };
         let anchor = match &continuation {
             Some(k) => {
                 let p = &k.pose;

@@ -254,8 +254,8 @@ fn a_continued_stream_starts_where_the_earlier_one_left_off() {
 #[test]
 fn the_python_reference_stage_gives_the_same_frames() {
     use comgrasp::assemble::{FrameAssembler, Pose};
-    use comgrasp::bundle::npy;
-    use comgrasp::contact::{ContactStage, ObjectShape};
+    use comgrasp::bundle::{npy, obj};
+    use comgrasp::contact::{ContactStage, ObjectShape, ObjectSurface};
     use comgrasp::skeleton::SMPLX_PARENTS;
 
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/contact_stage");
@@ -278,8 +278,31 @@ fn the_python_reference_stage_gives_the_same_frames() {
     for case in cases {
         let (input, output) = (read(&case["input"]), read(&case["output"]));
         assert_eq!(input.len(), output.len());
-        let shape =
-            ObjectShape { centre: vec3(&case["centre"]), half_extents: vec3(&case["half_extents"]).map(f64::abs) };
+        // The surface the Python stage used (float32 samples of the bundle's mesh); the
+        // engine samples the same mesh into the same points and normals.
+        let samples = read(&case["surface"]);
+        let surface = ObjectSurface {
+            points: samples.chunks_exact(6).map(|c| [c[0], c[1], c[2]].map(f64::from)).collect(),
+            normals: samples.chunks_exact(6).map(|c| [c[3], c[4], c[5]].map(f64::from)).collect(),
+        };
+        let mesh_path =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default").join(case["mesh"].as_str().unwrap());
+        let engine_surface =
+            ObjectSurface::from_mesh(&obj::parse(&std::fs::read_to_string(mesh_path).unwrap()).unwrap());
+        assert_eq!(engine_surface.points.len(), surface.points.len(), "{}: surface samples", case["object"]);
+        for (a, b) in engine_surface
+            .points
+            .iter()
+            .chain(&engine_surface.normals)
+            .zip(surface.points.iter().chain(&surface.normals))
+        {
+            assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-6), "{}: sample {a:?} vs {b:?}", case["object"]);
+        }
+        let shape = ObjectShape {
+            centre: vec3(&case["centre"]),
+            half_extents: vec3(&case["half_extents"]).map(f64::abs),
+            surface: Some(std::sync::Arc::new(surface)),
+        };
         let mut stage = ContactStage::new(shape, fps);
         let n = input.len() / width;
         let mut worst = 0.0f64;

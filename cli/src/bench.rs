@@ -61,7 +61,6 @@ use comgrasp::assemble::Pose;
 use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::bundle::{choose_object, N_STREAMS};
 use comgrasp::config::RuntimeOptions;
-use comgrasp::contact::{ContactStage, ObjectShape};
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
 use comgrasp::model::{decode_group, MAX_DECODE_GROUP};
@@ -508,7 +507,7 @@ fn bench(o: &Args) -> Result<Value, String> {
     // The streams run the contact-consistency stage on the prompt's object: so do these frames.
     let objects = &bundle.manifest.objects;
     let (object, _) = choose_object(objects, &o.prompt).ok_or("the bundle's object catalogue is empty")?;
-    let mut stage = ContactStage::new(ObjectShape::from_entry(&objects[object]), bundle.manifest.fps);
+    let mut stage = pipeline.contact_stage(object);
     for (c, frames) in expected.chunks_mut(f).enumerate() {
         let (mut stage_time, t) = (Duration::ZERO, Instant::now());
         for (i, fr) in frames.iter_mut().enumerate() {

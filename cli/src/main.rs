@@ -10,7 +10,6 @@ mod body_mesh;
 mod generate;
 mod gltf;
 mod npz;
-mod obj;
 mod png;
 mod preview;
 mod scene;

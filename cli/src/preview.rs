@@ -358,8 +358,8 @@ mod tests {
     /// right hand only, object drawn.
     #[test]
     fn a_standing_body_is_drawn_upright() {
-        use crate::obj::Mesh;
         use crate::scene::SceneObject;
+        use comgrasp::bundle::obj::Mesh;
         use comgrasp::contact::ObjectShape;
         use comgrasp::CoordinateSystem;
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/tiny/manifest.json");
@@ -397,7 +397,7 @@ mod tests {
             object: SceneObject {
                 name: "cube".into(),
                 mesh: cube,
-                shape: ObjectShape { centre: [0.025; 3], half_extents: [0.025; 3] },
+                shape: ObjectShape { centre: [0.025; 3], half_extents: [0.025; 3], surface: None },
             },
         };
         let p = render(&scene, &[f, f]).unwrap();

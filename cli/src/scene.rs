@@ -11,7 +11,7 @@ use comgrasp::Bundle;
 use comgrasp::CoordinateSystem;
 use comgrasp::Frame;
 
-use crate::obj;
+use comgrasp::bundle::obj;
 
 pub struct Scene {
     pub coords: CoordinateSystem,

@@ -10,6 +10,7 @@
 pub mod embedded;
 pub mod manifest;
 pub mod npy;
+pub mod obj;
 pub mod select;
 pub mod source;
 pub mod verify;

@@ -40,7 +40,8 @@ def fixture():
 
 
 def _shape(case: dict) -> ObjectShape:
-    return ObjectShape.of(case["centre"], case["half_extents"])
+    surface = np.load(FIXTURES / case["surface"]).astype(np.float64)
+    return ObjectShape.of(case["centre"], case["half_extents"], (surface[:, :3], surface[:, 3:]))
 
 
 def test_the_fixtures_are_what_the_stage_makes_and_every_rule_fires(fixture):

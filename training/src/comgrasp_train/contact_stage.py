@@ -16,6 +16,7 @@ why; the comments here only mark where the code must stay in step with the Rust.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -35,6 +36,8 @@ FADE_SPEED = 0.3
 REACH_LIMIT = 0.98
 REACH_MISS = 0.02
 GRIP_GAP = 0.005
+GRIP_SEARCH_STEPS = 16
+SURFACE_SPACING = 0.01
 GRIP_MARGIN = 0.12
 MAX_BOW = 0.6
 BOW_REACH = 0.94
@@ -206,33 +209,97 @@ class Pose:
         return x
 
 
+def read_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """``v`` and ``f`` lines of an OBJ mesh (as ``bundle::obj::parse``): float32 vertices and
+    fan-triangulated faces (0-based; negative references are relative)."""
+    vertices, triangles = [], []
+    for line in text.splitlines():
+        words = line.split("#")[0].split()
+        if words[:1] == ["v"]:
+            vertices.append([np.float32(w) for w in words[1:4]])
+        elif words[:1] == ["f"]:
+            idx = [int(w.split("/")[0]) for w in words[1:]]
+            idx = [i - 1 if i > 0 else len(vertices) + i for i in idx]
+            triangles += [[idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1)]
+    return np.asarray(vertices, np.float32).reshape(-1, 3), np.asarray(triangles, np.int64).reshape(-1, 3)
+
+
+def surface_from_mesh(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Surface samples (points, outward unit normals; object frame) as
+    ``contact::ObjectSurface::from_mesh``: corners turned so that ``ab`` is the shortest
+    edge, a grid of ``ceil(|ab|/s)`` by ``ceil(|ac|/s)`` samples (``s = SURFACE_SPACING``)."""
+    v = np.asarray(vertices, np.float32).astype(np.float64)
+    points, normals = [], []
+    for t in np.asarray(triangles):
+        c = v[t]
+        edges = [_norm(c[(k + 1) % 3] - c[k]) for k in range(3)]
+        first = 0
+        for k in (1, 2):
+            if edges[k] < edges[first]:
+                first = k
+        a, b, cc = c[first], c[(first + 1) % 3], c[(first + 2) % 3]
+        ab, ac = b - a, cc - a
+        n = np.cross(ab, ac)
+        area2 = _norm(n)
+        longest = max(edges)
+        if not (area2 > 1e-12 * longest * longest and math.isfinite(area2)):
+            continue
+        n1 = max(math.ceil(_norm(ab) / SURFACE_SPACING), 1)
+        n2 = max(math.ceil(_norm(ac) / SURFACE_SPACING), 1)
+        u = np.repeat((np.arange(n1) + 0.5) / n1, n2)[:, None]
+        w = (1.0 - u) * np.tile((np.arange(n2) + 0.5) / n2, n1)[:, None]
+        points.append(a + (ab * u + ac * w))
+        normals.append(np.broadcast_to(n * (1.0 / area2), (n1 * n2, 3)))
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def box_distances(p: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Signed distances of points (..., 3) (from the box centre, box frame) to a box."""
+    q = np.abs(p) - half
+    return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
+
+
 @dataclass(frozen=True)
 class ObjectShape:
-    """The object's box in its own frame: bounding-box centre and half extents, m."""
+    """The object's box in its own frame (bounding-box centre and half extents, m) and,
+    when known, samples of its surface (points, normals), as ``contact::ObjectShape``."""
 
     centre: np.ndarray
     half_extents: np.ndarray
+    surface: tuple[np.ndarray, np.ndarray] | None = None
 
     @staticmethod
-    def of(centre, half_extents) -> ObjectShape:
+    def of(centre, half_extents, surface=None) -> ObjectShape:
         # The bundle stores both as float32, and so do the fixtures.
         return ObjectShape(np.asarray(centre, np.float32).astype(np.float64),
-                           np.abs(np.asarray(half_extents, np.float32).astype(np.float64)))
+                           np.abs(np.asarray(half_extents, np.float32).astype(np.float64)), surface)
 
     @staticmethod
     def for_meta(meta: dict) -> ObjectShape:
-        """A prepared sequence's object: its catalogue entry (as the bundle's ``objects``
-        section: mesh bounds centre, the catalogue's half extents), else its mesh's bounds."""
+        """A prepared sequence's object as a bundle carries it: a catalogue object's entry
+        (mesh bounds centre, the catalogue's half extents) and the surface of the mesh the
+        bundle ships; another object's mesh, its bounds and surface."""
         from .objects.catalogue import CATALOGUE
 
-        spec = CATALOGUE.get(meta.get("object", ""))
-        if spec is not None:
-            lo, hi = spec.shape.mesh().bounds
-            return ObjectShape.of((lo + hi) / 2.0, spec.half_extents)
+        name = meta.get("object", "")
+        if name in CATALOGUE:
+            return _catalogue_shape(name)
         import trimesh
 
-        lo, hi = trimesh.load(Path(meta["object_mesh"]), force="mesh", process=False).bounds
-        return ObjectShape.of((lo + hi) / 2.0, (hi - lo) / 2.0)
+        m = trimesh.load(Path(meta["object_mesh"]), force="mesh", process=False)
+        lo, hi = m.bounds
+        return ObjectShape.of((lo + hi) / 2.0, (hi - lo) / 2.0, surface_from_mesh(m.vertices, m.faces))
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        """How far points (..., 3) (from the box centre, object frame) are outside the
+        object: the box distance, or the surface distance where that is larger."""
+        d = box_distances(p, self.half_extents)
+        if self.surface is None:
+            return d
+        points, normals = self.surface
+        q = np.asarray(p) + self.centre
+        nearest = np.argmin(((q[..., None, :] - points) ** 2).sum(-1), axis=-1)
+        return np.maximum(d, ((q - points[nearest]) * normals[nearest]).sum(-1))
 
     def centre_at(self, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
         return pos + rot @ self.centre
@@ -423,6 +490,14 @@ class ContactStage:
                 again = self._carried(glob, joints)
                 if again is not None:
                     self.rot, self.pos = again
+            if all(h.phase == "holding" for h in self.hands):
+                # two hands: each to its own grip on the mean pose (the offset joins its correction)
+                for h in range(2):
+                    hand = self.hands[h]
+                    target = self.pos + self.rot @ (hand.rel_rot.T @ -hand.rel_pos)
+                    hand.correction = hand.correction + (target - joints[ARMS[h][3]])
+                    arm_ik(pose.local, glob, joints, h, target)
+                glob, joints = skel.forward(pose.local, pose.pelvis)
             self._set_down_on_table()
         else:
             self._settle()
@@ -548,9 +623,15 @@ def needed_bow(joints: np.ndarray, h: int, target: np.ndarray, reach: float):
     return hi, axis
 
 
-def box_distance(p: np.ndarray, half: np.ndarray) -> float:
-    q = np.abs(p) - half
-    return _norm(np.maximum(q, 0.0)) + min(float(q.max()), 0.0)
+@functools.cache
+def _catalogue_shape(name: str) -> ObjectShape:
+    from .export.bundle import OBJECT_MAX_EDGE, object_mesh_obj
+    from .objects.catalogue import CATALOGUE
+
+    spec = CATALOGUE[name]
+    lo, hi = spec.shape.mesh().bounds
+    return ObjectShape.of((lo + hi) / 2.0, spec.half_extents,
+                          surface_from_mesh(*read_obj(object_mesh_obj(name, OBJECT_MAX_EDGE))))
 
 
 def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: np.ndarray, pos: np.ndarray,
@@ -565,13 +646,12 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
     rt = rot.T
 
     def gap(length: float) -> float:
-        w = direction * length
-        return min(box_distance(rt @ (w + o), shape.half_extents) for o in hand)
+        return float(shape.distance((direction * length + hand) @ rt.T).min())
 
     hi = _norm(shape.half_extents) + GRIP_MARGIN
     lo, up = 0.0, hi
     if gap(hi) >= GRIP_GAP:
-        for _ in range(30):
+        for _ in range(GRIP_SEARCH_STEPS):
             mid = 0.5 * (lo + up)
             if gap(mid) >= GRIP_GAP:
                 up = mid

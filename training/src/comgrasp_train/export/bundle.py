@@ -87,6 +87,8 @@ MANIFEST = "manifest.json"
 STEP_FILE = "step.onnx"
 DECODER_FILE = "decoder.onnx"
 OBJECTS_DIR = "objects"
+# Longest mesh edge of the shipped object meshes, m (the contact stage samples their surface).
+OBJECT_MAX_EDGE = 0.05
 NATIVE_STEP_DIR = "native/step"
 NATIVE_DECODER_DIR = "native/decoder"
 CONTACT_THRESHOLD = 0.5
@@ -208,19 +210,23 @@ def skeleton_section(rest_joints: np.ndarray) -> dict:
             "frame": "SMPL-X canonical rest pose: y up, +z forward, subject's left +x"}
 
 
-def write_objects(root: Path, names: Sequence[str], max_edge: float) -> list[dict]:
-    """objects/<name>.obj (no normals, 6 digits) and their catalogue entries. The centre is
-    the bounding-box centre of the catalogue's contact-resolution mesh, as training uses."""
+def object_mesh_obj(name: str, max_edge: float) -> str:
+    """A catalogue object's mesh as a bundle ships it: OBJ text, no normals, 6 digits."""
     import trimesh
 
+    return trimesh.exchange.obj.export_obj(CATALOGUE[name].shape.mesh(max_edge), include_normals=False,
+                                           include_texture=False, digits=6)
+
+
+def write_objects(root: Path, names: Sequence[str], max_edge: float) -> list[dict]:
+    """objects/<name>.obj (``object_mesh_obj``) and their catalogue entries. The centre is
+    the bounding-box centre of the catalogue's contact-resolution mesh, as training uses."""
     (root / OBJECTS_DIR).mkdir(parents=True, exist_ok=True)
     out = []
     for name in names:
         spec = CATALOGUE[name]
         rel = f"{OBJECTS_DIR}/{name}.obj"
-        text = trimesh.exchange.obj.export_obj(spec.shape.mesh(max_edge), include_normals=False,
-                                               include_texture=False, digits=6)
-        (root / rel).write_text(text, encoding="utf-8")
+        (root / rel).write_text(object_mesh_obj(name, max_edge), encoding="utf-8")
         lo, hi = spec.shape.mesh().bounds
         out.append({"name": name, "aliases": list(spec.aliases), "mesh": rel,
                     "centre": [float(x) for x in (lo + hi) / 2.0],
@@ -279,7 +285,7 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
                   text_encoder, normalizer, fps: float = 30.0, sampling: SamplingParams = SamplingParams(),
                   seed: int = 0, rest_joints: np.ndarray = DEFAULT_REST_JOINTS, objects: Sequence[str] = (),
                   provenance: dict | None = None, expected_frames_per_token: int | None = 16,
-                  object_max_edge: float = 0.05, parity_prompts: Sequence[str] = DEFAULT_STEP_PROMPTS,
+                  object_max_edge: float = OBJECT_MAX_EDGE, parity_prompts: Sequence[str] = DEFAULT_STEP_PROMPTS,
                   text_parity_prompts: Sequence[str] = DEFAULT_PARITY_PROMPTS,
                   int8_weights: dict | None = None) -> dict:
     """Write the bundle to ``out_dir`` (replacing an older bundle there) and return its manifest.
