@@ -122,6 +122,12 @@
 // All `CG_ANCHOR_*` bits.
 #define CG_ANCHOR_ALL 7
 
+// Longest bone or joint name, in bytes without the NUL.
+#define CG_BONE_NAME_MAX 255
+
+// Most bones a skeleton may have (and map entries a map).
+#define CG_MAX_BONES 4096
+
 // Longest catalogue name `cg_stream_info.object_name` holds, NUL excluded (bundle
 // verification rejects longer names).
 #define CG_OBJECT_NAME_MAX 63
@@ -197,6 +203,16 @@ typedef enum cg_coordinate_system {
   // Unreal: z up, left-handed, centimetres. (x, y, z) -> 100 * (x, -y, z) (a mirror).
   CG_COORDS_UNREAL = 3,
 } cg_coordinate_system;
+
+// The maps that ship with the engine (`cg_builtin_map_entry`, `cg_retargeter_create_builtin`).
+typedef enum cg_builtin_map {
+  // Unity's `HumanBodyBones` names (`Hips`, `LeftUpperArm`, `LeftIndexProximal`, ...).
+  CG_MAP_UNITY_HUMANOID = 1,
+  // The UE5 Mannequin (`pelvis`, `spine_01`, `upperarm_l`, `index_01_l`, ...).
+  CG_MAP_UE5_MANNEQUIN = 2,
+  // Mixamo rigs (`mixamorig:Hips`, `mixamorig:LeftArm`, ...).
+  CG_MAP_MIXAMO = 3,
+} cg_builtin_map;
 
 // Opaque handle to an engine (a loaded model bundle and its settings). Create with
 // `cg_engine_create`, destroy with `cg_engine_destroy`. Never dereference it.
@@ -321,6 +337,34 @@ typedef struct cg_stream_config {
   uint64_t continue_from;
 } cg_stream_config;
 
+// One bone of the host's skeleton. `rest_translation` / `rest_rotation` (unit quaternion
+// x, y, z, w) are relative to the parent bone (to the world for a root), in the engine's
+// coordinate system and units, in the pose the character is modelled in (T, A or other).
+typedef struct cg_bone_desc {
+  // NUL-terminated UTF-8, unique, at most `CG_BONE_NAME_MAX` bytes.
+  const char *name;
+  // Index of the parent bone in the same array, -1 for a root.
+  int32_t parent;
+  // Rest position relative to the parent.
+  float rest_translation[3];
+  // Rest rotation relative to the parent, unit quaternion x, y, z, w.
+  float rest_rotation[4];
+} cg_bone_desc;
+
+// One map entry: which bone follows which SMPL-X joint (`pelvis`, `left_wrist`,
+// `right_index1`, ...: the manifest's `skeleton.joint_names`).
+typedef struct cg_bone_map_entry {
+  // The SMPL-X joint's name, NUL-terminated.
+  const char *smplx_joint;
+  // The host bone's name, NUL-terminated.
+  const char *bone;
+} cg_bone_map_entry;
+
+// A host skeleton and map prepared for retargeting (`cg_retargeter_create`).
+typedef struct cg_retargeter {
+  uint8_t _private[0];
+} cg_retargeter;
+
 // One frame of generated motion. All positions in the engine's coordinate system
 // (metres, or centimetres for Unreal). Rotations are unit quaternions (x, y, z, w) with
 // w >= 0. In a non-native coordinate system with basis change S and unit scale c (see
@@ -368,6 +412,35 @@ typedef struct cg_frame {
   // World positions of the 55 joints (only when has_joint_positions is 1).
   float joint_positions[CG_NUM_JOINTS][3];
 } cg_frame;
+
+// One bone's pose in a retargeted frame.
+typedef struct cg_bone_pose {
+  // Relative to the parent bone (the world for a root): what a host sets as the bone's
+  // local transform. The translation is the rest one except on the moving root.
+  float local_translation[3];
+  // Unit quaternion x, y, z, w.
+  float local_rotation[4];
+  // In the world (the engine's coordinate system).
+  float world_position[3];
+  float world_rotation[4];
+} cg_bone_pose;
+
+// The object in a retargeted frame: in the world (scaled with the character) and in each
+// hand bone's frame, for a host that attaches it to the holding hand.
+typedef struct cg_retarget_object {
+  // The object's origin and rotation (x, y, z, w) in the world.
+  float world_position[3];
+  float world_rotation[4];
+  // The object in the frame of the bone mapped to each wrist, [left, right] (zero and
+  // identity when that wrist is not mapped).
+  float in_hand_position[2][3];
+  float in_hand_rotation[2][4];
+  // The bone index of each hand, -1 when the wrist is not mapped.
+  int32_t hand_bone[2];
+  // The frame's contact flags: 1 while that hand holds the object.
+  uint8_t contact[2];
+  uint8_t reserved[6];
+} cg_retarget_object;
 
 // What a stream is about (`cg_stream_get_info`). Fixed layout.
 typedef struct cg_stream_info {
@@ -529,6 +602,65 @@ size_t cg_last_error_message(char *buf, size_t len);
 // The status of the most recent failing `cg_*` call on the calling thread (`CG_OK` if
 // none failed yet). Any thread.
 cg_status cg_last_error_status(void);
+
+// Writes the number of entries of a ready map to `*count`. Errors: `CG_ERR_NULL_POINTER`,
+// `CG_ERR_INVALID_ARGUMENT` (not a `cg_builtin_map`). Any thread.
+cg_status cg_builtin_map_size(int32_t which, size_t *count);
+
+// Entry `index` of a ready map: the SMPL-X joint and the bone name that follows it
+// (static NUL-terminated strings, valid for the life of the process). Errors:
+// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_ARGUMENT` (not a map, or index out of range).
+// Any thread.
+cg_status cg_builtin_map_entry(int32_t which,
+                               size_t index,
+                               const char **smplx_joint,
+                               const char **bone);
+
+// Prepares retargeting onto the host's skeleton (`bones`, `n_bones`) with the host's own
+// map (`map`, `n_map`: which bone follows which SMPL-X joint; unmapped bones stay at
+// rest). The skeleton is in `engine`'s coordinate system and units; the retargeter serves
+// frames of any stream of an engine with the same bundle and coordinate system. On success
+// writes a handle to `*out` (destroy it with `cg_retargeter_destroy`). Errors:
+// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_UTF8`, `CG_ERR_INVALID_ARGUMENT` (empty or
+// duplicate names, a parent out of range or a cycle, non-finite values, a non-unit rest
+// rotation, an unknown joint or bone in the map, a joint or bone mapped twice; the message
+// names it), `CG_ERR_INVALID_HANDLE`, `CG_ERR_WRONG_STATE` (an engine without a bundle).
+// Any thread.
+cg_status cg_retargeter_create(struct cg_engine *engine,
+                               const struct cg_bone_desc *bones,
+                               size_t n_bones,
+                               const struct cg_bone_map_entry *map,
+                               size_t n_map,
+                               struct cg_retargeter **out);
+
+// `cg_retargeter_create` with a ready map (`which`: a `cg_builtin_map`): name the bones as
+// the map does; entries whose bone the skeleton lacks are skipped (an avatar without an
+// upper chest, toes or some fingers), so a skeleton that has none of them is an error.
+cg_status cg_retargeter_create_builtin(struct cg_engine *engine,
+                                       const struct cg_bone_desc *bones,
+                                       size_t n_bones,
+                                       int32_t which,
+                                       struct cg_retargeter **out);
+
+// Destroys a retargeter. NULL is accepted (`CG_OK`); a stale handle gives
+// `CG_ERR_INVALID_HANDLE`. Any thread.
+cg_status cg_retargeter_destroy(struct cg_retargeter *retargeter);
+
+// Writes the number of bones (the length `cg_retarget_frame` fills) to `*count`.
+cg_status cg_retargeter_bone_count(struct cg_retargeter *retargeter, size_t *count);
+
+// Poses the host's skeleton for one engine frame: `out[i]` for bone `i` of the skeleton
+// given at creation (`n_out` must be the bone count), local and world transforms; and,
+// when `object` is not NULL, the object in the world and in each hand bone's frame (attach
+// it to the hand whose `contact` is 1). No allocation. Errors: `CG_ERR_NULL_POINTER`,
+// `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_ARGUMENT` (wrong `n_out`; a frame with a NaN,
+// infinite or non-unit rotation or position: nothing is written). Any thread, also
+// concurrently on one retargeter.
+cg_status cg_retarget_frame(struct cg_retargeter *retargeter,
+                            const struct cg_frame *frame,
+                            struct cg_bone_pose *out,
+                            size_t n_out,
+                            struct cg_retarget_object *object);
 
 // A static, NUL-terminated description of a status code. Takes a plain integer so any
 // value is safe to pass; unknown values give "unknown cg_status value". Never returns NULL;

@@ -89,6 +89,12 @@ impl cg_coordinate_system {
         }
     }
 
+    /// A native point or vector in this system: `c · S p` (what frames get).
+    pub fn from_native_point(self, p: &Vec3) -> Vec3 {
+        let (s, c) = self.basis();
+        mat_vec(&s, p).map(|v| v * c)
+    }
+
     /// A point or vector of this system in the native world: `S^T p / c` (the inverse of
     /// what frames get).
     pub fn to_native_point(self, p: &Vec3) -> Vec3 {

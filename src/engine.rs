@@ -19,6 +19,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use crate::error::{Error, Result};
+use crate::frame::CG_NUM_JOINTS;
 use crate::model::Bundle;
 use crate::shm::publisher::StreamPublication;
 use crate::shm::{FramePublisher, PublisherStats};
@@ -88,6 +89,16 @@ impl Engine {
     /// [`Engine::with_source_factory`].
     pub fn bundle(&self) -> Option<&Arc<Bundle>> {
         self.bundle.as_ref()
+    }
+
+    /// The bundle's rest skeleton (SMPL-X joint order) in the engine's coordinate system
+    /// and units: the rest pose a host's skeleton must have for the frames' local rotations
+    /// to mean the same motion, and what [`crate::retarget::Retargeter`] transfers from.
+    /// `None` for a test engine without a bundle.
+    pub fn rest_joints(&self) -> Option<[[f32; 3]; CG_NUM_JOINTS]> {
+        let rest = &self.bundle.as_ref()?.manifest.skeleton.rest_joints;
+        let coords = self.config.coordinate_system;
+        Some(std::array::from_fn(|j| coords.from_native_point(&rest[j].map(f64::from)).map(|v| v as f32)))
     }
 
     /// The configuration the engine was created with.

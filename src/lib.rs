@@ -40,6 +40,7 @@ pub mod assemble;
 pub mod contact;
 #[doc(hidden)]
 pub mod anchor;
+pub mod retarget;
 #[doc(hidden)]
 pub mod model;
 #[doc(hidden)]

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 /// Bottom up; a module may use those before it.
-const FLOORS: [&str; 15] = [
+const FLOORS: [&str; 16] = [
     "error",
     "frame",
     "config",
@@ -15,6 +15,7 @@ const FLOORS: [&str; 15] = [
     "assemble",
     "contact",
     "anchor",
+    "retarget",
     "model",
     "generator",
     "stream",

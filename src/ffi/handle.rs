@@ -57,6 +57,8 @@ pub(crate) const TAG_ENGINE: usize = 0x5;
 pub(crate) const TAG_STREAM: usize = 0x9;
 /// Tag of subscriber handles.
 pub(crate) const TAG_SUBSCRIBER: usize = 0xD;
+/// Tag of `cg_retargeter` handles.
+pub(crate) const TAG_RETARGETER: usize = 0xB;
 
 struct Slot<T> {
     generation: u64,

@@ -29,6 +29,7 @@ pub mod engine;
 pub mod handle;
 pub mod last_error;
 pub mod panic;
+pub mod retarget;
 pub mod status;
 pub mod stream;
 pub mod subscriber;
