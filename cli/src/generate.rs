@@ -13,7 +13,7 @@ use serde::Serialize;
 use crate::npz;
 use crate::png::Image;
 use crate::scene::Scene;
-use crate::{gltf, preview, Failure};
+use crate::{bvh, gltf, preview, Failure};
 
 /// `comgrasp generate`: generates one motion and writes every frame to a file, an animated
 /// glTF and/or a PNG strip of key frames (without any of them only the summary is printed).
@@ -36,6 +36,10 @@ pub struct Args {
     /// FILE.png: a strip of 6 key frames (skeleton, object, contact).
     #[arg(long, value_name = "FILE")]
     preview: Option<String>,
+    /// FILE.bvh: the body and fingers as BVH (y up, centimetres, ZXY Euler channels), and
+    /// the object's track in FILE's stem + .object.bvh; implies --coords gltf.
+    #[arg(long, value_name = "FILE")]
+    bvh: Option<String>,
     /// Sampler seed (default: the bundle's).
     #[arg(long, value_name = "N")]
     seed: Option<u64>,
@@ -122,6 +126,7 @@ struct Options {
     out: Option<(PathBuf, Format)>,
     glb: Option<PathBuf>,
     preview: Option<PathBuf>,
+    bvh: Option<PathBuf>,
     stream: StreamConfig,
     coords: CoordinateSystem,
     fk: bool,
@@ -211,6 +216,15 @@ pub fn run(args: Args) -> Result<(), Failure> {
         write_file(path, &bytes)?;
         wrote.push(format!("glb {} ({} bytes)", path.display(), bytes.len()));
     }
+    if let Some(path) = &opts.bvh {
+        let r = &bundle.manifest.skeleton.rest_joints;
+        let rest: [[f32; 3]; CG_NUM_JOINTS] = std::array::from_fn(|j| r[j]);
+        write_file(path, bvh::body(&rest, &frames, fps).as_bytes())?;
+        let stem = path.file_stem().map_or_else(Default::default, |s| s.to_string_lossy().into_owned());
+        let track = path.with_file_name(format!("{stem}.object.bvh"));
+        write_file(&track, bvh::object(&frames, fps).as_bytes())?;
+        wrote.push(format!("bvh {} and {}", path.display(), track.display()));
+    }
     if let (Some(path), Some(scene)) = (&opts.preview, &scene) {
         let p = preview::render(scene, &frames).map_err(|e| Failure::Run(format!("preview: {e}")))?;
         let png = p.image.encode().map_err(|e| Failure::Run(format!("cannot encode {}: {e}", path.display())))?;
@@ -293,7 +307,7 @@ fn options(a: Args) -> Result<Options, String> {
         continue_from: None,
     };
     let (character, object, place_character, then) = (a.character, a.object, a.place_character, a.then);
-    let (bundle, text, out, glb, preview, fk) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk);
+    let (bundle, text, out, glb, preview, fk, bvh) = (a.bundle, a.text, a.out, a.glb, a.preview, a.fk, a.bvh);
     let coords = a.coords.map(CoordinateSystem::from);
     // Decide formats and check directories before generating, so a typo does not cost a
     // whole run.
@@ -306,12 +320,14 @@ fn options(a: Args) -> Result<Options, String> {
     };
     let glb = glb.map(|p| output_path("--glb", &p, &["glb"]).map(|(path, _)| path)).transpose()?;
     let preview = preview.map(|p| output_path("--preview", &p, &["png"]).map(|(path, _)| path)).transpose()?;
-    // A glb is y up by definition: its frames must be in glTF's basis, whatever else is
-    // written. An explicit other system is a contradiction, not something to override.
-    let coords = match (coords, &glb) {
-        (Some(c), Some(_)) if c != CoordinateSystem::CG_COORDS_GLTF => {
+    let bvh = bvh.map(|p| output_path("--bvh", &p, &["bvh"]).map(|(path, _)| path)).transpose()?;
+    // A glb and a BVH are y up by definition: their frames must be in glTF's basis, whatever
+    // else is written. An explicit other system is a contradiction, not something to override.
+    let y_up = [("--glb", glb.is_some()), ("--bvh", bvh.is_some())].into_iter().find(|(_, on)| *on).map(|(f, _)| f);
+    let coords = match (coords, y_up) {
+        (Some(c), Some(flag)) if c != CoordinateSystem::CG_COORDS_GLTF => {
             return Err(format!(
-                "--glb writes glTF (y up, right-handed), which conflicts with --coords {}; drop --coords or use --coords gltf",
+                "{flag} is y up (the glTF basis), which conflicts with --coords {}; drop --coords or use --coords gltf",
                 coords_name(c)
             ))
         }
@@ -319,7 +335,7 @@ fn options(a: Args) -> Result<Options, String> {
         (c, None) => c.unwrap_or(CoordinateSystem::CG_COORDS_NATIVE),
     };
     let stream = StreamConfig { anchor: anchor(character, object, place_character, coords), ..stream };
-    Ok(Options { bundle, text, then, out, glb, preview, stream, coords, fk })
+    Ok(Options { bundle, text, then, out, glb, preview, bvh, stream, coords, fk })
 }
 
 fn coords_name(c: CoordinateSystem) -> &'static str {
