@@ -587,6 +587,14 @@ cg_status cg_start_utf8(struct cg_engine *engine,
                         const struct cg_stream_config *cfg,
                         struct cg_stream **out);
 
+// Writes the bundle's rest skeleton to `out` (`n` = `CG_NUM_JOINTS` rows of x, y, z, in
+// SMPL-X joint order) in the engine's coordinate system and units: the pose the frames'
+// local rotations are relative to (a host's skeleton in that pose reproduces
+// `joint_positions` from the rotations alone), and what retargeting starts from. Errors:
+// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_ARGUMENT` (`n` is not
+// `CG_NUM_JOINTS`), `CG_ERR_WRONG_STATE` (an engine without a bundle). Any thread.
+cg_status cg_engine_get_rest_joints(struct cg_engine *engine, float (*out)[3], size_t n);
+
 // The message of the most recent failing `cg_*` call on the calling thread, as a
 // NUL-terminated UTF-8 string ("" if none failed yet). Never NULL. The pointer stays valid
 // until the next failing `cg_*` call on the same thread (or the thread's exit); copy it if

@@ -42,10 +42,11 @@ fn python_binding_passes_its_tests_against_the_library() {
         "test_cancel_from_another_thread",
         "test_shm_subscriber_receives_the_polled_frames",
         "test_shm_errors",
+        "test_retarget_onto_a_unity_named_skeleton",
     ] {
         assert!(stdout.lines().any(|l| l == format!("ok {t}")), "no `ok {t}` in:\n{stdout}");
     }
-    check_closing_line(&stdout, 12);
+    check_closing_line(&stdout, 13);
 }
 
 #[test]

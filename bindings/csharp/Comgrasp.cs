@@ -37,6 +37,7 @@
 // or a subscriber from one thread at a time, except ComGraspStream.Cancel(), which any
 // thread may call at any time.
 using System;
+using System.Collections.Generic;
 using System.Runtime.InteropServices;
 using System.Text;
 
@@ -296,6 +297,75 @@ namespace ComGrasp
         Failed = 4,
     }
 
+    /// <summary>struct cg_bone_desc: one bone of a host skeleton (docs/retargeting.md).</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgBoneDesc
+    {
+        /// <summary>NUL-terminated UTF-8 name (keep the memory alive during the create call).</summary>
+        public IntPtr Name;
+        /// <summary>Index of the parent bone, -1 for a root.</summary>
+        public int Parent;
+        /// <summary>Rest position relative to the parent (engine coordinate system and units).</summary>
+        public fixed float RestTranslation[3];
+        /// <summary>Rest rotation relative to the parent (x, y, z, w).</summary>
+        public fixed float RestRotation[4];
+    }
+
+    /// <summary>struct cg_bone_map_entry: which bone follows which SMPL-X joint.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public struct CgBoneMapEntry
+    {
+        /// <summary>NUL-terminated SMPL-X joint name.</summary>
+        public IntPtr SmplxJoint;
+        /// <summary>NUL-terminated bone name.</summary>
+        public IntPtr Bone;
+    }
+
+    /// <summary>struct cg_bone_pose: one bone's transform in a retargeted frame.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgBonePose
+    {
+        /// <summary>Relative to the parent: set these on the rig.</summary>
+        public fixed float LocalTranslation[3];
+        /// <summary>(x, y, z, w).</summary>
+        public fixed float LocalRotation[4];
+        /// <summary>In the world.</summary>
+        public fixed float WorldPosition[3];
+        /// <summary>(x, y, z, w).</summary>
+        public fixed float WorldRotation[4];
+    }
+
+    /// <summary>struct cg_retarget_object: the object in the world and in each hand bone's frame.</summary>
+    [StructLayout(LayoutKind.Sequential)]
+    public unsafe struct CgRetargetObject
+    {
+        /// <summary>The object's origin in the world.</summary>
+        public fixed float WorldPosition[3];
+        /// <summary>(x, y, z, w).</summary>
+        public fixed float WorldRotation[4];
+        /// <summary>[left, right][3]: in hand bone HandBone[h]'s frame.</summary>
+        public fixed float InHandPosition[6];
+        /// <summary>[left, right][4] (x, y, z, w).</summary>
+        public fixed float InHandRotation[8];
+        /// <summary>Bone index of each hand, -1 when its wrist is unmapped.</summary>
+        public fixed int HandBone[2];
+        /// <summary>1 while that hand holds the object.</summary>
+        public fixed byte Contact[2];
+        /// <summary>Zero.</summary>
+        public fixed byte Reserved[6];
+    }
+
+    /// <summary>enum cg_builtin_map: the ready SMPL-X-to-rig maps.</summary>
+    public enum CgBuiltinMap
+    {
+        /// <summary>Unity HumanBodyBones names.</summary>
+        UnityHumanoid = 1,
+        /// <summary>The UE5 Mannequin.</summary>
+        Ue5Mannequin = 2,
+        /// <summary>Mixamo (mixamorig:).</summary>
+        Mixamo = 3,
+    }
+
     /// <summary>struct cg_stream_info (80 bytes): what a stream is about (cg_stream_get_info).</summary>
     [StructLayout(LayoutKind.Sequential)]
     public unsafe struct CgStreamInfo
@@ -452,6 +522,28 @@ namespace ComGrasp
 
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_stream_get_info(IntPtr stream, CgStreamInfo* info);
+        /// <summary>out: CgFrame.NumJoints x 3 floats.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_get_rest_joints(IntPtr engine, float* rest, UIntPtr n);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_builtin_map_size(int which, UIntPtr* count);
+        /// <summary>Writes two static NUL-terminated strings.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_builtin_map_entry(int which, UIntPtr index, IntPtr* smplxJoint, IntPtr* bone);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_retargeter_create(IntPtr engine, CgBoneDesc* bones, UIntPtr nBones,
+                                                           CgBoneMapEntry* map, UIntPtr nMap, IntPtr* retargeter);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_retargeter_create_builtin(IntPtr engine, CgBoneDesc* bones, UIntPtr nBones,
+                                                                   int which, IntPtr* retargeter);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_retargeter_destroy(IntPtr retargeter);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_retargeter_bone_count(IntPtr retargeter, UIntPtr* count);
+        /// <summary>Allocation-free; obj may be NULL.</summary>
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_retarget_frame(IntPtr retargeter, CgFrame* frame, CgBonePose* poses,
+                                                        UIntPtr nPoses, CgRetargetObject* obj);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_subscriber_config_init(CgSubscriberConfig* cfg);
         /// <summary>name: NUL-terminated publish name; cfg may be NULL (defaults).</summary>
@@ -923,5 +1015,136 @@ namespace ComGrasp
             handle = IntPtr.Zero;
             if (h != IntPtr.Zero) ComGraspNative.cg_subscriber_close(h);
         }
+    }
+
+    /// <summary>A host bone for <see cref="ComGraspRetargeter"/>: name, parent index (-1: root),
+    /// rest translation and rotation (x, y, z, w) relative to the parent, in the engine's
+    /// coordinate system and units.</summary>
+    public struct ComGraspBone
+    {
+        public string Name;
+        public int Parent;
+        public float[] RestTranslation;
+        public float[] RestRotation;
+    }
+
+    /// <summary>The engine's frames on a host skeleton (cg_retargeter; docs/retargeting.md).
+    /// Retarget() fills a caller-owned CgBonePose[] (one per bone, in the order given) and
+    /// allocates nothing. Dispose() frees it.</summary>
+    public sealed unsafe class ComGraspRetargeter : IDisposable
+    {
+        IntPtr handle;
+
+        /// <summary>Bones, as given.</summary>
+        public int BoneCount { get; private set; }
+
+        /// <summary>With a ready map (entries whose bone the skeleton lacks are skipped).</summary>
+        public ComGraspRetargeter(ComGraspEngine engine, ComGraspBone[] bones, CgBuiltinMap map)
+            : this(engine, bones, null, map) { }
+
+        /// <summary>With the host's own map: (SMPL-X joint, bone name) pairs.</summary>
+        public ComGraspRetargeter(ComGraspEngine engine, ComGraspBone[] bones, KeyValuePair<string, string>[] map)
+            : this(engine, bones, map, (CgBuiltinMap)0) { }
+
+        ComGraspRetargeter(ComGraspEngine engine, ComGraspBone[] bones, KeyValuePair<string, string>[] map, CgBuiltinMap builtin)
+        {
+            var strings = new List<IntPtr>();
+            try
+            {
+                var descs = new CgBoneDesc[Math.Max(1, bones.Length)];
+                for (int i = 0; i < bones.Length; i++)
+                {
+                    var d = new CgBoneDesc { Name = Utf8(bones[i].Name, strings), Parent = bones[i].Parent };
+                    for (int k = 0; k < 3; k++) d.RestTranslation[k] = bones[i].RestTranslation[k];
+                    for (int k = 0; k < 4; k++) d.RestRotation[k] = bones[i].RestRotation[k];
+                    descs[i] = d;
+                }
+                IntPtr h;
+                fixed (CgBoneDesc* d = descs)
+                {
+                    if (map == null)
+                    {
+                        ComGraspException.Check("cg_retargeter_create_builtin", ComGraspNative.cg_retargeter_create_builtin(
+                            engine.Handle, d, (UIntPtr)bones.Length, (int)builtin, &h));
+                    }
+                    else
+                    {
+                        var entries = new CgBoneMapEntry[Math.Max(1, map.Length)];
+                        for (int i = 0; i < map.Length; i++)
+                        {
+                            entries[i].SmplxJoint = Utf8(map[i].Key, strings);
+                            entries[i].Bone = Utf8(map[i].Value, strings);
+                        }
+                        fixed (CgBoneMapEntry* m = entries)
+                            ComGraspException.Check("cg_retargeter_create", ComGraspNative.cg_retargeter_create(
+                                engine.Handle, d, (UIntPtr)bones.Length, m, (UIntPtr)map.Length, &h));
+                    }
+                }
+                handle = h;
+                BoneCount = bones.Length;
+            }
+            finally
+            {
+                foreach (IntPtr p in strings) Marshal.FreeHGlobal(p);
+            }
+        }
+
+        static IntPtr Utf8(string s, List<IntPtr> owned)
+        {
+            byte[] b = System.Text.Encoding.UTF8.GetBytes(s ?? "");
+            IntPtr p = Marshal.AllocHGlobal(b.Length + 1);
+            Marshal.Copy(b, 0, p, b.Length);
+            Marshal.WriteByte(p, b.Length, 0);
+            owned.Add(p);
+            return p;
+        }
+
+        /// <summary>A ready map's (SMPL-X joint, bone) pairs.</summary>
+        public static KeyValuePair<string, string>[] BuiltinMap(CgBuiltinMap which)
+        {
+            UIntPtr n;
+            ComGraspException.Check("cg_builtin_map_size", ComGraspNative.cg_builtin_map_size((int)which, &n));
+            var r = new KeyValuePair<string, string>[(int)n];
+            for (int i = 0; i < r.Length; i++)
+            {
+                IntPtr j, b;
+                ComGraspException.Check("cg_builtin_map_entry", ComGraspNative.cg_builtin_map_entry((int)which, (UIntPtr)i, &j, &b));
+                r[i] = new KeyValuePair<string, string>(Marshal.PtrToStringAnsi(j), Marshal.PtrToStringAnsi(b));
+            }
+            return r;
+        }
+
+        /// <summary>Poses every bone for one frame into poses (length BoneCount) and the object
+        /// into obj. No allocation.</summary>
+        public void Retarget(ref CgFrame frame, CgBonePose[] poses, out CgRetargetObject obj)
+        {
+            if (poses == null || poses.Length != BoneCount)
+                throw new ArgumentException("poses must have BoneCount (" + BoneCount + ") entries");
+            CgRetargetObject o;
+            fixed (CgFrame* f = &frame)
+            fixed (CgBonePose* p = poses)
+                ComGraspException.Check("cg_retarget_frame", ComGraspNative.cg_retarget_frame(Handle, f, p, (UIntPtr)poses.Length, &o));
+            obj = o;
+        }
+
+        /// <summary>The cg_retargeter* handle.</summary>
+        public IntPtr Handle
+        {
+            get
+            {
+                if (handle == IntPtr.Zero) throw new ObjectDisposedException("ComGraspRetargeter");
+                return handle;
+            }
+        }
+
+        public void Dispose()
+        {
+            IntPtr h = handle;
+            handle = IntPtr.Zero;
+            if (h != IntPtr.Zero) ComGraspNative.cg_retargeter_destroy(h);
+            GC.SuppressFinalize(this);
+        }
+
+        ~ComGraspRetargeter() { Dispose(); }
     }
 }

@@ -45,6 +45,7 @@ static unsafe class ComGraspTest
         Run("engine_dispose_cancels_streams", EngineDisposeCancelsStreams);
         Run("shm_subscriber", ShmSubscriber);
         Run("shm_errors", ShmErrors);
+        Run("retarget", Retarget);
         Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
         return failed == 0 ? 0 : 1;
     }
@@ -138,6 +139,8 @@ static unsafe class ComGraspTest
             { "cg_stream_config", typeof(CgStreamConfig) }, { "cg_subscriber_config", typeof(CgSubscriberConfig) },
             { "cg_stream_event", typeof(CgStreamEvent) }, { "cg_subscriber_stats", typeof(CgSubscriberStats) },
             { "cg_publisher_stats", typeof(CgPublisherStats) }, { "cg_stream_info", typeof(CgStreamInfo) },
+            { "cg_bone_desc", typeof(CgBoneDesc) }, { "cg_bone_map_entry", typeof(CgBoneMapEntry) },
+            { "cg_bone_pose", typeof(CgBonePose) }, { "cg_retarget_object", typeof(CgRetargetObject) },
         };
         var sizes = new Dictionary<Type, int>
         {
@@ -145,6 +148,8 @@ static unsafe class ComGraspTest
             { typeof(CgStreamConfig), sizeof(CgStreamConfig) }, { typeof(CgSubscriberConfig), sizeof(CgSubscriberConfig) },
             { typeof(CgStreamEvent), sizeof(CgStreamEvent) }, { typeof(CgSubscriberStats), sizeof(CgSubscriberStats) },
             { typeof(CgPublisherStats), sizeof(CgPublisherStats) }, { typeof(CgStreamInfo), sizeof(CgStreamInfo) },
+            { typeof(CgBoneDesc), sizeof(CgBoneDesc) }, { typeof(CgBoneMapEntry), sizeof(CgBoneMapEntry) },
+            { typeof(CgBonePose), sizeof(CgBonePose) }, { typeof(CgRetargetObject), sizeof(CgRetargetObject) },
         };
         var sized = new HashSet<Type>();
         int facts = 0;
@@ -180,6 +185,70 @@ static unsafe class ComGraspTest
             Check(seenFields.ContainsKey(t), "layout file has the offsets of " + t.Name);
         }
         Check(facts >= 60, "layout file has " + facts + " facts");
+    }
+
+    static readonly int[] SmplxParents = {
+        -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+        20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+        21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53 };
+
+    // The engine's own skeleton, its bones named as Unity's HumanBodyBones (the ready map),
+    // in Unity coordinates: retargeted world positions are the frames' FK joint positions.
+    static unsafe void Retarget()
+    {
+        var map = ComGraspRetargeter.BuiltinMap(CgBuiltinMap.UnityHumanoid);
+        Eq(map.Length, 52, "Unity map entries");
+        var smplxNames = new[] { "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+            "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+            "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist" };
+        var byJoint = new Dictionary<string, string>();
+        foreach (var kv in map) byJoint[kv.Key] = kv.Value;
+        Eq(byJoint["left_wrist"], "LeftHand", "left_wrist -> LeftHand");
+        using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
+        {
+            var rest = new float[55 * 3];
+            fixed (float* r = rest)
+                Eq(ComGraspNative.cg_engine_get_rest_joints(engine.Handle, r, (UIntPtr)55), CgStatus.Ok, "rest joints");
+            var bones = new ComGraspBone[55];
+            for (int j = 0; j < 55; j++)
+            {
+                int p = SmplxParents[j];
+                string name = j < smplxNames.Length ? byJoint[smplxNames[j]] : "joint" + j;
+                var t = new float[3];
+                for (int k = 0; k < 3; k++) t[k] = rest[3 * j + k] - (p < 0 ? 0 : rest[3 * p + k]);
+                bones[j] = new ComGraspBone { Name = name, Parent = p, RestTranslation = t, RestRotation = new[] { 0f, 0f, 0f, 1f } };
+            }
+            // (finger bones are unmapped here: they stay at rest, so only the body is compared)
+            using (var rt = new ComGraspRetargeter(engine, bones, CgBuiltinMap.UnityHumanoid))
+            using (var stream = engine.Start("A woman drinks from the mug"))
+            {
+                var poses = new CgBonePose[rt.BoneCount];
+                CgFrame f = default(CgFrame);
+                int n = 0;
+                CgStatus st;
+                while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                {
+                    if (st != CgStatus.Ok) continue;
+                    CgRetargetObject obj;
+                    rt.Retarget(ref f, poses, out obj);
+                    for (int j = 0; j < 22; j++)
+                    {
+                        CgBonePose pj = poses[j];
+                        for (int k = 0; k < 3; k++)
+                            Check(Math.Abs(pj.WorldPosition[k] - f.JointPositions[3 * j + k]) < 1e-3f,
+                                  "frame " + n + " joint " + j);
+                    }
+                    Eq(obj.HandBone[0], 20, "left hand bone");
+                    n++;
+                }
+                Check(n > 0, "frames retargeted");
+            }
+            var bad = (ComGraspBone[])bones.Clone();
+            bad[3].Name = bones[0].Name;
+            var e = Throws("duplicate bone", () => new ComGraspRetargeter(engine, bad, CgBuiltinMap.UnityHumanoid));
+            Eq(e.Status, CgStatus.ErrInvalidArgument, "duplicate bone status");
+            Check(e.NativeMessage.Contains("both named"), e.NativeMessage);
+        }
     }
 
     static void VersionInfo()

@@ -50,6 +50,7 @@ __all__ = [
     "Status", "Coords", "CgFrame", "CgEngineConfig", "CgStreamConfig", "CgSubscriberConfig",
     "CgStreamEvent", "CgSubscriberStats", "CgPublisherStats", "ComgraspError",
     "Engine", "Stream", "Subscriber", "load", "find_library", "version",
+    "CgBoneDesc", "CgBoneMapEntry", "CgBonePose", "CgRetargetObject", "BuiltinMap", "Bone", "Retargeter", "builtin_map",
 ]
 
 #: CG_ABI_VERSION of the header this module mirrors.
@@ -223,6 +224,56 @@ class CgStreamInfo(ctypes.Structure):
     ]
 
 
+class CgBoneDesc(ctypes.Structure):
+    """struct cg_bone_desc: one bone of a host skeleton (docs/retargeting.md)."""
+
+    _fields_ = [
+        ("name", ctypes.c_char_p),
+        ("parent", ctypes.c_int32),
+        ("rest_translation", _f * 3),
+        ("rest_rotation", _f * 4),
+    ]
+
+
+class CgBoneMapEntry(ctypes.Structure):
+    """struct cg_bone_map_entry: which bone follows which SMPL-X joint."""
+
+    _fields_ = [("smplx_joint", ctypes.c_char_p), ("bone", ctypes.c_char_p)]
+
+
+class CgBonePose(ctypes.Structure):
+    """struct cg_bone_pose: one bone's local and world transform in a retargeted frame."""
+
+    _fields_ = [
+        ("local_translation", _f * 3),
+        ("local_rotation", _f * 4),
+        ("world_position", _f * 3),
+        ("world_rotation", _f * 4),
+    ]
+
+
+class CgRetargetObject(ctypes.Structure):
+    """struct cg_retarget_object: the object in the world and in each hand bone's frame."""
+
+    _fields_ = [
+        ("world_position", _f * 3),
+        ("world_rotation", _f * 4),
+        ("in_hand_position", (_f * 3) * 2),
+        ("in_hand_rotation", (_f * 4) * 2),
+        ("hand_bone", ctypes.c_int32 * 2),
+        ("contact", ctypes.c_uint8 * 2),
+        ("reserved", ctypes.c_uint8 * 6),
+    ]
+
+
+class BuiltinMap(enum.IntEnum):
+    """enum cg_builtin_map: the ready SMPL-X-to-rig maps."""
+
+    UNITY_HUMANOID = 1
+    UE5_MANNEQUIN = 2
+    MIXAMO = 3
+
+
 class CgSubscriberConfig(ctypes.Structure):
     """struct cg_subscriber_config (fill with cg_subscriber_config_init first)."""
 
@@ -369,7 +420,19 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_subscriber_close": (st, [vp]),
         "cg_engine_publisher_stats": (st, [vp, P(CgPublisherStats)]),
     }
-    for name, (res, args) in list(sigs.items()) + [kv for kv in shm.items() if hasattr(lib, kv[0])]:
+    # Retargeting (library 0.4).
+    retarget = {
+        "cg_engine_get_rest_joints": (st, [vp, P(_f), sz]),
+        "cg_builtin_map_size": (st, [ctypes.c_int32, P(sz)]),
+        "cg_builtin_map_entry": (st, [ctypes.c_int32, sz, P(ctypes.c_char_p), P(ctypes.c_char_p)]),
+        "cg_retargeter_create": (st, [vp, P(CgBoneDesc), sz, P(CgBoneMapEntry), sz, P(vp)]),
+        "cg_retargeter_create_builtin": (st, [vp, P(CgBoneDesc), sz, ctypes.c_int32, P(vp)]),
+        "cg_retargeter_destroy": (st, [vp]),
+        "cg_retargeter_bone_count": (st, [vp, P(sz)]),
+        "cg_retarget_frame": (st, [vp, P(CgFrame), P(CgBonePose), sz, P(CgRetargetObject)]),
+    }
+    optional = list(shm.items()) + list(retarget.items())
+    for name, (res, args) in list(sigs.items()) + [kv for kv in optional if hasattr(lib, kv[0])]:
         fn = getattr(lib, name)
         fn.restype = res
         fn.argtypes = args
@@ -620,12 +683,88 @@ class Engine(_Owned):
         _check(self._lib, "cg_engine_stream_count", self._lib.cg_engine_stream_count(self.handle, ctypes.byref(n)))
         return n.value
 
+    def rest_joints(self) -> List[Tuple[float, float, float]]:
+        """The bundle's rest skeleton (55 SMPL-X joints) in this engine's coordinate system and
+        units (cg_engine_get_rest_joints): the rest pose the frames' rotations are relative to."""
+        buf = (_f * (NUM_JOINTS * 3))()
+        st = self._lib.cg_engine_get_rest_joints(self.handle, buf, NUM_JOINTS)
+        _check(self._lib, "cg_engine_get_rest_joints", st)
+        return [tuple(buf[3 * j:3 * j + 3]) for j in range(NUM_JOINTS)]
+
+    def retargeter(self, bones: Sequence[Bone], map: Optional[Sequence[Tuple[str, str]]] = None,
+                   builtin: Optional[BuiltinMap] = None) -> Retargeter:
+        """A :class:`Retargeter` onto ``bones`` for this engine's frames."""
+        return Retargeter(self, bones, map, builtin)
+
     def publisher_stats(self) -> CgPublisherStats:
         """Counters of the shared-memory publisher (cg_engine_publisher_stats); ERR_WRONG_STATE
         when the engine was created without ``publish_name``."""
         s = CgPublisherStats()
         _check(self._lib, "cg_engine_publisher_stats", self._lib.cg_engine_publisher_stats(self.handle, ctypes.byref(s)))
         return s
+
+
+def builtin_map(which: BuiltinMap, *, lib: Optional[ctypes.CDLL] = None) -> List[Tuple[str, str]]:
+    """A ready map's (SMPL-X joint, bone) pairs (cg_builtin_map_entry)."""
+    lib = lib or load()
+    n = ctypes.c_size_t()
+    _check(lib, "cg_builtin_map_size", lib.cg_builtin_map_size(int(which), ctypes.byref(n)))
+    out = []
+    j, b = ctypes.c_char_p(), ctypes.c_char_p()
+    for i in range(n.value):
+        _check(lib, "cg_builtin_map_entry", lib.cg_builtin_map_entry(int(which), i, ctypes.byref(j), ctypes.byref(b)))
+        out.append((j.value.decode(), b.value.decode()))
+    return out
+
+
+Bone = Tuple[str, int, Sequence[float], Sequence[float]]
+"""A host bone: (name, parent index or -1, rest translation xyz, rest rotation xyzw), relative
+to the parent, in the engine's coordinate system and units."""
+
+
+class Retargeter(_Owned):
+    """The engine's frames on a host skeleton (cg_retargeter; docs/retargeting.md). ``bones``:
+    :data:`Bone` tuples; ``map``: (SMPL-X joint, bone name) pairs, or ``builtin``: a
+    :class:`BuiltinMap` (entries whose bone the skeleton lacks are skipped). ``retarget``
+    poses every bone for a frame; ``close()`` frees it."""
+
+    _kind, _destroy = "retargeter", "cg_retargeter_destroy"
+
+    def __init__(self, engine: Engine, bones: Sequence[Bone], map: Optional[Sequence[Tuple[str, str]]] = None,
+                 builtin: Optional[BuiltinMap] = None):
+        self._lib = engine._lib
+        self._h = None
+        if (map is None) == (builtin is None):
+            raise ComgraspError("cg_retargeter_create", Status.ERR_INVALID_ARGUMENT, "give exactly one of map or builtin")
+        names = [n.encode("utf-8", "surrogatepass") if isinstance(n, str) else n for n, *_ in bones]
+        descs = (CgBoneDesc * max(1, len(bones)))()
+        for d, (name, (_, parent, t, r)) in zip(descs, zip(names, bones)):
+            d.name, d.parent = name, parent
+            d.rest_translation[:] = list(t)
+            d.rest_rotation[:] = list(r)
+        h = ctypes.c_void_p()
+        if builtin is not None:
+            st = self._lib.cg_retargeter_create_builtin(engine.handle, descs, len(bones), int(builtin), ctypes.byref(h))
+            _check(self._lib, "cg_retargeter_create_builtin", st)
+        else:
+            pairs = [(j.encode(), b.encode("utf-8", "surrogatepass")) for j, b in map]
+            entries = (CgBoneMapEntry * max(1, len(pairs)))(*[CgBoneMapEntry(j, b) for j, b in pairs])
+            st = self._lib.cg_retargeter_create(engine.handle, descs, len(bones), entries, len(pairs), ctypes.byref(h))
+            _check(self._lib, "cg_retargeter_create", st)
+        self._h = h
+        n = ctypes.c_size_t()
+        _check(self._lib, "cg_retargeter_bone_count", self._lib.cg_retargeter_bone_count(h, ctypes.byref(n)))
+        self.bone_count = n.value
+        self._poses = (CgBonePose * self.bone_count)()
+
+    def retarget(self, frame: CgFrame, with_object: bool = True) -> Tuple[ctypes.Array[CgBonePose], Optional[CgRetargetObject]]:
+        """Every bone's pose for ``frame`` (an array reused by the next call: copy what you
+        keep) and, with ``with_object``, the object (a new CgRetargetObject)."""
+        obj = CgRetargetObject() if with_object else None
+        st = self._lib.cg_retarget_frame(self.handle, ctypes.byref(frame), self._poses, self.bone_count,
+                                         ctypes.byref(obj) if obj is not None else None)
+        _check(self._lib, "cg_retarget_frame", st)
+        return self._poses, obj
 
 
 class Subscriber(_Owned):

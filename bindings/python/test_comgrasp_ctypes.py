@@ -63,7 +63,8 @@ def test_layout_matches_c():
     types = {"cg_frame": CgFrame, "cg_engine_config": cg.CgEngineConfig, "cg_stream_config": cg.CgStreamConfig,
              "cg_subscriber_config": cg.CgSubscriberConfig, "cg_stream_event": CgStreamEvent,
              "cg_subscriber_stats": cg.CgSubscriberStats, "cg_publisher_stats": cg.CgPublisherStats,
-             "cg_stream_info": cg.CgStreamInfo}
+             "cg_stream_info": cg.CgStreamInfo, "cg_bone_desc": cg.CgBoneDesc, "cg_bone_map_entry": cg.CgBoneMapEntry,
+             "cg_bone_pose": cg.CgBonePose, "cg_retarget_object": cg.CgRetargetObject}
     seen = {t: 0 for t in types.values()}
     sized = set()
     for line in Path(path).read_text().splitlines():
@@ -395,6 +396,56 @@ def test_shm_errors():
     assert lib.cg_subscriber_close(None) == Status.OK
     with engine() as e:
         assert lib.cg_subscriber_receive(e.handle, ctypes.byref(CgFrame())) == Status.ERR_INVALID_HANDLE
+
+
+SMPLX_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+                 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+                 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53)
+
+
+def test_retarget_onto_a_unity_named_skeleton():
+    """The engine's own skeleton with its bones named as Unity's HumanBodyBones (jaw and
+    eyes unmapped), in Unity coordinates: the retargeted world positions are the frames'
+    FK joint positions; bad input raises with the library's message."""
+    mapping = dict(cg.builtin_map(cg.BuiltinMap.UNITY_HUMANOID))
+    assert len(mapping) == 52 and mapping["left_wrist"] == "LeftHand" and mapping["right_thumb3"] == "RightThumbDistal"
+    assert cg.builtin_map(cg.BuiltinMap.MIXAMO)[0] == ("pelvis", "mixamorig:Hips")
+    with engine(coords=Coords.UNITY, enable_fk=True) as e:
+        rest = e.rest_joints()
+        names = [mapping.get(j, j) for j in JOINT_NAMES]
+        bones = []
+        for j, p in enumerate(SMPLX_PARENTS):
+            t = rest[j] if p < 0 else tuple(a - b for a, b in zip(rest[j], rest[p]))
+            bones.append((names[j], p, t, (0.0, 0.0, 0.0, 1.0)))
+        with e.retargeter(bones, builtin=cg.BuiltinMap.UNITY_HUMANOID) as r, e.start(PROMPT, seed=3) as s:
+            assert r.bone_count == 55
+            n = 0
+            for f in s:
+                poses, obj = r.retarget(f)
+                for j in range(55):
+                    d = sum((poses[j].world_position[i] - f.joint_positions[j][i]) ** 2 for i in range(3)) ** 0.5
+                    assert d < 1e-3, (n, j, d)
+                assert list(obj.hand_bone) == [20, 21] and list(obj.contact) == list(f.contact)
+                n += 1
+            assert n > 0
+        bad = list(bones)
+        bad[3] = (bones[0][0],) + bones[3][1:]
+        err = raises(e.retargeter, bad, builtin=cg.BuiltinMap.UNITY_HUMANOID)
+        assert err.status == Status.ERR_INVALID_ARGUMENT and "both named" in err.message
+        err = raises(e.retargeter, bones, map=[("tail", names[0])])
+        assert "not an SMPL-X joint" in err.message
+        err = raises(cg.builtin_map, 7)
+        assert err.status == Status.ERR_INVALID_ARGUMENT
+
+
+JOINT_NAMES = (
+    "pelvis left_hip right_hip spine1 left_knee right_knee spine2 left_ankle right_ankle spine3 left_foot "
+    "right_foot neck left_collar right_collar head left_shoulder right_shoulder left_elbow right_elbow left_wrist "
+    "right_wrist jaw left_eye_smplhf right_eye_smplhf left_index1 left_index2 left_index3 left_middle1 left_middle2 "
+    "left_middle3 left_pinky1 left_pinky2 left_pinky3 left_ring1 left_ring2 left_ring3 left_thumb1 left_thumb2 "
+    "left_thumb3 right_index1 right_index2 right_index3 right_middle1 right_middle2 right_middle3 right_pinky1 "
+    "right_pinky2 right_pinky3 right_ring1 right_ring2 right_ring3 right_thumb1 right_thumb2 right_thumb3"
+).split()
 
 
 def main() -> int:

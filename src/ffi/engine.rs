@@ -195,3 +195,30 @@ unsafe fn start(
     unsafe { out.write(handle as *mut cg_stream) };
     Ok(cg_status::CG_OK)
 }
+
+/// Writes the bundle's rest skeleton to `out` (`n` = `CG_NUM_JOINTS` rows of x, y, z, in
+/// SMPL-X joint order) in the engine's coordinate system and units: the pose the frames'
+/// local rotations are relative to (a host's skeleton in that pose reproduces
+/// `joint_positions` from the rotations alone), and what retargeting starts from. Errors:
+/// `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_ARGUMENT` (`n` is not
+/// `CG_NUM_JOINTS`), `CG_ERR_WRONG_STATE` (an engine without a bundle). Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_get_rest_joints(engine: *mut cg_engine, out: *mut [f32; 3], n: usize) -> cg_status {
+    boundary("cg_engine_get_rest_joints", || {
+        if out.is_null() {
+            return Err(null("out"));
+        }
+        let entry = lookup_engine(engine)?;
+        if n != crate::frame::CG_NUM_JOINTS {
+            return Err(Failure::new(
+                cg_status::CG_ERR_INVALID_ARGUMENT,
+                format_args!("n is {n}; the skeleton has CG_NUM_JOINTS = {} joints", crate::frame::CG_NUM_JOINTS),
+            ));
+        }
+        let rest = entry.engine.rest_joints().ok_or_else(|| {
+            Failure::new(cg_status::CG_ERR_WRONG_STATE, "the engine has no model bundle (no rest skeleton)")
+        })?;
+        unsafe { std::ptr::copy_nonoverlapping(rest.as_ptr(), out, n) };
+        Ok(cg_status::CG_OK)
+    })
+}

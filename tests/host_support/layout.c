@@ -34,6 +34,31 @@ int main(void) {
     OFF(cg_frame, reserved);
     OFF(cg_frame, joint_positions);
 
+    SIZE(cg_bone_desc);
+    OFF(cg_bone_desc, name);
+    OFF(cg_bone_desc, parent);
+    OFF(cg_bone_desc, rest_translation);
+    OFF(cg_bone_desc, rest_rotation);
+
+    SIZE(cg_bone_map_entry);
+    OFF(cg_bone_map_entry, smplx_joint);
+    OFF(cg_bone_map_entry, bone);
+
+    SIZE(cg_bone_pose);
+    OFF(cg_bone_pose, local_translation);
+    OFF(cg_bone_pose, local_rotation);
+    OFF(cg_bone_pose, world_position);
+    OFF(cg_bone_pose, world_rotation);
+
+    SIZE(cg_retarget_object);
+    OFF(cg_retarget_object, world_position);
+    OFF(cg_retarget_object, world_rotation);
+    OFF(cg_retarget_object, in_hand_position);
+    OFF(cg_retarget_object, in_hand_rotation);
+    OFF(cg_retarget_object, hand_bone);
+    OFF(cg_retarget_object, contact);
+    OFF(cg_retarget_object, reserved);
+
     SIZE(cg_engine_config);
     OFF(cg_engine_config, struct_size);
     OFF(cg_engine_config, coordinate_system);
