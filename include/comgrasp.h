@@ -218,6 +218,9 @@ typedef enum cg_builtin_map {
 // `cg_engine_create`, destroy with `cg_engine_destroy`. Never dereference it.
 typedef struct cg_engine cg_engine;
 
+// A host skeleton and map prepared for retargeting (`cg_retargeter_create`). Opaque.
+typedef struct cg_retargeter cg_retargeter;
+
 // Opaque handle to a stream (one generation). Create with `cg_start`, destroy with
 // `cg_stream_destroy`. Never dereference it.
 typedef struct cg_stream cg_stream;
@@ -359,11 +362,6 @@ typedef struct cg_bone_map_entry {
   // The host bone's name, NUL-terminated.
   const char *bone;
 } cg_bone_map_entry;
-
-// A host skeleton and map prepared for retargeting (`cg_retargeter_create`).
-typedef struct cg_retargeter {
-  uint8_t _private[0];
-} cg_retargeter;
 
 // One frame of generated motion. All positions in the engine's coordinate system
 // (metres, or centimetres for Unreal). Rotations are unit quaternions (x, y, z, w) with

@@ -107,5 +107,6 @@ fn cpp_wrapper_example_runs() {
     assert!(o.status.success(), "exit {:?}\nstdout:\n{stdout}\nstderr:\n{}", o.status, text(&o.stderr));
     assert!(stdout.contains("last frame flagged: yes"), "{stdout}");
     assert!(stdout.contains("blank prompt rejected: cg_start: CG_ERR_INVALID_ARGUMENT"), "{stdout}");
+    assert!(stdout.contains("retargeted 32 frames onto 55 bones (pelvis -> pelvis ...)"), "{stdout}");
     assert_eq!(stdout.lines().last(), Some("ok"), "{stdout}");
 }

@@ -36,6 +36,7 @@
 #include <string>
 #include <string_view>
 #include <utility>
+#include <vector>
 
 #include "comgrasp.h"
 
@@ -386,6 +387,97 @@ public:
 private:
     cg_subscriber *h_ = nullptr;
 };
+
+/// A host bone: name, parent index (-1: root), rest translation and rotation (x, y, z, w)
+/// relative to the parent, in the engine's coordinate system and units.
+struct Bone {
+    std::string name;
+    int32_t parent = -1;
+    float rest_translation[3] = {0, 0, 0};
+    float rest_rotation[4] = {0, 0, 0, 1};
+};
+
+using BonePose = cg_bone_pose;
+using RetargetObject = cg_retarget_object;
+
+/// The engine's frames on your character's skeleton (`cg_retargeter`; docs/retargeting.md):
+///
+///   comgrasp::Retargeter rt(engine, bones, CG_MAP_UE5_MANNEQUIN);
+///   std::vector<comgrasp::BonePose> pose(rt.bone_count());
+///   comgrasp::RetargetObject obj;
+///   rt.retarget(frame, pose.data(), &obj);   // no allocation; pose[i] for bones[i]
+class Retargeter {
+public:
+    /// With a ready map (entries whose bone the skeleton lacks are skipped).
+    Retargeter(const Engine &engine, const std::vector<Bone> &bones, cg_builtin_map map) {
+        std::vector<cg_bone_desc> d = descs(bones);
+        detail::check("cg_retargeter_create_builtin",
+                      cg_retargeter_create_builtin(engine.get(), d.data(), d.size(), static_cast<int32_t>(map), &h_));
+        n_ = bones.size();
+    }
+    /// With your own map: (SMPL-X joint, bone name) pairs.
+    Retargeter(const Engine &engine, const std::vector<Bone> &bones,
+               const std::vector<std::pair<std::string, std::string>> &map) {
+        std::vector<cg_bone_desc> d = descs(bones);
+        std::vector<cg_bone_map_entry> m;
+        m.reserve(map.size());
+        for (const auto &e : map) m.push_back(cg_bone_map_entry{e.first.c_str(), e.second.c_str()});
+        detail::check("cg_retargeter_create",
+                      cg_retargeter_create(engine.get(), d.data(), d.size(), m.data(), m.size(), &h_));
+        n_ = bones.size();
+    }
+    Retargeter(Retargeter &&o) noexcept : h_(std::exchange(o.h_, nullptr)), n_(o.n_) {}
+    Retargeter &operator=(Retargeter &&o) noexcept {
+        if (this != &o) { reset(); h_ = std::exchange(o.h_, nullptr); n_ = o.n_; }
+        return *this;
+    }
+    Retargeter(const Retargeter &) = delete;
+    Retargeter &operator=(const Retargeter &) = delete;
+    ~Retargeter() { reset(); }
+
+    size_t bone_count() const noexcept { return n_; }
+    /// Fills `out[0..bone_count())` and, when not null, `*object`. No allocation.
+    void retarget(const Frame &frame, BonePose *out, RetargetObject *object = nullptr) const {
+        detail::check("cg_retarget_frame", cg_retarget_frame(h_, &frame, out, n_, object));
+    }
+    /// Never throws: the raw `cg_retarget_frame` status.
+    Status retarget_status(const Frame &frame, BonePose *out, RetargetObject *object = nullptr) const noexcept {
+        return cg_retarget_frame(h_, &frame, out, n_, object);
+    }
+
+    void reset() noexcept {
+        if (h_) cg_retargeter_destroy(std::exchange(h_, nullptr));
+    }
+    cg_retargeter *get() const noexcept { return h_; }
+    explicit operator bool() const noexcept { return h_ != nullptr; }
+
+private:
+    static std::vector<cg_bone_desc> descs(const std::vector<Bone> &bones) {
+        std::vector<cg_bone_desc> d(bones.size());
+        for (size_t i = 0; i < bones.size(); ++i) {
+            d[i].name = bones[i].name.c_str();
+            d[i].parent = bones[i].parent;
+            std::copy(bones[i].rest_translation, bones[i].rest_translation + 3, d[i].rest_translation);
+            std::copy(bones[i].rest_rotation, bones[i].rest_rotation + 4, d[i].rest_rotation);
+        }
+        return d;
+    }
+    cg_retargeter *h_ = nullptr;
+    size_t n_ = 0;
+};
+
+/// A ready map's (SMPL-X joint, bone) pairs.
+inline std::vector<std::pair<std::string, std::string>> builtin_map(cg_builtin_map which) {
+    size_t n = 0;
+    detail::check("cg_builtin_map_size", cg_builtin_map_size(static_cast<int32_t>(which), &n));
+    std::vector<std::pair<std::string, std::string>> out;
+    for (size_t i = 0; i < n; ++i) {
+        const char *j = nullptr, *b = nullptr;
+        detail::check("cg_builtin_map_entry", cg_builtin_map_entry(static_cast<int32_t>(which), i, &j, &b));
+        out.emplace_back(j, b);
+    }
+    return out;
+}
 
 }  // namespace comgrasp
 

@@ -216,6 +216,45 @@ int main(int argc, char **argv) {
             return 1;
         }
 
+        // 4b. Retargeting onto a skeleton named as the UE5 Mannequin: the engine's own
+        // skeleton (its rest joints), so the mapped bones land on the frames' joints.
+        {
+            comgrasp::Engine fk(comgrasp::EngineConfig().bundle_path(argv[1]).enable_fk());
+            float rest[CG_NUM_JOINTS][3];
+            comgrasp::detail::check("cg_engine_get_rest_joints", cg_engine_get_rest_joints(fk.get(), rest, CG_NUM_JOINTS));
+            static const int parents[CG_NUM_JOINTS] = {-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19,
+                                                       15, 15, 15, 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+                                                       21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53};
+            const auto map = comgrasp::builtin_map(CG_MAP_UE5_MANNEQUIN);
+            std::vector<comgrasp::Bone> bones(CG_NUM_JOINTS);
+            for (int j = 0; j < CG_NUM_JOINTS; ++j) {
+                bones[j].name = "unmapped_" + std::to_string(j);
+                bones[j].parent = parents[j];
+                for (int k = 0; k < 3; ++k) bones[j].rest_translation[k] = rest[j][k] - (parents[j] < 0 ? 0.0f : rest[parents[j]][k]);
+            }
+            // The map lists the body first, in SMPL-X joint order (0..21), then the fingers.
+            static const int fingers[30] = {25, 26, 27, 28, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38, 39,
+                                            40, 41, 42, 43, 44, 45, 46, 47, 48, 49, 50, 51, 52, 53, 54};
+            for (size_t i = 0; i < map.size(); ++i) bones[i < 22 ? i : fingers[i - 22]].name = map[i].second;
+            comgrasp::Retargeter rt(fk, bones, CG_MAP_UE5_MANNEQUIN);
+            std::vector<comgrasp::BonePose> pose(rt.bone_count());
+            comgrasp::RetargetObject obj{};
+            comgrasp::Stream r = fk.start(prompt, comgrasp::StreamConfig().min_len(2).max_len(2));
+            comgrasp::Frame g{};
+            int n = 0;
+            while (r.wait(g, 100ms) != comgrasp::Poll::End) {
+                rt.retarget(g, pose.data(), &obj);
+                for (int j = 0; j < CG_NUM_JOINTS; ++j)
+                    for (int k = 0; k < 3; ++k)
+                        if (std::fabs(pose[j].world_position[k] - g.joint_positions[j][k]) > 1e-3f) {
+                            std::fprintf(stderr, "retargeted joint %d off by %f\n", j, pose[j].world_position[k] - g.joint_positions[j][k]);
+                            return 1;
+                        }
+                ++n;
+            }
+            std::printf("retargeted %d frames onto %zu bones (%s -> %s ...)\n", n, rt.bone_count(), map[0].first.c_str(), map[0].second.c_str());
+        }
+
         // 5. A shared-memory subscriber in this process (see check_subscriber).
         if (check_subscriber(argv[1], prompt) != 0) return 1;
         std::printf("ok\n");

@@ -10,8 +10,7 @@ use super::status::cg_status;
 use crate::frame::cg_frame;
 use crate::retarget::{builtin_map, cg_bone_pose, cg_retarget_object, Bone, BuiltinMap, HostSkeleton, Retargeter};
 
-/// A host skeleton and map prepared for retargeting (`cg_retargeter_create`).
-#[repr(C)]
+/// A host skeleton and map prepared for retargeting (`cg_retargeter_create`). Opaque.
 pub struct cg_retargeter {
     _private: [u8; 0],
 }
