@@ -646,8 +646,7 @@ impl Retargeter {
             }
             o.world_position = to_f32(&moved(&pos));
             o.world_rotation = to_f32(&matrix_to_quaternion(&rot));
-            for h in 0..2 {
-                let w = WRISTS[h];
+            for (h, &w) in WRISTS.iter().enumerate() {
                 // The object in the wrist's frame, scaled; then in the hand bone's frame
                 // (its world rotation is the wrist's times the bone's offset).
                 let rel_t = scale(&mat_vec(&transpose(&global[w]), &sub(&pos, &p[w])), self.scale);
@@ -754,7 +753,7 @@ mod tests {
         let mut f = Frame::default();
         let mut local = [IDENTITY; CG_NUM_JOINTS];
         for (j, l) in local.iter_mut().enumerate() {
-            if j < 22 || j >= 25 {
+            if !(22..25).contains(&j) {
                 *l = random_rotation(&mut rng);
             }
         }
@@ -822,9 +821,9 @@ mod tests {
         // The object: in the world scaled, and where each hand bone says it is.
         let o = scale(&f.object_translation.map(f64::from), 1.3);
         assert!(dist(&obj.world_position, &o) < 1e-4);
-        for h in 0..2 {
+        for (h, &wrist) in WRISTS.iter().enumerate() {
             let b = obj.hand_bone[h] as usize;
-            assert_eq!(b, WRISTS[h]);
+            assert_eq!(b, wrist);
             let g = quaternion_to_matrix(&quat(&out[b].world_rotation));
             let at = add(&out[b].world_position.map(f64::from), &mat_vec(&g, &obj.in_hand_position[h].map(f64::from)));
             assert!(dist(&obj.world_position, &at) < 1e-4, "hand {h}");

@@ -120,9 +120,8 @@ fn the_engines_own_skeleton_reproduces_its_frames_in_unity_coordinates() {
     for f in &fr {
         let st = unsafe { cg_retarget_frame(r, f, out.as_mut_ptr(), out.len(), &mut obj) };
         assert_eq!(st, cg_status::CG_OK, "{}", last_error());
-        for j in 0..55 {
-            let d: f32 =
-                (0..3).map(|i| (out[j].world_position[i] - f.joint_positions[j][i]).powi(2)).sum::<f32>().sqrt();
+        for (j, (pose, want)) in out.iter().zip(&f.joint_positions).enumerate() {
+            let d: f32 = (0..3).map(|i| (pose.world_position[i] - want[i]).powi(2)).sum::<f32>().sqrt();
             assert!(d < 1e-3, "frame {} joint {j}: {d} m", f.frame_index);
         }
         assert_eq!(obj.contact, f.contact);
