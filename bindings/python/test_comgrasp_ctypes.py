@@ -11,6 +11,7 @@ all three. The shared-memory tests publish under names with this process's id.
 """
 
 import ctypes
+import json
 import os
 import sys
 import threading
@@ -412,7 +413,8 @@ def test_retarget_onto_a_unity_named_skeleton():
     assert cg.builtin_map(cg.BuiltinMap.MIXAMO)[0] == ("pelvis", "mixamorig:Hips")
     with engine(coords=Coords.UNITY, enable_fk=True) as e:
         rest = e.rest_joints()
-        names = [mapping.get(j, j) for j in JOINT_NAMES]
+        joints = json.loads((Path(BUNDLE) / "manifest.json").read_text())["skeleton"]["joint_names"]
+        names = [mapping.get(j, j) for j in joints]
         bones = []
         for j, p in enumerate(SMPLX_PARENTS):
             t = rest[j] if p < 0 else tuple(a - b for a, b in zip(rest[j], rest[p]))
@@ -437,15 +439,6 @@ def test_retarget_onto_a_unity_named_skeleton():
         err = raises(cg.builtin_map, 7)
         assert err.status == Status.ERR_INVALID_ARGUMENT
 
-
-JOINT_NAMES = (
-    "pelvis left_hip right_hip spine1 left_knee right_knee spine2 left_ankle right_ankle spine3 left_foot "
-    "right_foot neck left_collar right_collar head left_shoulder right_shoulder left_elbow right_elbow left_wrist "
-    "right_wrist jaw left_eye_smplhf right_eye_smplhf left_index1 left_index2 left_index3 left_middle1 left_middle2 "
-    "left_middle3 left_pinky1 left_pinky2 left_pinky3 left_ring1 left_ring2 left_ring3 left_thumb1 left_thumb2 "
-    "left_thumb3 right_index1 right_index2 right_index3 right_middle1 right_middle2 right_middle3 right_pinky1 "
-    "right_pinky2 right_pinky3 right_ring1 right_ring2 right_ring3 right_thumb1 right_thumb2 right_thumb3"
-).split()
 
 
 def main() -> int:

@@ -3,10 +3,14 @@ forward kinematics against the engine's own joint positions (`--fk --out F.npz`,
 coordinates): every joint of every frame within 1 mm, and the object track against the
 frames' object pose. Run by cli/tests/bvh_output.rs; exits non-zero with the worst error.
 
-    python bvh_check.py BODY.bvh OBJECT.bvh FRAMES.npz
+    python bvh_check.py BODY.bvh OBJECT.bvh FRAMES.npz BUNDLE_DIR
+
+BUNDLE_DIR's manifest names the joints (skeleton.joint_names, in joint order).
 """
 
+import json
 import sys
+from pathlib import Path
 
 import numpy as np
 from bvh import Bvh
@@ -52,13 +56,14 @@ def fk(mocap):
     return names, pos, rot
 
 
-def main(body, obj, frames):
+def main(body, obj, frames, bundle):
     ref = np.load(frames)
     names, pos, _ = fk(Bvh(open(body).read()))
     want = ref["joint_positions"] * 100.0
     assert pos.shape == want.shape, (pos.shape, want.shape)
     # BVH names are the SMPL-X joint names, depth first: map them to joint order.
-    order = [SMPLX.index(n) for n in names]
+    joints = json.loads((Path(bundle) / "manifest.json").read_text())["skeleton"]["joint_names"]
+    order = [joints.index(n) for n in names]
     err = np.linalg.norm(pos - want[:, order], axis=-1)
     _, opos, orot = fk(Bvh(open(obj).read()))
     q = ref["object_rotation"].astype(float)
@@ -74,14 +79,6 @@ def main(body, obj, frames):
     return 0 if ok else 1
 
 
-SMPLX = (
-    "pelvis left_hip right_hip spine1 left_knee right_knee spine2 left_ankle right_ankle spine3 left_foot "
-    "right_foot neck left_collar right_collar head left_shoulder right_shoulder left_elbow right_elbow left_wrist "
-    "right_wrist jaw left_eye_smplhf right_eye_smplhf left_index1 left_index2 left_index3 left_middle1 left_middle2 "
-    "left_middle3 left_pinky1 left_pinky2 left_pinky3 left_ring1 left_ring2 left_ring3 left_thumb1 left_thumb2 "
-    "left_thumb3 right_index1 right_index2 right_index3 right_middle1 right_middle2 right_middle3 right_pinky1 "
-    "right_pinky2 right_pinky3 right_ring1 right_ring2 right_ring3 right_thumb1 right_thumb2 right_thumb3"
-).split()
 
 if __name__ == "__main__":
-    sys.exit(main(*sys.argv[1:4]))
+    sys.exit(main(*sys.argv[1:5]))

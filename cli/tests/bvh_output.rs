@@ -54,7 +54,7 @@ fn bvh_read_back_by_a_parser_matches_the_engines_joints() {
     assert!(python.exists(), "{} is missing: run scripts/setup_python.sh", python.display());
     let check = Command::new(&python)
         .arg(root().join("cli/tests/bvh_check.py"))
-        .args([&bvh, &track, &npz])
+        .args([&bvh, &track, &npz, &tiny])
         .output()
         .expect("run bvh_check.py");
     let out = String::from_utf8_lossy(&check.stdout);
