@@ -93,3 +93,41 @@ def test_vq_training_resumes_exactly(prepared, tmp_path):
     assert sa["step"] == sb["step"] == 6
     for k in sa["model"]:
         assert torch.equal(sa["model"][k], sb["model"][k]), k
+
+
+def test_time_budgeted_vq_run_records_its_fitted_length_and_resumes_to_it(prepared, tmp_path):
+    run = tmp_path / "vq"
+    args = ["-q", "train-vq", "--data", str(prepared), "--preset", "tiny", "--batch", "4", "--device", "cpu",
+            "--out", str(run)]
+    assert train_main(args + ["--time-budget", "4"]) == 0
+    ckpt = torch.load(run / "ckpt.pt", weights_only=False)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["time_budget_s"] == 4 and cfg["vq"]["train"]["total_iters"] == ckpt["step"] >= 1
+    assert ckpt["scheduler"]["lr_lambdas"][0]["total"] == ckpt["step"]
+    assert train_main(args) == 0  # resuming without a budget continues the fitted run: already done
+    assert torch.load(run / "ckpt.pt", weights_only=False)["step"] == ckpt["step"]
+
+
+def test_gpt_codes_use_the_normalization_the_vq_was_trained_with(prepared, tmp_path, monkeypatch):
+    """A data folder whose statistics differ from the VQ's (other or more sequences) must
+    still be encoded with the VQ's own, or the codes are not the ones it learned."""
+    import shutil
+
+    from comgrasp_train.normalization import Normalizer
+    from comgrasp_train.train import gpt_trainer
+
+    vq = tmp_path / "vq"
+    assert train_main(["-q", "train-vq", "--data", str(prepared), "--out", str(vq), "--preset", "tiny",
+                       "--iters", "2", "--batch", "4", "--device", "cpu"]) == 0
+    other = tmp_path / "other"
+    shutil.copytree(prepared, other)
+    norm = Normalizer.load(other / "stats.npz")
+    norm.mean = norm.mean + 1.0
+    norm.save(other / "stats.npz")
+    seen = []
+    real = gpt_trainer.encode_feature_set
+    monkeypatch.setattr(gpt_trainer, "encode_feature_set", lambda vq_, fs, n, dev: seen.append(n) or real(vq_, fs, n, dev))
+    assert train_main(["-q", "train-gpt", "--data", str(other), "--vq", str(vq), "--out", str(tmp_path / "gpt"),
+                       "--preset", "tiny", "--iters", "2", "--batch", "4", "--device", "cpu"]) == 0
+    want = Normalizer.load(vq / "stats.npz")
+    assert seen and all(np.array_equal(n.mean, want.mean) and np.array_equal(n.std, want.std) for n in seen)

@@ -46,7 +46,8 @@ def cmd_train_vq(args) -> int:
         cfg = replace(cfg, loss=replace(cfg.loss, lambda_joint=args.lambda_joint))
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
-                 ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after)
+                 ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after,
+                 time_budget=args.time_budget)
     print(json.dumps(m))
     return 0
 
@@ -65,7 +66,7 @@ def cmd_train_gpt(args) -> int:
                            warmup_iters=min(GPTTrainConfig.warmup_iters, max(1, args.iters // 10)))
     m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
                   device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet,
-                  stop_after=args.stop_after)
+                  stop_after=args.stop_after, time_budget=args.time_budget)
     print(json.dumps(m))
     return 0
 
@@ -165,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--ckpt-every", type=int, default=500)
         sp.add_argument("--stop-after", type=int, default=None,
                         help="checkpoint and stop at this step (rerun without it to continue)")
+        sp.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                        help="fit the run's length (and its learning-rate drop) to this many seconds of "
+                             "training, measured on the first steps; replaces --iters")
 
     def sampling(sp):
         sp.add_argument("--temperature", type=float, default=1.0)

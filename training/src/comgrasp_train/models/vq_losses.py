@@ -87,15 +87,22 @@ def make_optimizer(model: nn.Module, cfg: TrainConfig | VQConfig) -> torch.optim
     return torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
 
 
+class StepDrop:
+    """Linear warm-up, then T2M-GPT's single x0.05 drop at two thirds of ``total``. A callable
+    object rather than a closure so LambdaLR saves ``total`` with the checkpoint: a run whose
+    length was fitted to a time budget (``run_training``) resumes with the same schedule."""
+
+    def __init__(self, warmup: int, total: int):
+        self.warmup, self.total = max(warmup, 1), total
+
+    def __call__(self, it: int) -> float:
+        return min(1.0, (it + 1) / self.warmup) * (0.05 if it >= (2 * self.total) // 3 else 1.0)
+
+
 def make_scheduler(optimizer: torch.optim.Optimizer, cfg: TrainConfig | VQConfig) -> torch.optim.lr_scheduler.LambdaLR:
-    """Linear warm-up, then T2M-GPT's single x0.05 drop at two thirds of the run."""
+    """Linear warm-up, then T2M-GPT's single x0.05 drop at two thirds of the run (StepDrop)."""
     cfg = cfg.train if isinstance(cfg, VQConfig) else cfg
-    warm, drop = max(cfg.warmup_iters, 1), (2 * cfg.total_iters) // 3
-
-    def factor(it: int) -> float:
-        return min(1.0, (it + 1) / warm) * (0.05 if it >= drop else 1.0)
-
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, StepDrop(cfg.warmup_iters, cfg.total_iters))
 
 
 def vq_training_step(

@@ -11,7 +11,7 @@ stopping by selection; ``load_gpt`` reads it by default).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import torch
@@ -19,6 +19,7 @@ import torch
 from ..models.gpt_configs import TransformerConfig
 from ..models.transformer import ComGraspTransformer, stream_nll
 from ..models.vq_losses import make_scheduler
+from ..normalization import Normalizer
 from ..text_encoder import load_text_encoder
 from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .tokens import TokenBatcher, encode_feature_set
@@ -68,12 +69,15 @@ def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, t
 def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfig, train: GPTTrainConfig,
               text: TextConfig = TextConfig(), *, seed: int = 0, device: str | None = None, resume: bool = True,
               log_every: int = 50, ckpt_every: int = 1000, progress: bool = True,
-              stop_after: int | None = None) -> dict:
+              stop_after: int | None = None, time_budget: float | None = None) -> dict:
     rt = setup_runtime(device)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     seed_everything(seed + rt.rank)
-    fs, norm = load_prepared(data_dir, "train")
+    fs, _ = load_prepared(data_dir, "train")
+    # Codes with the normalization the VQ was trained with (its run keeps it), which is not
+    # that of ``data_dir`` when the VQ was trained on other or fewer sequences.
+    norm = Normalizer.load(Path(vq_dir) / "stats.npz")
     vq, vq_cfg, _ = load_vq(vq_dir, rt.device)
     books = tuple(c.codebook_size for c in vq_cfg.model.components)
     if books != tuple(cfg.codebook_sizes):
@@ -102,6 +106,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         if TransformerConfig.from_dict(ckpt["config"]["transformer"]) != cfg:
             raise ValueError(f"{ckpt_path} was trained with a different transformer config; use a new --out")
         step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
+        if time_budget is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
+            train = replace(train, total_iters=ckpt["config"]["train"]["total_iters"])
         gen.set_state(ckpt["extra"]["sampler_rng"])
         best_val = ckpt["extra"].get("best_val", best_val)
     net = model
@@ -110,6 +116,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
 
     config = {"transformer": cfg.to_dict(), "train": asdict(train), "text": asdict(text), "vq_dir": str(vq_dir),
               "data": str(data_dir), "seed": seed, "fps": fs.fps}
+    if time_budget is not None:
+        config["time_budget_s"] = time_budget
 
     names = ("global", "body", "lhand", "rhand")
 
@@ -147,7 +155,8 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         rt, step=step, end=min(train.total_iters, stop_after or train.total_iters), total=train.total_iters,
         desc="train-gpt", step_fn=one_step, out_dir=out_dir, model=model, optimizer=opt, scheduler=sched,
         config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every, progress=progress,
-        validate=validate if val_batcher is not None else None, val_every=train.val_every, best_val=best_val)
+        validate=validate if val_batcher is not None else None, val_every=train.val_every, best_val=best_val,
+        time_budget=time_budget)
 
 
 def load_gpt(run_dir: Path, device="cpu", which: str = "best"):

@@ -134,14 +134,20 @@ def restore(ckpt: dict, *, model: torch.nn.Module, optimizer=None, scheduler=Non
 def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, step_fn, out_dir: Path,
                  model, optimizer, scheduler, config: dict, gen: torch.Generator, log_every: int,
                  ckpt_every: int, progress: bool, postfix=None, validate=None, val_every: int = 0,
-                 best_val: float = float("inf")) -> dict:
+                 best_val: float = float("inf"), time_budget: float | None = None) -> dict:
     """The loop both trainers share: ``step_fn()`` runs one optimisation step and returns its
     metrics (floats or 0-d tensors); every ``log_every`` steps they go to ``log.jsonl`` and the
     progress bar, every ``ckpt_every`` steps and at ``end`` a resumable checkpoint is written
     (with the batch sampler's RNG). With ``validate`` (returns metrics including ``val_loss``;
     must not touch the training RNGs), every ``val_every`` steps and at ``end`` its metrics are
     logged with the step's and the weights go to ``best.pt`` when ``val_loss`` is the lowest
-    so far (``best_val``, carried in the checkpoint across resumes). Returns the last logged
+    so far (``best_val``, carried in the checkpoint across resumes).
+
+    With ``time_budget`` (seconds of this loop), the run's length is fitted to it: after a few
+    timed steps the remaining steps are set from the measured step time, and ``end``, the
+    schedule's ``total`` (its drop lands at two thirds of the fitted run) and the saved
+    config's ``total_iters`` change to match; the loop also stops, checkpointed, once the
+    budget is spent. For a lent machine with a fixed allowance. Returns the last logged
     metrics."""
     import time
 
@@ -153,10 +159,24 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
         bar = tqdm(total=total, initial=step, desc=desc, unit="it")
     metrics: dict = {}
     t0 = time.time()
+    fit = None
+    if time_budget is not None:
+        if rt.distributed:  # each rank would fit its own length, and the collectives would hang
+            raise ValueError("a time budget is for single-process training, not torchrun")
+        sync = (lambda: torch.cuda.synchronize(rt.device)) if rt.device.type == "cuda" else (lambda: None)
+        fit = BudgetFit(time_budget, step, sync)
     try:
         while step < end:
             m = step_fn()
             step += 1
+            if fit is not None:
+                fitted = fit.after_step(step, end)
+                if fitted != end:
+                    end = total = fitted
+                    _set_total(scheduler, config, total)
+                    if bar is not None:
+                        bar.total = total
+                        bar.refresh()
             if bar is not None:
                 bar.update(1)
             val = {}
@@ -182,3 +202,49 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
         if log is not None:
             log.close()
     return metrics
+
+
+class BudgetFit:
+    """Fits a run to a wall-clock budget: times ``CALIBRATE`` steps after a short warm-up
+    (the first steps pay for allocation and kernel selection), sets the end from the
+    measured step time with ``MARGIN`` left for validation and checkpoints, and ends the run
+    at once when the budget is spent anyway. ``sync`` waits for queued device work (GPU
+    steps are asynchronous); ``clock`` is injectable for tests."""
+
+    WARM, CALIBRATE, MARGIN = 5, 20, 0.9
+
+    def __init__(self, budget: float, step0: int, sync=lambda: None, clock=None):
+        import time
+
+        if not budget > 0:
+            raise ValueError(f"time budget must be positive seconds, got {budget}")
+        self.budget, self.step0, self.sync, self.clock = budget, step0, sync, clock or time.monotonic
+        self.t_start, self.t_warm, self.fitted = self.clock(), None, False
+
+    def after_step(self, step: int, end: int) -> int:
+        """The run's end after ``step`` (``end`` until fitted; then the fitted end, or
+        ``step`` once the budget is spent)."""
+        done = step - self.step0
+        if done == self.WARM:
+            self.sync()
+            self.t_warm = self.clock()
+        elif done == self.WARM + self.CALIBRATE and not self.fitted:
+            self.sync()
+            now = self.clock()
+            per_step = max((now - self.t_warm) / self.CALIBRATE, 1e-9)
+            self.fitted = True
+            return step + max(1, int(self.MARGIN * (self.budget - (now - self.t_start)) / per_step))
+        if self.clock() - self.t_start > self.budget:
+            return step
+        return end
+
+
+def _set_total(scheduler, config: dict, total: int) -> None:
+    """The fitted run length into the schedule (StepDrop) and the config saved with it."""
+    for fn in getattr(scheduler, "lr_lambdas", []):
+        if hasattr(fn, "total"):
+            fn.total = total
+            fn.warmup = min(fn.warmup, max(1, total // 10))  # as the CLI sizes it for --iters
+    train = config["vq"]["train"] if "vq" in config else config["train"]
+    train["total_iters"] = total
+    train["warmup_iters"] = min(train["warmup_iters"], max(1, total // 10))
