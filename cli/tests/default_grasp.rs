@@ -1,0 +1,98 @@
+//! The grasp gate of the default model (issue 15): `comgrasp generate --fk` on
+//! `models/default` (the files the library embeds) with the engine's default output, a
+//! handful of prompts × seeds, each checked by the quality report's own checker
+//! (`comgrasp-data check-engine`, in the project's venv) for what a player sees:
+//! * the object leaves its rest pose only while a hand holds it (`unheld_still`: no unheld
+//!   motion over 20 mm / 15°);
+//! * the hand the prompt names holds it (`grasp`);
+//! * a lift raises it by at least 10 cm (`lift`);
+//! * a drink brings it within 15 cm of the head (`drink`).
+//!
+//! A sampled model is judged on rates, not single samples (sampling is seeded, so the rates
+//! of one bundle are exact). The thresholds sit between what the model shipped before the
+//! H200-trained one scored on these cases and what the shipped one scores (at `MIN_GRASP`),
+//! so a regression to the old model fails.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// (prompt, seeds): two of each intent the gate checks, left and right hand, plus two the
+/// grasp and stillness rates count.
+const CASES: &[(&str, &[u64])] = &[
+    ("The woman is lifting the small cube with her left hand.", &[1, 2]),
+    ("The woman is lifting the small pyramid with her right hand.", &[1, 2]),
+    ("The woman is drinking from the mug with her left hand.", &[1, 2]),
+    ("The woman is drinking from the mug with her right hand.", &[1, 2]),
+    ("The man is inspecting the small cube with his left hand.", &[1, 2]),
+    ("The woman is handing over the small pyramid with her right hand.", &[1, 2]),
+];
+
+/// Least share of samples with the named hand holding the object, with nothing moving it
+/// otherwise, of lifts that rise 10 cm, of drinks that come within 15 cm of the head (the
+/// checker's own rules and thresholds, `intent_check.CheckConfig`). Measured on these cases:
+/// the model shipped before 0.83 / 0.67 / 0.00 / 0.25, the shipped one 0.92 / 0.67 / 0.75 / 0.75.
+const MIN_GRASP: f64 = 0.75;
+const MIN_UNHELD_STILL: f64 = 0.5;
+const MIN_LIFT: f64 = 0.5;
+const MIN_DRINK: f64 = 0.5;
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("cli/ has a parent")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("grasp-{}-{name}", std::process::id()))
+}
+
+fn rate(
+    rows: &[serde_json::Value],
+    keep: impl Fn(&serde_json::Value) -> bool,
+    pass: impl Fn(&serde_json::Value) -> bool,
+) -> f64 {
+    let kept: Vec<_> = rows.iter().filter(|r| keep(r)).collect();
+    assert!(!kept.is_empty(), "no sample of this kind");
+    kept.iter().filter(|r| pass(r)).count() as f64 / kept.len() as f64
+}
+
+#[test]
+fn the_default_model_grasps_what_the_prompt_names() {
+    let checker = root().join(".venv/bin/comgrasp-data");
+    assert!(checker.exists(), "{} is missing: run scripts/setup_python.sh", checker.display());
+    let bundle = root().join("models/default");
+    let mut rows = Vec::new();
+    for (k, (prompt, seeds)) in CASES.iter().enumerate() {
+        for seed in seeds.iter() {
+            let (npz, json) = (tmp(&format!("p{k}_s{seed}.npz")), tmp(&format!("p{k}_s{seed}.json")));
+            let o = Command::new(env!("CARGO_BIN_EXE_comgrasp"))
+                .args(["generate", "--bundle", bundle.to_str().unwrap(), "--text", prompt])
+                .args(["--seed", &seed.to_string(), "--fk", "--out", npz.to_str().unwrap()])
+                .output()
+                .expect("run comgrasp");
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            let c = Command::new(&checker)
+                .args(["check-engine", npz.to_str().unwrap(), "--prompt", prompt, "--json", json.to_str().unwrap()])
+                .output()
+                .expect("run check-engine");
+            let text = std::fs::read_to_string(&json).unwrap_or_else(|e| {
+                panic!("check-engine wrote no {}: {e}\n{}", json.display(), String::from_utf8_lossy(&c.stderr))
+            });
+            let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+            let mut row = v["results"][0].clone();
+            row["case"] = serde_json::json!(format!("{prompt} (seed {seed})"));
+            rows.push(row);
+        }
+    }
+    let report: Vec<String> = rows.iter().map(|r| format!("{}: {}", r["case"], r["reason"])).collect();
+    let report = report.join("\n");
+    let is = |word: &'static str| move |r: &serde_json::Value| r["prompt"].as_str().unwrap().contains(word);
+    let all = |_: &serde_json::Value| true;
+    let flag = |key: &'static str| move |r: &serde_json::Value| r[key].as_f64() == Some(1.0);
+    let grasp = rate(&rows, all, flag("intent_grasp"));
+    let still = rate(&rows, all, flag("intent_unheld_still"));
+    let lift = rate(&rows, is("lifting"), flag("intent_lift"));
+    let drink = rate(&rows, is("drinking"), flag("intent_drink"));
+    let got = format!("grasp {grasp:.2}, unheld still {still:.2}, lift {lift:.2}, drink {drink:.2}");
+    assert!(
+        grasp >= MIN_GRASP && still >= MIN_UNHELD_STILL && lift >= MIN_LIFT && drink >= MIN_DRINK,
+        "{got} (want >= {MIN_GRASP}, {MIN_UNHELD_STILL}, {MIN_LIFT}, {MIN_DRINK})\n{report}"
+    );
+}
