@@ -284,8 +284,19 @@ fn stalled_consumer_with_the_tiny_bundle() {
     assert_eq!(unsafe { cg_start(e, text.as_ptr(), &scfg, &mut s) }, cg_status::CG_OK, "{}", last_error());
     let mut f = Frame::default();
     assert_eq!(poll_until_ready(s, &mut f, Duration::from_secs(30)), cg_status::CG_OK);
-    // Stop polling. Give the worker time to fill the ring, then watch it for a while.
-    std::thread::sleep(Duration::from_millis(500));
+    // Stop polling. Give the worker time to fill the ring (until its CPU time stops growing:
+    // under valgrind on a loaded machine that takes seconds, not the 500 ms of a plain run; a
+    // worker that spins never settles and fails below), then watch it for a while.
+    let settle = Instant::now();
+    let mut ticks = worker_cpu_ticks();
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let now = worker_cpu_ticks();
+        if now == ticks || settle.elapsed() > Duration::from_secs(60) {
+            break;
+        }
+        ticks = now;
+    }
     let rss0 = rss();
     let cpu0 = worker_cpu_ticks();
     std::thread::sleep(Duration::from_millis(700));
