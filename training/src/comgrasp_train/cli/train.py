@@ -34,13 +34,14 @@ def _sampling(args):
 
 def cmd_train_vq(args) -> int:
     from ..models.configs import make_config
+    from ..models.vq_losses import capped_warmup
     from ..train.vq_trainer import train_vq
 
     cfg = make_config(args.preset, single=args.single, down_t=args.down_t, causal_decoder=not args.paper_decoder,
                       width_scale=args.width_scale)
     t = cfg.train
     t = replace(t, total_iters=args.iters or t.total_iters, batch_size=args.batch or t.batch_size,
-                warmup_iters=min(t.warmup_iters, max(1, (args.iters or t.total_iters) // 10)),
+                warmup_iters=capped_warmup(t.warmup_iters, args.iters or t.total_iters),
                 lr=args.lr or t.lr, window_frames=args.window or t.window_frames)
     if args.lambda_joint is not None:
         cfg = replace(cfg, loss=replace(cfg.loss, lambda_joint=args.lambda_joint))
@@ -54,6 +55,7 @@ def cmd_train_vq(args) -> int:
 
 def cmd_train_gpt(args) -> int:
     from ..models.gpt_configs import preset
+    from ..models.vq_losses import capped_warmup
     from ..text_encoder import load_text_encoder
     from ..train.gpt_trainer import GPTTrainConfig, TextConfig, train_gpt
     from ..train.vq_trainer import load_vq
@@ -63,7 +65,7 @@ def cmd_train_gpt(args) -> int:
     dim = load_text_encoder(text.backend, checkpoint=text.checkpoint).dim
     cfg = preset(args.preset, codebook_sizes=tuple(c.codebook_size for c in vq_cfg.model.components), d_text=dim)
     train = GPTTrainConfig(total_iters=args.iters, batch_size=args.batch, lr=args.lr or GPTTrainConfig.lr,
-                           warmup_iters=min(GPTTrainConfig.warmup_iters, max(1, args.iters // 10)))
+                           warmup_iters=capped_warmup(GPTTrainConfig.warmup_iters, args.iters))
     m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
                   device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet,
                   stop_after=args.stop_after, time_budget=args.time_budget)

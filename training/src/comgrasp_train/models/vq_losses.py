@@ -87,6 +87,11 @@ def make_optimizer(model: nn.Module, cfg: TrainConfig | VQConfig) -> torch.optim
     return torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
 
 
+def capped_warmup(warmup: int, total: int) -> int:
+    """The warm-up a run of ``total`` steps gets: at most a tenth of it (and at least 1)."""
+    return min(warmup, max(1, total // 10))
+
+
 class StepDrop:
     """Linear warm-up, then T2M-GPT's single x0.05 drop at two thirds of ``total``. A callable
     object rather than a closure so LambdaLR saves ``total`` with the checkpoint: a run whose

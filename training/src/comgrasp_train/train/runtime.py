@@ -19,6 +19,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from ..models.vq_losses import capped_warmup
+
 
 @dataclass
 class Runtime:
@@ -243,8 +245,6 @@ def _set_total(scheduler, config: dict, total: int) -> None:
     """The fitted run length into the schedule (StepDrop) and the config saved with it."""
     for fn in getattr(scheduler, "lr_lambdas", []):
         if hasattr(fn, "total"):
-            fn.total = total
-            fn.warmup = min(fn.warmup, max(1, total // 10))  # as the CLI sizes it for --iters
+            fn.total, fn.warmup = total, capped_warmup(fn.warmup, total)
     train = config["vq"]["train"] if "vq" in config else config["train"]
-    train["total_iters"] = total
-    train["warmup_iters"] = min(train["warmup_iters"], max(1, total // 10))
+    train["total_iters"], train["warmup_iters"] = total, capped_warmup(train["warmup_iters"], total)
