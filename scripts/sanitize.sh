@@ -22,8 +22,10 @@
 #    only the C code's own loads and stores are instrumented. The Rust side's loads and
 #    stores are instrumented in the ASan fuzz builds (scripts/fuzz_smoke.sh).
 # 3. --miri: `cargo +nightly miri test` on the modules that do not call into tract: the
-#    handle registry and config unit tests, frame assembly (src/assemble.rs), and the ring
-#    buffer / stream lifecycle through
+#    handle registry and config unit tests, frame assembly (src/assemble.rs), the native
+#    path's thread team (src/model/native/team.rs: the helper thread, its phases' hand-out
+#    and the lifetime erasures) and the step's disjoint output parts (RowUnits), and the
+#    ring buffer / stream lifecycle through
 #    scripted sources (tests/engine_api.rs, the scripted part of tests/soak_fault.rs).
 #    Needs a nightly toolchain (MIRI_TOOLCHAIN, default nightly) with the miri and rust-src
 #    components; reported as SKIPPED (never as passed, exit 0) where they are missing.
@@ -151,13 +153,13 @@ if [ "$miri" = 1 ]; then
     # otherwise fetch a whole nightly, and CI cannot reach the Rust dist server).
     export RUSTUP_AUTO_INSTALL=0
     if miri_version=$(cargo "+$tc" miri --version 2>&1); then
-        echo "== cargo +$tc miri test (no tract: handle registry, configs, frame assembly, scripted streams)"
+        echo "== cargo +$tc miri test (no tract: handle registry, configs, frame assembly, thread team, scripted streams)"
         # Handles are integers cast to opaque pointer types and never dereferenced (by
         # design, src/ffi/handle.rs): permissive provenance silences Miri's
         # integer-to-pointer-cast warning for them; every other check stays on.
         export MIRIFLAGS="${MIRIFLAGS:--Zmiri-permissive-provenance}"
         t0=$SECONDS
-        if nice -n 10 cargo "+$tc" miri test --no-default-features --lib -- ffi::handle ffi::config assemble:: >"$out/miri-lib.log" 2>&1 \
+        if nice -n 10 cargo "+$tc" miri test --no-default-features --lib -- ffi::handle ffi::config assemble:: model::native::team:: model::native::step::tests::row_units >"$out/miri-lib.log" 2>&1 \
             && nice -n 10 cargo "+$tc" miri test --no-default-features --test engine_api >"$out/miri-engine_api.log" 2>&1 \
             && nice -n 10 cargo "+$tc" miri test --no-default-features --test soak_fault >"$out/miri-soak_fault.log" 2>&1; then
             note "miri: OK ($((SECONDS - t0)) s) $(grep -h '^test result' "$out"/miri-*.log | tr '\n' ' ')"

@@ -23,16 +23,13 @@
 //! `Error::Bundle` at load.
 use std::collections::BTreeSet;
 use std::path::Path;
-use std::sync::atomic::{
-    AtomicU64, AtomicUsize,
-    Ordering::{AcqRel, Relaxed},
-};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
 
 use super::arena::{Arena, Wm};
 use super::decoder_attention::{AttnState, WindowAttention};
 use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
-use super::helper_thread::{Helper, Job};
+use super::team::{Crew, Each, Helper, Order};
 use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -62,59 +59,23 @@ pub(crate) struct NativeDecoder {
     cost_ns: [AtomicU64; N_STREAMS + 1],
 }
 
-/// The extra job's index in [`NativeDecoder::cost_ns`] and in a [`Jobs`] order.
+/// The extra job's index in [`NativeDecoder::cost_ns`].
 const EXTRA: usize = N_STREAMS;
 
-/// One decode's jobs, shared by the caller and the helper: each claims the next job of
-/// `order` (longest recent time first) until none is left, so the two threads split the
-/// work by how fast they actually go (a helper that wakes late, or that the OS preempts,
-/// leaves its share to the caller).
-struct Jobs<'a> {
-    dec: &'a NativeDecoder,
-    states: *mut CompState,
-    ids: &'a [[usize; N_STREAMS]],
-    extra: Option<*mut (dyn FnMut() + Send + 'a)>,
-    order: [usize; N_STREAMS + 1],
-    n: usize,
-    next: AtomicUsize,
+/// One job of a decode: a component's network on its own state, or the caller's extra work.
+enum DecodeJob<'a> {
+    Component(usize, &'a mut CompState),
+    Extra(&'a mut (dyn FnMut() + Send)),
 }
 
-impl Jobs<'_> {
-    /// Runs jobs until none is left.
-    ///
-    /// # Safety
-    /// `states` points at `N_STREAMS` live states and `extra` at a live closure, none of
-    /// them used by anything but this decode; each job runs once, on one thread.
-    unsafe fn drain(&self) {
-        loop {
-            let i = self.next.fetch_add(1, AcqRel);
-            if i >= self.n {
-                return;
-            }
-            let job = self.order[i];
-            let t = Instant::now();
-            match (job, self.extra) {
-                (EXTRA, Some(f)) => (*f)(),
-                (EXTRA, None) => unreachable!("the extra job is only ordered when there is one"),
-                (c, _) => {
-                    let mut col = [0; MAX_GROUP];
-                    for (d, t) in col.iter_mut().zip(self.ids) {
-                        *d = t[c];
-                    }
-                    self.dec.comps[c].run(&self.dec.arena, &mut *self.states.add(c), &col[..self.ids.len()]);
-                }
-            }
-            self.dec.note_cost(job, t.elapsed().as_nanos() as u64);
+impl DecodeJob<'_> {
+    /// Its index in [`NativeDecoder::cost_ns`].
+    fn index(&self) -> usize {
+        match self {
+            DecodeJob::Component(c, _) => *c,
+            DecodeJob::Extra(_) => EXTRA,
         }
     }
-}
-
-/// The helper's side of a decode.
-///
-/// # Safety
-/// `arg` is a live `Jobs` (see [`Jobs::drain`]).
-unsafe fn drain_jobs(arg: *const ()) {
-    (*(arg as *const Jobs<'_>)).drain()
 }
 
 /// One stream's decoder context: every layer's history, plus scratch.
@@ -503,40 +464,48 @@ impl NativeDecoder {
     ) -> Result<()> {
         assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
         assert!((1..=MAX_GROUP).contains(&ids.len()), "decode of {} tokens", ids.len());
-        let mut jobs = Jobs {
-            dec: self,
-            states: st.comps.as_mut_ptr(),
-            ids,
-            extra: extra.map(|f| f as *mut (dyn FnMut() + Send)),
-            order: [0; N_STREAMS + 1],
-            n: 0,
-            next: AtomicUsize::new(0),
+        // The jobs, longest recent time first (each thread takes the next one: the two
+        // split the work by how fast they actually go).
+        let mut jobs: [Option<DecodeJob<'_>>; N_STREAMS + 1] = std::array::from_fn(|_| None);
+        for (slot, (c, cs)) in jobs.iter_mut().zip(st.comps.iter_mut().enumerate()) {
+            *slot = Some(DecodeJob::Component(c, cs));
+        }
+        if let Some(f) = extra {
+            // (a coercion site: the closure's lifetime shortens to the states' borrow)
+            jobs[EXTRA] = Some(DecodeJob::Extra(f));
+        }
+        let cost = |j: &Option<DecodeJob<'_>>| j.as_ref().map(|j| self.cost_ns[j.index()].load(Relaxed));
+        // descending, the empty extra slot last (an in-place sort: no allocation)
+        jobs.sort_unstable_by_key(|j| std::cmp::Reverse(cost(j)));
+        let run = |crew: &mut Crew<'_, ()>| {
+            crew.phase(
+                &mut (),
+                Order::Queue,
+                Each(jobs.into_iter().flatten()),
+                |_| {},
+                |_, job: DecodeJob<'_>| {
+                    let (i, t) = (job.index(), Instant::now());
+                    match job {
+                        DecodeJob::Extra(f) => f(),
+                        DecodeJob::Component(c, cs) => {
+                            let mut col = [0; MAX_GROUP];
+                            for (d, t) in col.iter_mut().zip(ids) {
+                                *d = t[c];
+                            }
+                            self.comps[c].run(&self.arena, cs, &col[..ids.len()]);
+                        }
+                    }
+                    self.note_cost(i, t.elapsed().as_nanos() as u64);
+                },
+            )
         };
-        // longest recent time first (an insertion sort: no allocation)
-        for job in (0..N_STREAMS).chain(jobs.extra.map(|_| EXTRA)) {
-            let c = self.cost_ns[job].load(Relaxed);
-            let mut i = jobs.n;
-            while i > 0 && self.cost_ns[jobs.order[i - 1]].load(Relaxed) < c {
-                jobs.order[i] = jobs.order[i - 1];
-                i -= 1;
-            }
-            jobs.order[i] = job;
-            jobs.n += 1;
-        }
-        let mut helped = false;
-        if let Some(h) = &self.helper {
-            let job = Job { run: drain_jobs, arg: &jobs as *const Jobs<'_> as *const () };
-            // SAFETY: `jobs` and what it points to outlive the call (it waits for the
-            // helper), and every job runs on one thread only (claimed atomically).
-            match unsafe { h.run_split(job, || jobs.drain()) } {
-                Some(false) => helped = true,
-                Some(true) => return Err(Error::Panic("the native decoder's helper thread panicked".into())),
-                None => {} // busy: another stream's decode has it
-            }
-        }
-        if !helped {
-            // SAFETY: as above, on this thread alone.
-            unsafe { jobs.drain() };
+        // (alone if another stream's decode has the helper)
+        let ((), helper_panicked) = match &self.helper {
+            Some(h) => h.crew(&mut (), run),
+            None => (run(&mut Crew::solo()), false),
+        };
+        if helper_panicked {
+            return Err(Error::Panic("the native decoder's helper thread panicked".into()));
         }
         for (c, s) in self.comps.iter().zip(&st.comps) {
             c.emit(s, ids.len() * self.frames, out);
@@ -571,5 +540,5 @@ fn start_helper(comps: &[Component], threads: Option<usize>) -> Option<Helper> {
         return None;
     }
     // no thread to be had: decode on the caller's alone
-    Helper::start().ok()
+    Helper::start_named("comgrasp-decoder").ok()
 }

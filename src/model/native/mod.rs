@@ -14,6 +14,6 @@ pub(crate) mod weights;
 pub(crate) mod decoder;
 mod decoder_attention;
 mod decoder_conv;
-// The second thread of the decoder and of the step (one helper per loaded model).
 mod gemm;
-mod helper_thread;
+// The thread team of the decoder and of the step (one helper thread per loaded model).
+mod team;

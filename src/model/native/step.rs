@@ -20,15 +20,16 @@
 //! LN2 + fc1 + GELU, fc2; the heads (2 + 5 L + 6 (L - 1) phases, 150 on the paper model).
 //! Each phase is cut into units (blocks of rows of its products, ~32 KB of weights each
 //! and a multiple of 4 rows, the GEMV kernels' row blocks; or attention heads). With two
-//! threads the caller and a helper thread (helper_thread.rs, one per loaded model,
-//! started at load) take the units of each phase from both ends and meet before the next
-//! phase; a thread the OS preempts, or a helper that wakes late, leaves its share to the
+//! threads the caller and a helper thread (team.rs, one per loaded model, started at
+//! load) take the units of each phase from both ends and meet before the next phase. Each
+//! unit carries its own parts of the phase's outputs, cut with `split_at_mut`
+//! ([`RowUnits`]), and reads the phase's inputs by shared reference; a thread the OS preempts, or a helper that wakes late, leaves its share to the
 //! other instead of stalling it. Every output value is computed by the same kernel in the
 //! same order whoever computes it, so logits and caches are bit-identical for any thread
 //! count (tests/native_step.rs, and the unit tests below). A step that finds the helper
 //! busy (another stream's step has it) runs alone, and no step allocates.
 //!
-//! `COMGRASP_STEP_THREADS=1|2` (read at load) picks the count; the default is 2 when the
+//! `RuntimeOptions::step_threads` (1 or 2, read at load) picks the count; the default is 2 when the
 //! machine has two or more cores and the step reads at least [`SPLIT_MIN_BYTES`] of
 //! weights. Measured on the 2-core machine: models/tiny (0.5 MB, 16 us per step) is slower
 //! on two threads (~25 us: the hand-over costs ~10 us), models/default (10 MB int8) goes
@@ -42,8 +43,8 @@
 use std::ops::Range;
 
 use super::arena::{Arena, Wm};
-use super::helper_thread::{Helper, Member, Phase};
 use super::kernels::{add_assign, dot, gelu_erf, gemm_rows, gemv_rows, layer_norm, layer_norm_rows, softmax};
+use super::team::{Crew, Helper, Order, Units};
 use super::weights::{Matrix, Tensors};
 use crate::bundle::manifest::{Manifest, NativeSpec, N_STREAMS};
 use crate::bundle::BundleSource;
@@ -149,15 +150,22 @@ pub(crate) struct NativeStep {
     /// 1/sqrt(head_dim) per stream, as the graph's constant (computed in f64, then rounded).
     scale: [f32; N_STREAMS],
     bytes: usize,
-    /// The second thread, when steps use two, and the hand-out state of a step's phases.
+    /// The second thread, when steps use two.
     helper: Option<Helper>,
-    phases: Vec<Phase>,
     /// Weight bytes per unit of a phase ([`UNIT_BYTES`]; tests use smaller units).
     unit_bytes: usize,
 }
 
 /// One generation's KV cache and scratch buffers (everything `step` writes).
 pub(crate) struct NativeStepState {
+    bufs: Bufs,
+    /// Per team member (caller, helper): what each computes in full for itself.
+    own: [Own; MAX_THREADS],
+}
+
+/// The buffers the members of a step's team share: each phase hands out disjoint parts
+/// of the ones it writes and lets every member read the others.
+struct Bufs {
     /// Per stream, (L, H, S, D) row-major: the layout of the graph's cache inputs.
     k: Vec<Vec<f32>>,
     v: Vec<Vec<f32>>,
@@ -168,21 +176,21 @@ pub(crate) struct NativeStepState {
     att: Vec<Vec<f32>>,
     tmp: Vec<Vec<f32>>,
     mlp: Vec<Vec<f32>>,
-    /// Coordination: the four projections, the MLP's activations (four rows each).
+    /// Coordination: the four projections, their four concatenations, the MLP's
+    /// activations (four rows each).
     cp: Vec<f32>,
+    ccat: Vec<f32>,
     ch1: Vec<f32>,
     ch2: Vec<f32>,
     cm: Vec<f32>,
-    /// Per team member: what each computes in full for itself.
-    own: Vec<Own>,
 }
 
 /// A team member's private buffers.
 struct Own {
-    /// Per stream, a LayerNorm's output (the input of the next product).
+    /// Per stream, a LayerNorm's output (the input of the next product), and whether this
+    /// member computed it in the current phase.
     x: Vec<Vec<f32>>,
-    /// The coordination's four concatenations.
-    ccat: Vec<f32>,
+    have: [bool; N_STREAMS],
     scores: Vec<f32>,
     /// This member's rows of a coordination MLP product, four rows.
     part: Vec<f32>,
@@ -357,16 +365,12 @@ impl NativeStep {
             bytes += c.mlp.iter().chain(&c.inp).chain(&c.out).map(|l| l.w.bytes()).sum::<usize>();
         }
         let scale = std::array::from_fn(|s| (1.0 / (d.head_dims[s] as f64).sqrt()) as f32);
-        NativeStep { arena, d, streams, coord, scale, bytes, helper: None, phases: Vec::new(), unit_bytes: UNIT_BYTES }
+        NativeStep { arena, d, streams, coord, scale, bytes, helper: None, unit_bytes: UNIT_BYTES }
     }
 
     /// Steps use `n` threads (1 or 2; 1 if no thread can be started).
     fn set_threads(&mut self, n: usize) {
         self.helper = if n >= 2 { Helper::start_named("comgrasp-step").ok() } else { None };
-        // the input, 5 phases per layer, 6 per coordination, the heads
-        let n_phases = 2 + 5 * self.d.n_layers + 6 * self.d.n_layers.saturating_sub(1);
-        self.phases =
-            if self.helper.is_some() { (0..n_phases).map(|_| Phase::default()).collect() } else { Vec::new() };
     }
 
     /// Threads a step uses (when the helper is not busy).
@@ -390,25 +394,26 @@ impl NativeStep {
         let cache = |s: usize| vec![0.0f32; d.n_layers * d.slots * d.widths[s]];
         let per_stream = |f: &dyn Fn(usize) -> usize| (0..N_STREAMS).map(|s| vec![0.0f32; f(s)]).collect::<Vec<_>>();
         NativeStepState {
-            k: (0..N_STREAMS).map(cache).collect(),
-            v: (0..N_STREAMS).map(cache).collect(),
-            h: per_stream(&|s| d.widths[s]),
-            qkv: per_stream(&|s| 3 * d.widths[s]),
-            att: per_stream(&|s| d.widths[s]),
-            tmp: per_stream(&|s| d.widths[s]),
-            mlp: per_stream(&|s| d.hidden[s]),
-            cp: vec![0.0; N_STREAMS * d.coord_width],
-            ch1: vec![0.0; N_STREAMS * d.coord_hidden],
-            ch2: vec![0.0; N_STREAMS * d.coord_hidden],
-            cm: vec![0.0; N_STREAMS * d.coord_width],
-            own: (0..MAX_THREADS)
-                .map(|_| Own {
-                    x: per_stream(&|s| d.widths[s]),
-                    ccat: vec![0.0; N_STREAMS * (N_STREAMS - 1) * d.coord_width],
-                    scores: vec![0.0; d.slots],
-                    part: vec![0.0; N_STREAMS * d.coord_width.max(d.coord_hidden)],
-                })
-                .collect(),
+            bufs: Bufs {
+                k: (0..N_STREAMS).map(cache).collect(),
+                v: (0..N_STREAMS).map(cache).collect(),
+                h: per_stream(&|s| d.widths[s]),
+                qkv: per_stream(&|s| 3 * d.widths[s]),
+                att: per_stream(&|s| d.widths[s]),
+                tmp: per_stream(&|s| d.widths[s]),
+                mlp: per_stream(&|s| d.hidden[s]),
+                cp: vec![0.0; N_STREAMS * d.coord_width],
+                ccat: vec![0.0; N_STREAMS * (N_STREAMS - 1) * d.coord_width],
+                ch1: vec![0.0; N_STREAMS * d.coord_hidden],
+                ch2: vec![0.0; N_STREAMS * d.coord_hidden],
+                cm: vec![0.0; N_STREAMS * d.coord_width],
+            },
+            own: std::array::from_fn(|_| Own {
+                x: per_stream(&|s| d.widths[s]),
+                have: [false; N_STREAMS],
+                scores: vec![0.0; d.slots],
+                part: vec![0.0; N_STREAMS * d.coord_width.max(d.coord_hidden)],
+            }),
         }
     }
 
@@ -450,68 +455,70 @@ impl NativeStep {
         logits: &mut [Vec<f32>; N_STREAMS],
         team: bool,
     ) {
-        assert!(st.own.len() == MAX_THREADS && st.h.len() == N_STREAMS, "a NativeStepState of another model");
-        let view = View::new(st, logits);
-        // SAFETY (both calls): `view` points into `st` and `logits`, borrowed mutably for
-        // this whole call; `run` gives every output element to one member per phase.
-        let work = |m: &mut Member<'_>| unsafe { self.run(&view, m, tokens, pos, text_emb) };
-        if let Some(h) = self.helper.as_ref().filter(|_| team) {
-            match h.run_team(&self.phases, &work) {
-                Some(false) => return,
-                Some(true) => panic!("the native step's helper thread panicked"),
-                None => {} // busy: another stream's step has it
+        let d = &self.d;
+        let b = &mut st.bufs;
+        assert!(
+            b.h.len() == N_STREAMS
+                && (0..N_STREAMS)
+                    .all(|s| b.h[s].len() == d.widths[s] && b.k[s].len() == d.n_layers * d.slots * d.widths[s]),
+            "a NativeStepState of another model"
+        );
+        let [mine, theirs] = &mut st.own;
+        let input = Input { tokens, pos, text_emb };
+        let mut work = |c: &mut Crew<'_, Own>| self.run(c, mine, b, logits, &input);
+        match self.helper.as_ref().filter(|_| team) {
+            Some(h) => {
+                // (alone if another stream's step has the helper)
+                if h.crew(theirs, work).1 {
+                    panic!("the native step's helper thread panicked");
+                }
             }
+            None => work(&mut Crew::solo()),
         }
-        work(&mut Member::solo());
     }
 
-    /// Member `m`'s part of a step (the whole step for a team of one). Every phase hands
-    /// out units (blocks of rows of the four streams' products, or attention heads); a
-    /// member computes the LayerNorm feeding a product itself (into its own buffer) before
-    /// its first unit of that stream in the phase.
-    ///
-    /// # Safety
-    /// `v` points at a live state and logits of this model that nothing else accesses
-    /// during the call, and every member of the team runs this with the same arguments.
-    unsafe fn run(&self, v: &View, m: &mut Member<'_>, tokens: [i64; N_STREAMS], pos: usize, text_emb: &[f32]) {
-        let d = &self.d;
-        // SAFETY: the state has MAX_THREADS private buffers, one per member.
-        let own = &mut *v.own[m.index()];
-        let u = Units::new(d.widths, d.widths.map(|_| self.row_block(d.d_text * 4)));
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
+    /// A step on crew `c` (`me`: the caller's scratch). Every phase hands out units (blocks
+    /// of rows of the four streams' products, or attention heads) with their parts of the
+    /// phase's outputs; a member computes the LayerNorm feeding a product itself (into its
+    /// own buffer) before its first unit of that stream in the phase.
+    fn run(&self, c: &mut Crew<'_, Own>, me: &mut Own, b: &mut Bufs, logits: &mut [Vec<f32>; N_STREAMS], x: &Input) {
+        let (d, Input { tokens, pos, text_emb }) = (&self.d, *x);
+        let u = RowUnits::new(per_stream([&mut b.h]), d.widths, d.widths.map(|_| self.row_block(d.d_text * 4)));
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |_, (s, r, [h])| {
                 let (sw, w) = (&self.streams[s], d.widths[s]);
-                let h = v.h[s].rows(r.clone());
                 if pos == 0 {
                     sw.cond.rows(&self.arena, text_emb, r.clone(), h);
                 } else {
                     row_part(&sw.tok, tokens[s] as usize, r.clone(), h);
                 }
                 add_assign(h, &sw.pos[pos * w + r.start..pos * w + r.end]);
-            })
-        });
+            },
+        );
         for l in 0..d.n_layers {
             if l > 0 {
-                self.coordinate(&self.coord[l - 1], v, own, m);
+                self.coordinate(&self.coord[l - 1], c, me, b);
             }
-            self.blocks(l, pos, v, own, m);
+            self.blocks(l, pos, c, me, b);
         }
-        let u = self.units(d.vocab, |s| &self.streams[s].head);
-        let mut have = [false; N_STREAMS];
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let (sw, x) = (&self.streams[s], &mut own.x[s]);
-                if !std::mem::replace(&mut have[s], true) {
-                    sw.ln_f.run(v.h[s].all(), x);
-                }
-                gemv_rows(self.arena.mat(&sw.head), x, None, r.clone(), v.logits[s].rows(r));
-            })
+        let u = RowUnits::new(per_stream([&mut logits[..]]), d.vocab, self.blocks_of(|s| &self.streams[s].head));
+        let h = &b.h;
+        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [out])| {
+            let sw = &self.streams[s];
+            if !std::mem::replace(&mut me.have[s], true) {
+                sw.ln_f.run(&h[s], &mut me.x[s]);
+            }
+            gemv_rows(self.arena.mat(&sw.head), &me.x[s], None, r, out);
         });
     }
 
-    /// The units of a phase computing `rows[s]` rows of the matrices `mat(s)`.
-    fn units<'a>(&'a self, rows: [usize; N_STREAMS], mat: impl Fn(usize) -> &'a Wm) -> Units {
-        Units::new(rows, std::array::from_fn(|s| self.row_block(mat(s).bytes() / mat(s).rows.max(1))))
+    /// Rows per unit of the products `mat(s)` of the four streams.
+    fn blocks_of<'a>(&'a self, mat: impl Fn(usize) -> &'a Wm) -> [usize; N_STREAMS] {
+        std::array::from_fn(|s| self.row_block(mat(s).bytes() / mat(s).rows.max(1)))
     }
 
     /// Rows per unit for rows of `row_bytes`: a multiple of 4 (the GEMV kernels' row
@@ -521,43 +528,53 @@ impl NativeStep {
     }
 
     /// Layer `l`'s blocks of the four streams, phase by phase (see `run`).
-    unsafe fn blocks(&self, l: usize, pos: usize, v: &View, own: &mut Own, m: &mut Member<'_>) {
+    fn blocks(&self, l: usize, pos: usize, c: &mut Crew<'_, Own>, me: &mut Own, b: &mut Bufs) {
         let d = &self.d;
         let block = |s: usize| &self.streams[s].blocks[l];
-        let u = self.units(d.widths.map(|w| 3 * w), |s| &block(s).qkv.w);
-        let mut have = [false; N_STREAMS];
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let (b, x) = (block(s), &mut own.x[s]);
-                if !std::mem::replace(&mut have[s], true) {
-                    b.ln1.run(v.h[s].all(), x);
-                }
-                b.qkv.rows(&self.arena, x, r.clone(), v.qkv[s].rows(r));
-            })
+        let u = RowUnits::new(per_stream([&mut b.qkv]), d.widths.map(|w| 3 * w), self.blocks_of(|s| &block(s).qkv.w));
+        let h = &b.h;
+        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [qkv])| {
+            let (bl, x) = (block(s), &mut me.x[s]);
+            if !std::mem::replace(&mut me.have[s], true) {
+                bl.ln1.run(&h[s], x);
+            }
+            bl.qkv.rows(&self.arena, x, r, qkv);
         });
+        // heads as units: this layer's region of the k and v caches, (H, S, D), and the
+        // head's columns of the attention output
         let nh = d.n_heads;
-        let u = Units::new([nh; N_STREAMS], [1; N_STREAMS]);
-        m.phase(u.total(), |units| {
-            u.each(units, |s, heads| {
-                let (w, hd, slots) = (d.widths[s], d.head_dims[s], d.slots);
-                let qkv = v.qkv[s].all();
-                let (q, kv) = qkv.split_at(w);
+        fn layer(c: &mut [f32], l: usize, n_layers: usize) -> &mut [f32] {
+            let n = c.len() / n_layers;
+            &mut c[l * n..(l + 1) * n]
+        }
+        let mut kv = b.k.iter_mut().zip(b.v.iter_mut()).zip(b.att.iter_mut());
+        let bufs = std::array::from_fn(|_| {
+            let ((k, v), att) = kv.next().expect("one buffer per stream");
+            [layer(k, l, d.n_layers), layer(v, l, d.n_layers), &mut att[..]]
+        });
+        let u = RowUnits::new(bufs, [nh; N_STREAMS], [1; N_STREAMS]);
+        let qkv = &b.qkv;
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |me, (s, heads, [ck, cv, out])| {
+                let (w, hd) = (d.widths[s], d.head_dims[s]);
+                let (q, kv) = qkv[s].split_at(w);
                 let (k, vv) = kv.split_at(w);
-                for head in heads {
-                    // cache (L, H, S, D): this layer's and head's rows are `region`
-                    let base = (l * nh + head) * slots * hd;
-                    let region = base..base + slots * hd;
-                    let (ck, cv) = (v.k[s].rows(region.clone()), v.v[s].rows(region));
+                let region = d.slots * hd;
+                let parts = ck.chunks_exact_mut(region).zip(cv.chunks_exact_mut(region)).zip(out.chunks_exact_mut(hd));
+                for (head, ((ck, cv), out)) in heads.zip(parts) {
                     let hs = head * hd..(head + 1) * hd;
                     ck[pos * hd..(pos + 1) * hd].copy_from_slice(&k[hs.clone()]);
                     cv[pos * hd..(pos + 1) * hd].copy_from_slice(&vv[hs.clone()]);
-                    let qh = &q[hs.clone()];
-                    let scores = &mut own.scores[..=pos];
+                    let qh = &q[hs];
+                    let scores = &mut me.scores[..=pos];
                     for (t, sc) in scores.iter_mut().enumerate() {
                         *sc = dot(qh, &ck[t * hd..(t + 1) * hd]) * self.scale[s];
                     }
                     softmax(scores);
-                    let out = v.att[s].rows(hs);
                     out.fill(0.0);
                     for (t, &p) in scores.iter().enumerate() {
                         for (o, &vv) in out.iter_mut().zip(&cv[t * hd..(t + 1) * hd]) {
@@ -565,93 +582,140 @@ impl NativeStep {
                         }
                     }
                 }
-            })
+            },
+        );
+        let u = RowUnits::new(per_stream([&mut b.tmp, &mut b.h]), d.widths, self.blocks_of(|s| &block(s).proj.w));
+        let att = &b.att;
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |_, (s, r, [tmp, h])| {
+                block(s).proj.rows(&self.arena, &att[s], r, tmp);
+                add_assign(h, tmp);
+            },
+        );
+        let u = RowUnits::new(per_stream([&mut b.mlp]), d.hidden, self.blocks_of(|s| &block(s).fc1.w));
+        let h = &b.h;
+        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [mlp])| {
+            let (bl, x) = (block(s), &mut me.x[s]);
+            if !std::mem::replace(&mut me.have[s], true) {
+                bl.ln2.run(&h[s], x);
+            }
+            bl.fc1.rows(&self.arena, x, r, mlp);
+            gelu_erf(mlp);
         });
-        let u = self.units(d.widths, |s| &block(s).proj.w);
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let tmp = v.tmp[s].rows(r.clone());
-                block(s).proj.rows(&self.arena, v.att[s].all(), r.clone(), tmp);
-                add_assign(v.h[s].rows(r), tmp);
-            })
-        });
-        let u = self.units(d.hidden, |s| &block(s).fc1.w);
-        let mut have = [false; N_STREAMS];
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let (b, x) = (block(s), &mut own.x[s]);
-                if !std::mem::replace(&mut have[s], true) {
-                    b.ln2.run(v.h[s].all(), x);
-                }
-                let mlp = v.mlp[s].rows(r.clone());
-                b.fc1.rows(&self.arena, x, r, mlp);
-                gelu_erf(mlp);
-            })
-        });
-        let u = self.units(d.widths, |s| &block(s).fc2.w);
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let tmp = v.tmp[s].rows(r.clone());
-                block(s).fc2.rows(&self.arena, v.mlp[s].all(), r.clone(), tmp);
-                add_assign(v.h[s].rows(r), tmp);
-            })
-        });
+        let u = RowUnits::new(per_stream([&mut b.tmp, &mut b.h]), d.widths, self.blocks_of(|s| &block(s).fc2.w));
+        let mlp = &b.mlp;
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |_, (s, r, [tmp, h])| {
+                block(s).fc2.rows(&self.arena, &mlp[s], r, tmp);
+                add_assign(h, tmp);
+            },
+        );
     }
 
     /// The coordination before a layer, phase by phase (see `run`).
-    unsafe fn coordinate(&self, c: &Coord, v: &View, own: &mut Own, m: &mut Member<'_>) {
+    fn coordinate(&self, co: &Coord, c: &mut Crew<'_, Own>, me: &mut Own, b: &mut Bufs) {
         let d = &self.d;
-        let (cw, ch) = (d.coord_width, d.coord_hidden);
-        let u = self.units([cw; N_STREAMS], |s| &c.inp[s].w);
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                c.inp[s].rows(&self.arena, v.h[s].all(), r.clone(), v.cp.rows(s * cw + r.start..s * cw + r.end));
-            })
-        });
-        // The shared MLP on the four concatenations at once (rows of one matrix as units).
-        let mlp =
-            |m: &mut Member<'_>, lin: &Linear, x: &[f32], out: Buf, width: usize, part: &mut [f32], gelu: bool| {
-                let u = Units::new([width, 0, 0, 0], [self.row_block(lin.w.bytes() / lin.w.rows.max(1)), 1, 1, 1]);
-                m.phase(u.total(), |units| {
-                    u.each(units, |_, r| {
-                        let part = &mut part[..N_STREAMS * r.len()];
-                        gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
-                        for (j, pj) in part.chunks_exact(r.len()).enumerate() {
-                            let dst = out.rows(j * width + r.start..j * width + r.end);
-                            dst.copy_from_slice(pj);
-                            if gelu {
-                                gelu_erf(dst);
-                            }
-                        }
-                    })
-                });
-            };
-        // concatenation i: the other streams' projections in stream order (each member
-        // builds its own copy)
-        let cp = v.cp.all();
+        let cw = d.coord_width;
+        let mut cp = b.cp.chunks_mut(cw.max(1));
+        let u = RowUnits::new(
+            std::array::from_fn(|_| [cp.next().unwrap_or_default()]),
+            [cw; N_STREAMS],
+            self.blocks_of(|s| &co.inp[s].w),
+        );
+        let h = &b.h;
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |_, (s, r, [out])| {
+                co.inp[s].rows(&self.arena, &h[s], r, out);
+            },
+        );
+        // concatenation i: the other streams' projections in stream order
         let cat_len = (N_STREAMS - 1) * cw;
         for i in 0..N_STREAMS {
             let mut at = i * cat_len;
             for j in (0..N_STREAMS).filter(|&j| j != i) {
-                own.ccat[at..at + cw].copy_from_slice(&cp[j * cw..(j + 1) * cw]);
+                b.ccat[at..at + cw].copy_from_slice(&b.cp[j * cw..(j + 1) * cw]);
                 at += cw;
             }
         }
-        mlp(m, &c.mlp[0], &own.ccat, v.ch1, ch, &mut own.part, true);
-        mlp(m, &c.mlp[1], v.ch1.all(), v.ch2, ch, &mut own.part, true);
-        mlp(m, &c.mlp[2], v.ch2.all(), v.cm, cw, &mut own.part, false);
-        let u = self.units(d.widths, |s| &c.out[s].w);
-        let cm = v.cm.all();
-        m.phase(u.total(), |units| {
-            u.each(units, |s, r| {
-                let tmp = v.tmp[s].rows(r.clone());
-                c.out[s].rows(&self.arena, &cm[s * cw..(s + 1) * cw], r.clone(), tmp);
-                add_assign(tmp, &v.h[s].all()[r]);
-            })
-        });
-        let u = Units::new(d.widths, d.widths);
-        m.phase(u.total(), |units| u.each(units, |s, r| c.norm[s].rows(v.tmp[s].all(), r.clone(), v.h[s].rows(r))));
+        // The shared MLP on the four concatenations at once (rows of one matrix as units,
+        // each with its rows of the four outputs).
+        let mlp = |c: &mut Crew<'_, Own>, me: &mut Own, lin: &Linear, x: &[f32], out: &mut [f32], gelu: bool| {
+            let width = lin.w.rows;
+            let mut rows = out.chunks_mut(width.max(1));
+            let outs: [&mut [f32]; N_STREAMS] = std::array::from_fn(|_| rows.next().unwrap_or_default());
+            let none = || std::array::from_fn(|_| <&mut [f32]>::default());
+            let u = RowUnits::new(
+                [outs, none(), none(), none()],
+                [width, 0, 0, 0],
+                [self.row_block(lin.w.bytes() / width.max(1)), 1, 1, 1],
+            );
+            c.phase(
+                me,
+                Order::Split,
+                u,
+                |_| {},
+                |me, (_, r, outs)| {
+                    let part = &mut me.part[..N_STREAMS * r.len()];
+                    gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
+                    for (dst, pj) in outs.into_iter().zip(part.chunks_exact(r.len())) {
+                        dst.copy_from_slice(pj);
+                        if gelu {
+                            gelu_erf(dst);
+                        }
+                    }
+                },
+            );
+        };
+        mlp(c, me, &co.mlp[0], &b.ccat, &mut b.ch1, true);
+        mlp(c, me, &co.mlp[1], &b.ch1, &mut b.ch2, true);
+        mlp(c, me, &co.mlp[2], &b.ch2, &mut b.cm, false);
+        let u = RowUnits::new(per_stream([&mut b.tmp]), d.widths, self.blocks_of(|s| &co.out[s].w));
+        let (cm, h) = (&b.cm, &b.h);
+        c.phase(
+            me,
+            Order::Split,
+            u,
+            |_| {},
+            |_, (s, r, [tmp])| {
+                co.out[s].rows(&self.arena, &cm[s * cw..(s + 1) * cw], r.clone(), tmp);
+                add_assign(tmp, &h[s][r]);
+            },
+        );
+        let u = RowUnits::new(per_stream([&mut b.h]), d.widths, d.widths);
+        let tmp = &b.tmp;
+        c.phase(me, Order::Split, u, |_| {}, |_, (s, r, [h])| co.norm[s].rows(&tmp[s], r, h));
     }
+}
+
+/// What one step reads besides the state.
+#[derive(Clone, Copy)]
+struct Input<'a> {
+    tokens: [i64; N_STREAMS],
+    pos: usize,
+    text_emb: &'a [f32],
+}
+
+/// A phase's `init`: no LayerNorm output of this phase yet.
+fn reset_have(me: &mut Own) {
+    me.have = [false; N_STREAMS];
+}
+
+/// The four streams' buffers of each of `vs` (one `Vec` per stream each), for [`RowUnits`].
+fn per_stream<const K: usize>(vs: [&mut [Vec<f32>]; K]) -> [[&mut [f32]; K]; N_STREAMS] {
+    let mut its = vs.map(|v| v.iter_mut());
+    std::array::from_fn(|_| std::array::from_fn(|k| its[k].next().expect("one buffer per stream").as_mut_slice()))
 }
 
 /// Weight bytes per unit of work a step's team hands out: small enough that the last
@@ -659,36 +723,100 @@ impl NativeStep {
 /// call's worth of streaming (members take several consecutive units at once anyway).
 const UNIT_BYTES: usize = 32 << 10;
 
-/// The units of a phase over the four streams: stream s's `len[s]` rows (or heads) in
-/// blocks of `block[s]`, stream after stream.
-struct Units {
-    len: [usize; N_STREAMS],
+/// The units of a phase over the four streams: stream s's rows `0..rows[s]` in blocks of
+/// `block[s]`, stream after stream, each with its rows of K output buffers per stream (a
+/// buffer of stream s holds `len / rows[s]` elements per row). Items are `(s, rows,
+/// [the rows' elements of each buffer])`, cut off the front or the back by `split_at_mut`:
+/// disjoint by construction. A block taken from the back is the same block as from the
+/// front (the last one may be short), so a unit's rows never depend on who takes it.
+struct RowUnits<'a, const K: usize> {
+    /// What is left of each buffer: the rows `lo[s]..hi[s]`.
+    rest: [[&'a mut [f32]; K]; N_STREAMS],
+    per_row: [[usize; K]; N_STREAMS],
+    lo: [usize; N_STREAMS],
+    hi: [usize; N_STREAMS],
     block: [usize; N_STREAMS],
-    start: [usize; N_STREAMS + 1],
 }
 
-impl Units {
-    fn new(len: [usize; N_STREAMS], block: [usize; N_STREAMS]) -> Units {
-        let mut start = [0; N_STREAMS + 1];
-        for s in 0..N_STREAMS {
-            start[s + 1] = start[s] + len[s].div_ceil(block[s].max(1));
+impl<'a, const K: usize> RowUnits<'a, K> {
+    fn new(bufs: [[&'a mut [f32]; K]; N_STREAMS], rows: [usize; N_STREAMS], block: [usize; N_STREAMS]) -> Self {
+        let per_row = std::array::from_fn(|s| {
+            std::array::from_fn(|k| {
+                let len = bufs[s][k].len();
+                assert!(len.is_multiple_of(rows[s]), "stream {s}: a buffer of {len} for {} rows", rows[s]);
+                len.checked_div(rows[s]).unwrap_or(0)
+            })
+        });
+        RowUnits { rest: bufs, per_row, lo: [0; N_STREAMS], hi: rows, block: block.map(|b| b.max(1)) }
+    }
+
+    /// Cuts rows `r` of stream `s` off the front (`front`) or the back of what is left.
+    fn cut(&mut self, s: usize, r: Range<usize>, front: bool) -> (usize, Range<usize>, [&'a mut [f32]; K]) {
+        let n = r.len();
+        let parts = std::array::from_fn(|k| {
+            let buf = std::mem::take(&mut self.rest[s][k]);
+            let at = if front { n * self.per_row[s][k] } else { buf.len() - n * self.per_row[s][k] };
+            let (a, b) = buf.split_at_mut(at);
+            let (part, rest) = if front { (a, b) } else { (b, a) };
+            self.rest[s][k] = rest;
+            part
+        });
+        (s, r, parts)
+    }
+}
+
+impl<'a, const K: usize> Units for RowUnits<'a, K> {
+    type Item = (usize, Range<usize>, [&'a mut [f32]; K]);
+
+    fn left(&self) -> usize {
+        (0..N_STREAMS).map(|s| (self.hi[s] - self.lo[s]).div_ceil(self.block[s])).sum()
+    }
+
+    /// Up to `n` blocks of one stream: the first stream with rows left from the front, the
+    /// last from the back.
+    fn take(&mut self, n: usize, back: bool) -> Option<Self::Item> {
+        let b = |s: usize| self.block[s];
+        if back {
+            let s = (0..N_STREAMS).rev().find(|&s| self.lo[s] < self.hi[s])?;
+            let first = ((self.hi[s] - 1) / b(s)).saturating_sub(n - 1);
+            let r = (first * b(s)).max(self.lo[s])..self.hi[s];
+            self.hi[s] = r.start;
+            Some(self.cut(s, r, false))
+        } else {
+            let s = (0..N_STREAMS).find(|&s| self.lo[s] < self.hi[s])?;
+            let r = self.lo[s]..self.lo[s].saturating_add(n.saturating_mul(b(s))).min(self.hi[s]);
+            self.lo[s] = r.end;
+            Some(self.cut(s, r, true))
         }
-        Units { len, block, start }
     }
 
-    fn total(&self) -> usize {
-        self.start[N_STREAMS]
-    }
-
-    /// `f(s, rows)` for each stream's rows among `units`.
-    fn each(&self, units: Range<usize>, mut f: impl FnMut(usize, Range<usize>)) {
+    /// The last `n` units: streams after the split whole, the split stream's rows from a
+    /// unit boundary on.
+    fn split_back(&mut self, n: usize) -> Option<Self> {
+        let mut keep = self.left().saturating_sub(n);
+        let mut back = RowUnits {
+            rest: std::array::from_fn(|_| std::array::from_fn(|_| <&mut [f32]>::default())),
+            per_row: self.per_row,
+            lo: self.hi,
+            hi: self.hi,
+            block: self.block,
+        };
         for s in 0..N_STREAMS {
-            let (a, b) = (units.start.max(self.start[s]), units.end.min(self.start[s + 1]));
-            if a < b {
-                let r0 = (a - self.start[s]) * self.block[s];
-                f(s, r0..((b - self.start[s]) * self.block[s]).min(self.len[s]));
+            let units = (self.hi[s] - self.lo[s]).div_ceil(self.block[s]);
+            if keep >= units {
+                keep -= units;
+                continue;
             }
+            let mid = self.lo[s] + keep * self.block[s];
+            keep = 0;
+            for k in 0..K {
+                let buf = std::mem::take(&mut self.rest[s][k]);
+                let (a, b) = buf.split_at_mut((mid - self.lo[s]) * self.per_row[s][k]);
+                (self.rest[s][k], back.rest[s][k]) = (a, b);
+            }
+            (back.lo[s], self.hi[s]) = (mid, mid);
         }
+        Some(back)
     }
 }
 
@@ -725,85 +853,10 @@ fn row_part(m: &Matrix, r: usize, cols: Range<usize>, out: &mut [f32]) {
     }
 }
 
-/// A buffer the team members share: raw, so that each can borrow its own part mutably.
-#[derive(Clone, Copy)]
-struct Buf {
-    p: *mut f32,
-    len: usize,
-}
-
-impl Buf {
-    fn new(v: &mut [f32]) -> Buf {
-        Buf { p: v.as_mut_ptr(), len: v.len() }
-    }
-
-    /// The whole buffer.
-    /// # Safety
-    /// Live, and nobody writes it while the slice is in use (within a phase).
-    unsafe fn all<'a>(self) -> &'a [f32] {
-        std::slice::from_raw_parts(self.p, self.len)
-    }
-
-    /// Elements `r` (checked against the length).
-    /// # Safety
-    /// Live, and nobody else reads or writes them while the slice is in use.
-    #[allow(clippy::mut_from_ref)]
-    unsafe fn rows<'a>(self, r: Range<usize>) -> &'a mut [f32] {
-        assert!(r.start <= r.end && r.end <= self.len, "{r:?} outside a buffer of {}", self.len);
-        std::slice::from_raw_parts_mut(self.p.add(r.start), r.len())
-    }
-}
-
-/// Every buffer one step writes, shared by the members of its team.
-struct View {
-    k: [Buf; N_STREAMS],
-    v: [Buf; N_STREAMS],
-    h: [Buf; N_STREAMS],
-    qkv: [Buf; N_STREAMS],
-    att: [Buf; N_STREAMS],
-    tmp: [Buf; N_STREAMS],
-    mlp: [Buf; N_STREAMS],
-    logits: [Buf; N_STREAMS],
-    cp: Buf,
-    ch1: Buf,
-    ch2: Buf,
-    cm: Buf,
-    own: [*mut Own; MAX_THREADS],
-}
-
-// SAFETY: a View is only used by the members of one step's team, which split their
-// accesses (NativeStep::run).
-unsafe impl Sync for View {}
-
-impl View {
-    fn new(st: &mut NativeStepState, logits: &mut [Vec<f32>; N_STREAMS]) -> View {
-        let bufs = |v: &mut Vec<Vec<f32>>| -> [Buf; N_STREAMS] {
-            let mut it = v.iter_mut();
-            std::array::from_fn(|_| Buf::new(it.next().expect("one buffer per stream")))
-        };
-        let mut own = st.own.iter_mut();
-        View {
-            k: bufs(&mut st.k),
-            v: bufs(&mut st.v),
-            h: bufs(&mut st.h),
-            qkv: bufs(&mut st.qkv),
-            att: bufs(&mut st.att),
-            tmp: bufs(&mut st.tmp),
-            mlp: bufs(&mut st.mlp),
-            logits: std::array::from_fn(|s| Buf::new(&mut logits[s])),
-            cp: Buf::new(&mut st.cp),
-            ch1: Buf::new(&mut st.ch1),
-            ch2: Buf::new(&mut st.ch2),
-            cm: Buf::new(&mut st.cm),
-            own: std::array::from_fn(|_| own.next().expect("one scratch per member") as *mut Own),
-        }
-    }
-}
-
 impl NativeStepState {
     /// Zeroes the cache (a new generation; no allocation).
     pub(crate) fn reset(&mut self) {
-        for c in self.k.iter_mut().chain(self.v.iter_mut()) {
+        for c in self.bufs.k.iter_mut().chain(self.bufs.v.iter_mut()) {
             c.fill(0.0);
         }
     }
@@ -811,7 +864,7 @@ impl NativeStepState {
     /// The cache of stream `s` as (k, v), each (L, H, S, D) row-major.
     #[allow(dead_code)]
     pub(crate) fn cache(&self, s: usize) -> (&[f32], &[f32]) {
-        (&self.k[s], &self.v[s])
+        (&self.bufs.k[s], &self.bufs.v[s])
     }
 }
 
@@ -931,7 +984,7 @@ mod tests {
             m.step(&mut st, tokens, k, &emb, &mut logits);
             out.extend(logits.iter().cloned());
         }
-        out.extend(st.k.iter().chain(&st.v).cloned());
+        out.extend(st.bufs.k.iter().chain(&st.bufs.v).cloned());
         out
     }
 
@@ -961,6 +1014,57 @@ mod tests {
                     }
                 }
             });
+        }
+    }
+
+    #[test]
+    fn row_units_cut_the_same_units_from_either_end() {
+        // Buffers holding their own element indices, so a part shows where it was cut.
+        let rows = [10, 0, 7, 4];
+        let block = [4, 3, 2, 8];
+        let per_row = [[1, 3], [1, 2], [2, 1], [5, 1]];
+        let mut data: Vec<Vec<Vec<f32>>> = (0..N_STREAMS)
+            .map(|s| (0..2).map(|k| (0..rows[s] * per_row[s][k]).map(|i| i as f32).collect()).collect())
+            .collect();
+        let expected: Vec<(usize, Range<usize>)> = (0..N_STREAMS)
+            .flat_map(|s| (0..rows[s]).step_by(block[s]).map(move |r0| (s, r0..(r0 + block[s]).min(rows[s]))))
+            .collect();
+        for pattern in 0u32..64 {
+            let mut it = data.iter_mut();
+            let bufs = std::array::from_fn(|_| {
+                let mut b = it.next().unwrap().iter_mut();
+                std::array::from_fn(|_| b.next().unwrap().as_mut_slice())
+            });
+            let mut front = RowUnits::<2>::new(bufs, rows, block);
+            assert_eq!(front.left(), expected.len());
+            // split off the back at every unit boundary in turn
+            let cut = pattern as usize % (expected.len() + 1);
+            let mut back = front.split_back(cut).unwrap();
+            assert_eq!((front.left(), back.left()), (expected.len() - cut, cut));
+            let mut got = Vec::new();
+            for i in 0.. {
+                // one unit at a time, or a few (split below into units), from either end of either half
+                let n = 1 + i % 3;
+                let from_back = pattern >> (i % 6) & 1 == 1;
+                let item = if i % 2 == 0 { front.take(n, from_back) } else { back.take(n, from_back) };
+                let Some((s, r, parts)) = item.or_else(|| front.take(n, from_back)).or_else(|| back.take(n, from_back))
+                else {
+                    break;
+                };
+                for (k, p) in parts.iter().enumerate() {
+                    let want: Vec<f32> = (r.start * per_row[s][k]..r.end * per_row[s][k]).map(|i| i as f32).collect();
+                    assert_eq!(p.to_vec(), want, "stream {s} rows {r:?} buffer {k}");
+                }
+                assert!(r.len() <= n * block[s]);
+                for r0 in r.clone().step_by(block[s]) {
+                    // every take starts and ends at a unit boundary (or the end of the rows)
+                    assert_eq!(r0 % block[s], 0, "stream {s} rows {r:?}");
+                    got.push((s, r0..(r0 + block[s]).min(r.end)));
+                }
+            }
+            assert_eq!(front.left() + back.left(), 0);
+            got.sort_by_key(|(s, r)| (*s, r.start));
+            assert_eq!(got, expected, "pattern {pattern:b}");
         }
     }
 
