@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install the system tools the host-binding tests need, with apt, only when missing:
 #   cmake, pkg-config     tests/cmake_package.rs (CMake package + pkg-config file)
-#   mcs, mono             tests/csharp_binding.rs (bindings/csharp, the Unity binding)
+#   mcs, mono             tests/csharp_binding.rs (bindings/unity, the Unity package's C#)
 #   python3               tests/python_binding.rs (bindings/python, stdlib ctypes only)
 #   cc, c++, readelf      tests/c_example.rs, tests/cmake_package.rs
 #   valgrind              scripts/sanitize.sh (memcheck on the C example and C-ABI tests);

@@ -1,7 +1,9 @@
-//! The C# binding (bindings/csharp/Comgrasp.cs, the one for Unity) against the real library:
-//! compiles it with `mcs` (Mono's C# compiler) together with bindings/csharp/Test.cs and runs
-//! the test program with `mono`, `LD_LIBRARY_PATH` pointing at the freshly built
-//! `libcomgrasp.so` so `[DllImport("comgrasp")]` loads it. Test.cs checks the struct layouts
+//! The C# binding (the Unity package's plain C#, bindings/unity/Runtime: Comgrasp.cs and
+//! HumanoidRig.cs) against the real library: compiles it with `mcs` (Mono's C# compiler)
+//! together with bindings/unity/Tests~/Test.cs and runs the test program with `mono`,
+//! `LD_LIBRARY_PATH` pointing at the freshly built `libcomgrasp.so` so
+//! `[DllImport("comgrasp")]` loads it. The package's ComGraspAnimator.cs and the sample's script
+//! (UnityEngine only) are compiled against a stub of the UnityEngine types they use. Test.cs checks the struct layouts
 //! against the C compiler's (tests/host_support/layout.c), streams motions of the tiny bundle
 //! to the end (frame indices, stream ids, is_last, determinism, no allocation while polling),
 //! error statuses and messages, thread-local errors, cancel (also from another thread) and
@@ -25,16 +27,23 @@ fn csharp_binding_passes_its_tests_against_the_library() {
     let layout = c_layout();
     let dir = scratch("csharp_binding");
 
-    // The binding alone must compile (it is what a Unity project copies), warnings as errors.
-    let dll = dir.join("Comgrasp.dll");
-    run_ok(
-        Command::new("mcs")
-            .current_dir(root())
+    // The package's runtime must compile alone (it is what a Unity project imports), warnings
+    // as errors: as plain C#, and with Unity's define against the UnityEngine stub.
+    let runtime =
+        ["Comgrasp.cs", "HumanoidRig.cs", "ComGraspAnimator.cs"].map(|f| format!("bindings/unity/Runtime/{f}"));
+    for (dll, unity) in [("Comgrasp.dll", false), ("ComgraspUnity.dll", true)] {
+        let mut mcs = Command::new("mcs");
+        mcs.current_dir(root())
             .args(["-unsafe", "-warnaserror+", "-target:library", "-nologo"])
-            .arg(format!("-out:{}", dll.display()))
-            .arg("bindings/csharp/Comgrasp.cs"),
-        Duration::from_secs(300),
-    );
+            .arg(format!("-out:{}", dir.join(dll).display()))
+            .args(&runtime);
+        if unity {
+            mcs.arg("-define:UNITY_5_3_OR_NEWER")
+                .arg("tests/host_support/UnityEngineStub.cs")
+                .arg("bindings/unity/Samples~/GraspDemo/GraspDemoButtons.cs");
+        }
+        run_ok(&mut mcs, Duration::from_secs(300));
+    }
 
     let exe = dir.join("comgrasp_cs_test.exe");
     run_ok(
@@ -42,7 +51,8 @@ fn csharp_binding_passes_its_tests_against_the_library() {
             .current_dir(root())
             .args(["-unsafe", "-warnaserror+", "-debug", "-nologo"])
             .arg(format!("-out:{}", exe.display()))
-            .args(["bindings/csharp/Comgrasp.cs", "bindings/csharp/Test.cs"]),
+            .args(&runtime)
+            .arg("bindings/unity/Tests~/Test.cs"),
         Duration::from_secs(300),
     );
 
@@ -58,8 +68,8 @@ fn csharp_binding_passes_its_tests_against_the_library() {
     );
     let groups =
         ["layout", "stream_to_end", "polling_allocates_nothing", "errors", "cancel", "cancel_from_another_thread"];
-    for group in groups.iter().chain(&["runtime_options", "shm_subscriber", "shm_errors", "retarget"]) {
+    for group in groups.iter().chain(&["runtime_options", "shm_subscriber", "shm_errors", "retarget", "humanoid_rig"]) {
         assert!(stdout.lines().any(|l| l == format!("ok {group}")), "no `ok {group}` in:\n{stdout}");
     }
-    check_closing_line(&stdout, 14);
+    check_closing_line(&stdout, 15);
 }

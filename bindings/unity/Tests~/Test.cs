@@ -1,6 +1,7 @@
-// Test of Comgrasp.cs against the real library (tests/csharp_binding.rs builds and runs it):
+// Test of the Unity package's plain C# (bindings/unity/Runtime: Comgrasp.cs, HumanoidRig.cs)
+// against the real library (tests/csharp_binding.rs builds and runs it):
 //
-//   mcs -unsafe -out:target/tmp/comgrasp_cs_test.exe bindings/csharp/Comgrasp.cs bindings/csharp/Test.cs
+//   mcs -unsafe -out:target/tmp/comgrasp_cs_test.exe bindings/unity/Runtime/*.cs 'bindings/unity/Tests~/Test.cs'
 //   LD_LIBRARY_PATH=target/debug mono target/tmp/comgrasp_cs_test.exe models/tiny [LAYOUT_FILE]
 //
 // LAYOUT_FILE is the output of tests/host_support/layout.c (the C compiler's sizes and
@@ -46,6 +47,7 @@ static unsafe class ComGraspTest
         Run("shm_subscriber", ShmSubscriber);
         Run("shm_errors", ShmErrors);
         Run("retarget", Retarget);
+        Run("humanoid_rig", HumanoidRigTests);
         Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
         return failed == 0 ? 0 : 1;
     }
@@ -249,6 +251,125 @@ static unsafe class ComGraspTest
             Eq(e.Status, CgStatus.ErrInvalidArgument, "duplicate bone status");
             Check(e.NativeMessage.Contains("both named"), e.NativeMessage);
         }
+    }
+
+    static readonly string[] SmplxJointNames = {
+        "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+        "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+        "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "jaw",
+        "left_eye_smplhf", "right_eye_smplhf", "left_index1", "left_index2", "left_index3", "left_middle1",
+        "left_middle2", "left_middle3", "left_pinky1", "left_pinky2", "left_pinky3", "left_ring1", "left_ring2",
+        "left_ring3", "left_thumb1", "left_thumb2", "left_thumb3", "right_index1", "right_index2", "right_index3",
+        "right_middle1", "right_middle2", "right_middle3", "right_pinky1", "right_pinky2", "right_pinky3",
+        "right_ring1", "right_ring2", "right_ring3", "right_thumb1", "right_thumb2", "right_thumb3" };
+
+    // The Unity package's HumanoidRig: every bone of the ready Unity map is a HumanBodyBones
+    // name with Unity's value; an avatar shaped like the engine's own skeleton (all 52 mapped
+    // bones, fingers included) reproduces the frames' joint positions; an avatar without
+    // UpperChest and shoulders is parented to the nearest present ancestor; bad avatars throw.
+    static unsafe void HumanoidRigTests()
+    {
+        var map = ComGraspRetargeter.BuiltinMap(CgBuiltinMap.UnityHumanoid);
+        foreach (var kv in map)
+            Check(HumanoidRig.Parse(kv.Value).HasValue, kv.Value + " is a HumanBodyBones name");
+        // (UnityEngine.HumanBodyBones values, from Unity's scripting reference)
+        Eq((int)HumanBone.Hips, 0, "Hips");
+        Eq((int)HumanBone.LeftHand, 17, "LeftHand");
+        Eq((int)HumanBone.Jaw, 23, "Jaw");
+        Eq((int)HumanBone.LeftThumbProximal, 24, "LeftThumbProximal");
+        Eq((int)HumanBone.RightThumbProximal, 39, "RightThumbProximal");
+        Eq((int)HumanBone.RightLittleDistal, 53, "RightLittleDistal");
+        Eq((int)HumanBone.UpperChest, 54, "UpperChest");
+        Check(!HumanoidRig.Parse("hips").HasValue && !HumanoidRig.Parse("3").HasValue, "only exact names parse");
+        Eq(HumanoidRig.ParentOf(HumanBone.LeftIndexIntermediate), (HumanBone?)HumanBone.LeftIndexProximal, "finger parent");
+        Eq(HumanoidRig.ParentOf(HumanBone.Hips), (HumanBone?)null, "Hips is the root");
+
+        using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
+        {
+            var rest = new float[55 * 3];
+            fixed (float* r = rest)
+                Eq(ComGraspNative.cg_engine_get_rest_joints(engine.Handle, r, (UIntPtr)55), CgStatus.Ok, "rest joints");
+            var jointOf = new Dictionary<HumanBone, int>();
+            var avatar = new List<HumanoidBoneRest>();
+            foreach (var kv in map)
+            {
+                HumanBone b = HumanoidRig.Parse(kv.Value).Value;
+                int j = Array.IndexOf(SmplxJointNames, kv.Key);
+                Check(j >= 0, kv.Key + " is an SMPL-X joint");
+                jointOf[b] = j;
+                // (a rotated rest frame per bone: the rig must carry it through)
+                float a = 0.1f * (int)b, s = (float)Math.Sin(a / 2), c = (float)Math.Cos(a / 2);
+                avatar.Add(new HumanoidBoneRest
+                {
+                    Bone = b,
+                    Position = new[] { rest[3 * j], rest[3 * j + 1], rest[3 * j + 2] },
+                    Rotation = new[] { s * 0.6f, s * 0.8f, 0f, c },
+                });
+            }
+            avatar.Reverse(); // any order
+            var rig = new HumanoidRig(avatar);
+            Eq(rig.Bones.Length, 52, "rig bones");
+            Eq(rig.Bones[0], HumanBone.Hips, "Hips first");
+            for (int i = 0; i < rig.Bones.Length; i++)
+                Check(rig.HostBones[i].Parent < i, rig.Bones[i] + " comes after its parent");
+            Eq(rig.HostBones[rig.IndexOf(HumanBone.LeftUpperArm)].Parent, rig.IndexOf(HumanBone.LeftShoulder), "arm parent");
+            using (var rt = new ComGraspRetargeter(engine, rig.HostBones, CgBuiltinMap.UnityHumanoid))
+            using (var stream = engine.Start("A woman drinks from the mug"))
+            {
+                var poses = rig.NewPoseBuffer();
+                CgFrame f = default(CgFrame);
+                int n = 0;
+                float worst = 0;
+                CgStatus st;
+                while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                {
+                    if (st != CgStatus.Ok) continue;
+                    CgRetargetObject obj;
+                    rt.Retarget(ref f, poses, out obj);
+                    for (int i = 0; i < rig.Bones.Length; i++)
+                    {
+                        int j = jointOf[rig.Bones[i]];
+                        fixed (CgBonePose* p = &poses[i])
+                            for (int k = 0; k < 3; k++)
+                                worst = Math.Max(worst, Math.Abs(p->WorldPosition[k] - f.JointPositions[3 * j + k]));
+                    }
+                    Eq(obj.HandBone[1], rig.IndexOf(HumanBone.RightHand), "right hand bone");
+                    n++;
+                }
+                Check(n > 0, "frames retargeted");
+                Check(worst < 1e-3f, "every bone, fingers too, on its joint (worst " + worst + " m)");
+            }
+
+            // Without UpperChest and shoulders: nearest present ancestors.
+            var lean = avatar.FindAll(b => b.Bone != HumanBone.UpperChest && b.Bone != HumanBone.LeftShoulder && b.Bone != HumanBone.RightShoulder);
+            var leanRig = new HumanoidRig(lean);
+            Eq(leanRig.HostBones[leanRig.IndexOf(HumanBone.LeftUpperArm)].Parent, leanRig.IndexOf(HumanBone.Chest), "arm on Chest");
+            Eq(leanRig.HostBones[leanRig.IndexOf(HumanBone.Neck)].Parent, leanRig.IndexOf(HumanBone.Chest), "neck on Chest");
+            using (var rt = new ComGraspRetargeter(engine, leanRig.HostBones, CgBuiltinMap.UnityHumanoid))
+                Eq(rt.BoneCount, 49, "lean rig bones");
+        }
+
+        var twice = new List<HumanoidBoneRest> { Bone(HumanBone.Hips), Bone(HumanBone.Spine), Bone(HumanBone.Spine) };
+        Check(Throws<ArgumentException>(() => new HumanoidRig(twice)).Message.Contains("given twice"), "duplicate bone");
+        var noHips = new List<HumanoidBoneRest> { Bone(HumanBone.Spine) };
+        Check(Throws<ArgumentException>(() => new HumanoidRig(noHips)).Message.Contains("Hips"), "missing Hips");
+        var skewed = Bone(HumanBone.Hips);
+        skewed.Rotation = new[] { 0f, 0f, 0f, 2f };
+        Check(Throws<ArgumentException>(() => new HumanoidRig(new[] { skewed })).Message.Contains("unit length"), "non-unit rotation");
+        var unknown = Bone((HumanBone)99);
+        Check(Throws<ArgumentException>(() => new HumanoidRig(new[] { unknown })).Message.Contains("unknown"), "unknown bone");
+    }
+
+    static HumanoidBoneRest Bone(HumanBone b)
+    {
+        return new HumanoidBoneRest { Bone = b, Position = new[] { 0f, 0f, 0f }, Rotation = new[] { 0f, 0f, 0f, 1f } };
+    }
+
+    static T Throws<T>(Action a) where T : Exception
+    {
+        try { a(); }
+        catch (T e) { return e; }
+        throw new Exception("expected " + typeof(T).Name);
     }
 
     static void VersionInfo()
