@@ -340,29 +340,6 @@ typedef struct cg_stream_config {
   uint64_t continue_from;
 } cg_stream_config;
 
-// One bone of the host's skeleton. `rest_translation` / `rest_rotation` (unit quaternion
-// x, y, z, w) are relative to the parent bone (to the world for a root), in the engine's
-// coordinate system and units, in the pose the character is modelled in (T, A or other).
-typedef struct cg_bone_desc {
-  // NUL-terminated UTF-8, unique, at most `CG_BONE_NAME_MAX` bytes.
-  const char *name;
-  // Index of the parent bone in the same array, -1 for a root.
-  int32_t parent;
-  // Rest position relative to the parent.
-  float rest_translation[3];
-  // Rest rotation relative to the parent, unit quaternion x, y, z, w.
-  float rest_rotation[4];
-} cg_bone_desc;
-
-// One map entry: which bone follows which SMPL-X joint (`pelvis`, `left_wrist`,
-// `right_index1`, ...: the manifest's `skeleton.joint_names`).
-typedef struct cg_bone_map_entry {
-  // The SMPL-X joint's name, NUL-terminated.
-  const char *smplx_joint;
-  // The host bone's name, NUL-terminated.
-  const char *bone;
-} cg_bone_map_entry;
-
 // One frame of generated motion. All positions in the engine's coordinate system
 // (metres, or centimetres for Unreal). Rotations are unit quaternions (x, y, z, w) with
 // w >= 0. In a non-native coordinate system with basis change S and unit scale c (see
@@ -410,6 +387,29 @@ typedef struct cg_frame {
   // World positions of the 55 joints (only when has_joint_positions is 1).
   float joint_positions[CG_NUM_JOINTS][3];
 } cg_frame;
+
+// One bone of the host's skeleton. `rest_translation` / `rest_rotation` (unit quaternion
+// x, y, z, w) are relative to the parent bone (to the world for a root), in the engine's
+// coordinate system and units, in the pose the character is modelled in (T, A or other).
+typedef struct cg_bone_desc {
+  // NUL-terminated UTF-8, unique, at most `CG_BONE_NAME_MAX` bytes.
+  const char *name;
+  // Index of the parent bone in the same array, -1 for a root.
+  int32_t parent;
+  // Rest position relative to the parent.
+  float rest_translation[3];
+  // Rest rotation relative to the parent, unit quaternion x, y, z, w.
+  float rest_rotation[4];
+} cg_bone_desc;
+
+// One map entry: which bone follows which SMPL-X joint (`pelvis`, `left_wrist`,
+// `right_index1`, ...: the manifest's `skeleton.joint_names`).
+typedef struct cg_bone_map_entry {
+  // The SMPL-X joint's name, NUL-terminated.
+  const char *smplx_joint;
+  // The host bone's name, NUL-terminated.
+  const char *bone;
+} cg_bone_map_entry;
 
 // One bone's pose in a retargeted frame.
 typedef struct cg_bone_pose {
@@ -592,6 +592,20 @@ cg_status cg_start_utf8(struct cg_engine *engine,
 // `CG_ERR_NULL_POINTER`, `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_ARGUMENT` (`n` is not
 // `CG_NUM_JOINTS`), `CG_ERR_WRONG_STATE` (an engine without a bundle). Any thread.
 cg_status cg_engine_get_rest_joints(struct cg_engine *engine, float (*out)[3], size_t n);
+
+// Writes `n_frames` frames of this engine (polled from its streams, in its coordinate
+// system) as BVH files for animation tools: the body (SMPL-X skeleton with fingers, y up,
+// centimetres, ZXY rotation channels, the bundle's fps) to `body_path`, and the object's
+// track (one root joint) to `object_path` unless it is NULL (docs/retargeting.md, "BVH").
+// Paths are UTF-8. Errors: `CG_ERR_NULL_POINTER` (`frames` with `n_frames` > 0, or
+// `body_path`), `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_UTF8` / `CG_ERR_INVALID_ARGUMENT`
+// (a path not UTF-8 or empty; a non-finite frame value), `CG_ERR_WRONG_STATE` (an engine
+// without a bundle), `CG_ERR_IO` (a file that cannot be written). Any thread.
+cg_status cg_engine_write_bvh(struct cg_engine *engine,
+                              const struct cg_frame *frames,
+                              size_t n_frames,
+                              const char *body_path,
+                              const char *object_path);
 
 // The message of the most recent failing `cg_*` call on the calling thread, as a
 // NUL-terminated UTF-8 string ("" if none failed yet). Never NULL. The pointer stays valid

@@ -15,11 +15,12 @@
 //!   [`PollResult::Cancelled`](crate::stream::PollResult::Cancelled); one that had already
 //!   finished still delivers its buffered frames and then `End`. This suits game engines: tearing down the engine stops all
 //!   compute immediately, without forcing the host to destroy streams first.
+use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
 use crate::error::{Error, Result};
-use crate::frame::CG_NUM_JOINTS;
+use crate::frame::{Frame, CG_NUM_JOINTS};
 use crate::model::Bundle;
 use crate::shm::publisher::StreamPublication;
 use crate::shm::{FramePublisher, PublisherStats};
@@ -99,6 +100,25 @@ impl Engine {
         let rest = &self.bundle.as_ref()?.manifest.skeleton.rest_joints;
         let coords = self.config.coordinate_system;
         Some(std::array::from_fn(|j| coords.from_native_point(&rest[j].map(f64::from)).map(|v| v as f32)))
+    }
+
+    /// Writes `frames` (this engine's, in its coordinate system) as BVH: the body to
+    /// `body_path` and, when given, the object's track to `object_path` (see [`crate::bvh`]).
+    /// Errors: an engine without a bundle (`WrongState`), a non-finite frame value
+    /// (`InvalidArgument`), a file that cannot be written (`Io`). Nothing is written unless
+    /// both texts could be made.
+    pub fn write_bvh(&self, frames: &[Frame], body_path: &Path, object_path: Option<&Path>) -> Result<()> {
+        let b = self.bundle.as_ref().ok_or_else(|| Error::WrongState("the engine has no model bundle".into()))?;
+        let r = &b.manifest.skeleton.rest_joints;
+        let rest: [[f32; 3]; CG_NUM_JOINTS] = std::array::from_fn(|j| r[j]);
+        let (coords, fps) = (self.config.coordinate_system, b.manifest.fps);
+        let body = crate::bvh::body(&rest, frames, coords, fps)?;
+        let object = object_path.map(|_| crate::bvh::object(frames, coords, fps)).transpose()?;
+        std::fs::write(body_path, body)?;
+        if let (Some(path), Some(text)) = (object_path, object) {
+            std::fs::write(path, text)?;
+        }
+        Ok(())
     }
 
     /// The configuration the engine was created with.

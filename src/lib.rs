@@ -10,7 +10,8 @@
 //! 3. [`sampler`] (the cross-language deterministic sampler), [`skeleton`] (FK) and
 //!    [`assemble`] (335-D features -> frames), then [`contact`] (the contact-consistency
 //!    stage: debounced grasps, reach IK, an object that obeys the hands), then [`anchor`]
-//!    (frames in the host's world);
+//!    (frames in the host's world), [`retarget`] (frames on a host's skeleton) and [`bvh`]
+//!    (BVH files);
 //! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
 //!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract; graph rewrites
 //!    in `model::graph` only);
@@ -41,6 +42,7 @@ pub mod contact;
 #[doc(hidden)]
 pub mod anchor;
 pub mod retarget;
+pub mod bvh;
 #[doc(hidden)]
 pub mod model;
 #[doc(hidden)]

@@ -242,3 +242,57 @@ fn bad_skeletons_and_maps_are_clear_errors() {
     assert!(r.is_null(), "out is written only on success");
     assert_eq!(unsafe { cg_engine_destroy(e) }, cg_status::CG_OK);
 }
+
+#[test]
+fn bvh_files_through_the_c_abi_and_their_errors() {
+    let e = engine(CoordinateSystem::CG_COORDS_UNITY);
+    let fs = frames(e, "A woman drinks from the mug");
+    let dir = std::env::temp_dir().join(format!("comgrasp-ffi-bvh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = |n: &str| CString::new(dir.join(n).to_str().unwrap()).unwrap();
+    let (body, obj) = (path("m.bvh"), path("m.object.bvh"));
+    let st = unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), body.as_ptr(), obj.as_ptr()) };
+    assert_eq!(st, cg_status::CG_OK, "{}", last_error());
+    let text = std::fs::read_to_string(dir.join("m.bvh")).unwrap();
+    assert!(text.starts_with("HIERARCHY\nROOT pelvis\n") && text.contains(&format!("Frames: {}\n", fs.len())));
+    assert!(std::fs::read_to_string(dir.join("m.object.bvh")).unwrap().starts_with("HIERARCHY\nROOT object\n"));
+    // object_path NULL: the body only
+    let only = path("only.bvh");
+    assert_eq!(unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), only.as_ptr(), null()) }, cg_status::CG_OK);
+    let cases: [(cg_status, &str, cg_status); 5] = [
+        (unsafe { cg_engine_write_bvh(e, null(), 3, body.as_ptr(), null()) }, "frames", cg_status::CG_ERR_NULL_POINTER),
+        (
+            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), null(), null()) },
+            "body_path",
+            cg_status::CG_ERR_NULL_POINTER,
+        ),
+        (
+            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), b"\xff\0".as_ptr() as *const c_char, null()) },
+            "UTF-8",
+            cg_status::CG_ERR_INVALID_UTF8,
+        ),
+        (
+            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), b"\0".as_ptr() as *const c_char, null()) },
+            "empty",
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+        ),
+        (
+            unsafe { cg_engine_write_bvh(0x7777 as *mut cg_engine, fs.as_ptr(), fs.len(), body.as_ptr(), null()) },
+            "handle",
+            cg_status::CG_ERR_INVALID_HANDLE,
+        ),
+    ];
+    for (st, word, want) in cases {
+        assert_eq!(st, want, "{word}: {}", last_error());
+    }
+    let mut bad = fs[..1].to_vec();
+    bad[0].object_translation[1] = f32::INFINITY;
+    let nan = path("nan.bvh");
+    assert_eq!(
+        unsafe { cg_engine_write_bvh(e, bad.as_ptr(), 1, nan.as_ptr(), null()) },
+        cg_status::CG_ERR_INVALID_ARGUMENT
+    );
+    assert!(last_error().contains("non-finite") && !dir.join("nan.bvh").exists(), "{}", last_error());
+    assert_eq!(unsafe { cg_engine_destroy(e) }, cg_status::CG_OK);
+    let _ = std::fs::remove_dir_all(&dir);
+}

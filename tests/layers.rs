@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 /// Bottom up; a module may use those before it.
-const FLOORS: [&str; 16] = [
+const FLOORS: [&str; 17] = [
     "error",
     "frame",
     "config",
@@ -16,6 +16,7 @@ const FLOORS: [&str; 16] = [
     "contact",
     "anchor",
     "retarget",
+    "bvh",
     "model",
     "generator",
     "stream",

@@ -1,10 +1,13 @@
-//! The Python ctypes binding (bindings/python/comgrasp_ctypes.py) against the real library:
-//! runs bindings/python/test_comgrasp_ctypes.py with the system `python3` (standard library
-//! only), `COMGRASP_LIB` = the freshly built `libcomgrasp.so`, the tiny bundle, and the C
-//! compiler's struct layout (tests/host_support/layout.c) to compare `CgFrame` with. Also
-//! checks how the module finds the library when `COMGRASP_LIB` is not set.
+//! The Python binding (the package `comgrasp` in bindings/python, module `comgrasp_ctypes`)
+//! against the real library: installs the package with the freshly built `libcomgrasp.so`
+//! inside (`pip install --target`, the project's venv, no network), then runs
+//! bindings/python/tests/test_comgrasp_ctypes.py against the *installed* package with the tiny
+//! bundle, the C compiler's struct layout (tests/host_support/layout.c) to compare `CgFrame`
+//! with, and cli/tests/bvh_check.py for `Engine.write_bvh`. Also checks, with the system
+//! `python3` (standard library only), how the single-file module finds the library.
 //!
-//! python3 must be installed (`scripts/setup_system.sh`); a missing one fails the test.
+//! python3 and the project's venv (`scripts/setup_python.sh`) must exist; a missing one
+//! fails the test.
 #![cfg(target_os = "linux")]
 
 mod host_support;
@@ -23,14 +26,33 @@ fn python() -> Command {
 }
 
 #[test]
-fn python_binding_passes_its_tests_against_the_library() {
+fn python_package_installs_and_passes_its_tests_against_the_library() {
     let lib = lib_dir().join(shared_lib_name());
-    let stdout = run_ok(
-        python()
-            .arg(root().join("bindings/python/test_comgrasp_ctypes.py"))
+    let venv_python = root().join(".venv/bin/python");
+    assert!(venv_python.exists(), "{} is missing: run scripts/setup_python.sh", venv_python.display());
+    let site = scratch("python_binding").join("site");
+    let _ = std::fs::remove_dir_all(&site);
+    // The package's build step copies the library named by COMGRASP_LIB into the wheel.
+    run_ok(
+        Command::new(&venv_python)
+            .args(["-m", "pip", "install", "--quiet", "--no-build-isolation", "--no-index", "--no-deps", "--target"])
+            .arg(&site)
+            .arg(root().join("bindings/python"))
             .env("COMGRASP_LIB", &lib)
+            .env("PYTHONDONTWRITEBYTECODE", "1"),
+        Duration::from_secs(600),
+    );
+    assert!(site.join("comgrasp_ctypes").join(shared_lib_name()).is_file(), "the package carries no library");
+    let stdout = run_ok(
+        Command::new(&venv_python)
+            .arg("-s")
+            .arg(root().join("bindings/python/tests/test_comgrasp_ctypes.py"))
+            .env("PYTHONPATH", &site)
+            .env("PYTHONDONTWRITEBYTECODE", "1")
+            .env_remove("COMGRASP_LIB")
             .env("COMGRASP_TEST_BUNDLE", tiny())
-            .env("COMGRASP_C_LAYOUT", c_layout()),
+            .env("COMGRASP_C_LAYOUT", c_layout())
+            .env("COMGRASP_BVH_CHECK", root().join("cli/tests/bvh_check.py")),
         Duration::from_secs(600),
     );
     for t in [
@@ -43,10 +65,12 @@ fn python_binding_passes_its_tests_against_the_library() {
         "test_shm_subscriber_receives_the_polled_frames",
         "test_shm_errors",
         "test_retarget_onto_a_unity_named_skeleton",
+        "test_installed_package_carries_its_library",
+        "test_write_bvh_from_any_coordinate_system",
     ] {
         assert!(stdout.lines().any(|l| l == format!("ok {t}")), "no `ok {t}` in:\n{stdout}");
     }
-    check_closing_line(&stdout, 13);
+    check_closing_line(&stdout, 15);
 }
 
 #[test]
@@ -55,7 +79,8 @@ fn python_binding_finds_the_library() {
     let dir = scratch("python_binding").join("module");
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::copy(root().join("bindings/python/comgrasp_ctypes.py"), dir.join("comgrasp_ctypes.py")).unwrap();
+    // (the package's one file, copied as a plain module)
+    std::fs::copy(root().join("bindings/python/comgrasp_ctypes/__init__.py"), dir.join("comgrasp_ctypes.py")).unwrap();
     let lib = lib_dir().join(shared_lib_name());
     std::os::unix::fs::symlink(&lib, dir.join(shared_lib_name())).unwrap();
     let code = "import comgrasp_ctypes as c; print(c.find_library()); print(c.version()); \

@@ -302,6 +302,15 @@ public:
         return n;
     }
 
+    /// Writes frames polled from this engine as BVH: the body to `body_path` and, unless
+    /// empty, the object's track to `object_path` (cg_engine_write_bvh).
+    void write_bvh(const std::vector<Frame> &frames, const std::string &body_path,
+                   const std::string &object_path = std::string()) const {
+        detail::check("cg_engine_write_bvh",
+                      cg_engine_write_bvh(h_, frames.data(), frames.size(), body_path.c_str(),
+                                          object_path.empty() ? nullptr : object_path.c_str()));
+    }
+
     /// Counters of the shared-memory publisher; throws `Error` (`CG_ERR_WRONG_STATE`) when the
     /// engine was created without a publish name.
     PublisherStats publisher_stats() const {

@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <string>
 #include <thread>
 #include <vector>
@@ -242,7 +243,9 @@ int main(int argc, char **argv) {
             comgrasp::Stream r = fk.start(prompt, comgrasp::StreamConfig().min_len(2).max_len(2));
             comgrasp::Frame g{};
             int n = 0;
+            std::vector<comgrasp::Frame> polled;
             while (r.wait(g, 100ms) != comgrasp::Poll::End) {
+                polled.push_back(g);
                 rt.retarget(g, pose.data(), &obj);
                 for (int j = 0; j < CG_NUM_JOINTS; ++j)
                     for (int k = 0; k < 3; ++k)
@@ -253,6 +256,20 @@ int main(int argc, char **argv) {
                 ++n;
             }
             std::printf("retargeted %d frames onto %zu bones (%s -> %s ...)\n", n, rt.bone_count(), map[0].first.c_str(), map[0].second.c_str());
+            // The same frames as a BVH file for animation tools (body only).
+            const std::string bvh = (std::filesystem::temp_directory_path() /
+                                     ("comgrasp_example_" + std::to_string(static_cast<unsigned long long>(r.id())) + ".bvh"))
+                                        .string();
+            fk.write_bvh(polled, bvh);
+            std::FILE *in = std::fopen(bvh.c_str(), "r");
+            char head[32] = {0};
+            if (!in || std::fread(head, 1, 21, in) != 21 || std::strncmp(head, "HIERARCHY\nROOT pelvis", 21) != 0) {
+                std::fprintf(stderr, "BVH file %s missing or wrong\n", bvh.c_str());
+                return 1;
+            }
+            std::fclose(in);
+            std::remove(bvh.c_str());
+            std::printf("wrote BVH of %zu frames\n", polled.size());
         }
 
         // 5. A shared-memory subscriber in this process (see check_subscriber).

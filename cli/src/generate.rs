@@ -6,6 +6,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use comgrasp::bvh;
 use comgrasp::frame::{CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
 use comgrasp::{Anchor, CoordinateSystem, Engine, EngineConfig, Error, Frame, Placement, PollResult, StreamConfig};
 use serde::Serialize;
@@ -13,7 +14,7 @@ use serde::Serialize;
 use crate::npz;
 use crate::png::Image;
 use crate::scene::Scene;
-use crate::{bvh, gltf, preview, Failure};
+use crate::{gltf, preview, Failure};
 
 /// `comgrasp generate`: generates one motion and writes every frame to a file, an animated
 /// glTF and/or a PNG strip of key frames (without any of them only the summary is printed).
@@ -219,10 +220,11 @@ pub fn run(args: Args) -> Result<(), Failure> {
     if let Some(path) = &opts.bvh {
         let r = &bundle.manifest.skeleton.rest_joints;
         let rest: [[f32; 3]; CG_NUM_JOINTS] = std::array::from_fn(|j| r[j]);
-        write_file(path, bvh::body(&rest, &frames, fps).as_bytes())?;
+        let text = |t: comgrasp::Result<String>| t.map_err(|e| Failure::Run(format!("bvh: {e}")));
+        write_file(path, text(bvh::body(&rest, &frames, opts.coords, fps))?.as_bytes())?;
         let stem = path.file_stem().map_or_else(Default::default, |s| s.to_string_lossy().into_owned());
         let track = path.with_file_name(format!("{stem}.object.bvh"));
-        write_file(&track, bvh::object(&frames, fps).as_bytes())?;
+        write_file(&track, text(bvh::object(&frames, opts.coords, fps))?.as_bytes())?;
         wrote.push(format!("bvh {} and {}", path.display(), track.display()));
     }
     if let (Some(path), Some(scene)) = (&opts.preview, &scene) {

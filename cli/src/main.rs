@@ -7,7 +7,6 @@
 //! clap's code too; 1: the run failed), never a panic.
 mod bench;
 mod body_mesh;
-mod bvh;
 mod generate;
 mod gltf;
 mod npz;

@@ -1,13 +1,15 @@
 //! Engine functions: create, destroy, start a stream.
 use std::ffi::c_char;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use super::config::{cg_engine_config, cg_stream_config, engine_config_from_c, stream_config_from_c};
+use super::config::{cg_engine_config, cg_stream_config, engine_config_from_c, optional_str, stream_config_from_c};
 use super::handle::{cg_engine, cg_stream, EngineEntry, StreamEntry, ENGINES, STREAMS};
 use super::panic::{boundary, Failure, PoisonOnUnwind};
 use super::status::cg_status;
 use crate::engine::{Engine, MAX_TEXT_BYTES};
+use crate::frame::cg_frame;
 use parking_lot::Mutex;
 
 fn null(what: &str) -> Failure {
@@ -219,6 +221,36 @@ pub unsafe extern "C" fn cg_engine_get_rest_joints(engine: *mut cg_engine, out: 
             Failure::new(cg_status::CG_ERR_WRONG_STATE, "the engine has no model bundle (no rest skeleton)")
         })?;
         unsafe { std::ptr::copy_nonoverlapping(rest.as_ptr(), out, n) };
+        Ok(cg_status::CG_OK)
+    })
+}
+
+/// Writes `n_frames` frames of this engine (polled from its streams, in its coordinate
+/// system) as BVH files for animation tools: the body (SMPL-X skeleton with fingers, y up,
+/// centimetres, ZXY rotation channels, the bundle's fps) to `body_path`, and the object's
+/// track (one root joint) to `object_path` unless it is NULL (docs/retargeting.md, "BVH").
+/// Paths are UTF-8. Errors: `CG_ERR_NULL_POINTER` (`frames` with `n_frames` > 0, or
+/// `body_path`), `CG_ERR_INVALID_HANDLE`, `CG_ERR_INVALID_UTF8` / `CG_ERR_INVALID_ARGUMENT`
+/// (a path not UTF-8 or empty; a non-finite frame value), `CG_ERR_WRONG_STATE` (an engine
+/// without a bundle), `CG_ERR_IO` (a file that cannot be written). Any thread.
+#[no_mangle]
+pub unsafe extern "C" fn cg_engine_write_bvh(
+    engine: *mut cg_engine,
+    frames: *const cg_frame,
+    n_frames: usize,
+    body_path: *const c_char,
+    object_path: *const c_char,
+) -> cg_status {
+    boundary("cg_engine_write_bvh", || {
+        if frames.is_null() && n_frames > 0 {
+            return Err(null("frames"));
+        }
+        let body = unsafe { optional_str(body_path, "body_path")? }.ok_or_else(|| null("body_path"))?;
+        let object = unsafe { optional_str(object_path, "object_path")? };
+        let entry = lookup_engine(engine)?;
+        // SAFETY: the caller passes `n_frames` readable frames (NULL only with none).
+        let frames = if n_frames == 0 { &[][..] } else { unsafe { std::slice::from_raw_parts(frames, n_frames) } };
+        entry.engine.write_bvh(frames, Path::new(body), object.map(Path::new))?;
         Ok(cg_status::CG_OK)
     })
 }

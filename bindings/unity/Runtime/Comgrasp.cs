@@ -526,6 +526,8 @@ namespace ComGrasp
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_engine_get_rest_joints(IntPtr engine, float* rest, UIntPtr n);
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
+        public static extern CgStatus cg_engine_write_bvh(IntPtr engine, CgFrame* frames, UIntPtr nFrames, byte* bodyPath, byte* objectPath);
+        [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
         public static extern CgStatus cg_builtin_map_size(int which, UIntPtr* count);
         /// <summary>Writes two static NUL-terminated strings.</summary>
         [DllImport(Lib, CallingConvention = CallingConvention.Cdecl)]
@@ -787,6 +789,28 @@ namespace ComGrasp
                 ComGraspException.Check("cg_start", ComGraspNative.cg_start_utf8(Handle, p, (UIntPtr)len, &cfg, &s));
             }
             return new ComGraspStream(s);
+        }
+
+        /// <summary>Writes frames polled from this engine as BVH (cg_engine_write_bvh): the body
+        /// to bodyPath and, unless null, the object's track to objectPath.</summary>
+        public void WriteBvh(CgFrame[] frames, string bodyPath, string objectPath = null)
+        {
+            if (frames == null) throw new ArgumentNullException("frames");
+            byte[] body = bodyPath == null ? null : Nul(bodyPath);
+            byte[] obj = objectPath == null ? null : Nul(objectPath);
+            fixed (CgFrame* f = frames)
+            fixed (byte* b = body)
+            fixed (byte* o = obj)
+                ComGraspException.Check("cg_engine_write_bvh",
+                    ComGraspNative.cg_engine_write_bvh(Handle, f, (UIntPtr)frames.Length, b, o));
+        }
+
+        static byte[] Nul(string s)
+        {
+            byte[] u = Encoding.UTF8.GetBytes(s);
+            var r = new byte[u.Length + 1];
+            Array.Copy(u, r, u.Length);
+            return r;
         }
 
         /// <summary>Streams of this engine alive (started and not yet disposed).</summary>

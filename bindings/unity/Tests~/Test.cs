@@ -48,6 +48,7 @@ static unsafe class ComGraspTest
         Run("shm_errors", ShmErrors);
         Run("retarget", Retarget);
         Run("humanoid_rig", HumanoidRigTests);
+        Run("bvh", Bvh);
         Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
         return failed == 0 ? 0 : 1;
     }
@@ -358,6 +359,30 @@ static unsafe class ComGraspTest
         Check(Throws<ArgumentException>(() => new HumanoidRig(new[] { skewed })).Message.Contains("unit length"), "non-unit rotation");
         var unknown = Bone((HumanBone)99);
         Check(Throws<ArgumentException>(() => new HumanoidRig(new[] { unknown })).Message.Contains("unknown"), "unknown bone");
+    }
+
+    static void Bvh()
+    {
+        using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
+        using (var stream = engine.Start("A woman drinks from the mug"))
+        {
+            var frames = new List<CgFrame>();
+            CgFrame f = default(CgFrame);
+            CgStatus st;
+            while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                if (st == CgStatus.Ok) frames.Add(f);
+            string dir = Path.Combine(Path.GetTempPath(), "comgrasp-cs-bvh-" + System.Diagnostics.Process.GetCurrentProcess().Id);
+            Directory.CreateDirectory(dir);
+            string body = Path.Combine(dir, "m.bvh"), obj = Path.Combine(dir, "m.object.bvh");
+            engine.WriteBvh(frames.ToArray(), body, obj);
+            string text = File.ReadAllText(body);
+            Check(text.StartsWith("HIERARCHY\nROOT pelvis\n") && text.Contains("Frames: " + frames.Count + "\n"), "body file");
+            Check(File.ReadAllText(obj).StartsWith("HIERARCHY\nROOT object\n"), "object file");
+            var e = Throws("missing directory", () => engine.WriteBvh(frames.ToArray(), Path.Combine(dir, "no", "x.bvh")));
+            Eq(e.Status, CgStatus.ErrIo, "unwritable path");
+            Throws<ArgumentNullException>(() => engine.WriteBvh(null, body));
+            Directory.Delete(dir, true);
+        }
     }
 
     static HumanoidBoneRest Bone(HumanBone b)

@@ -10,12 +10,17 @@
 //! `End Site` 5 cm along their parent's bone. The object is a second file (`<name>.object.bvh`): one root joint
 //! `object` with the object's origin and rotation per frame (a single-root file, which
 //! every BVH reader takes).
+//!
+//! Frames in any coordinate system are taken (the engine's: its frames carry `S R S^T` and
+//! `c S p` for the native `R` and `p`, see `assemble`); the file is always the y-up one above.
+//! Used by `comgrasp generate --bvh`, [`crate::engine::Engine::write_bvh`] and the C ABI's
+//! `cg_engine_write_bvh` (the Python binding's `Engine.write_bvh`).
 use std::fmt::Write as _;
 
-use comgrasp::frame::{CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
-use comgrasp::retarget::SMPLX_JOINT_NAMES;
-use comgrasp::skeleton::{mat_mul, quaternion_to_matrix, transpose, Mat3, SMPLX_PARENTS};
-use comgrasp::{CoordinateSystem, Frame};
+use crate::error::{Error, Result};
+use crate::frame::{CoordinateSystem, Frame, CG_BODY_JOINTS, CG_HAND_JOINTS, CG_NUM_JOINTS};
+use crate::retarget::SMPLX_JOINT_NAMES;
+use crate::skeleton::{mat_mul, mat_vec, quaternion_to_matrix, transpose, Mat3, Vec3, SMPLX_PARENTS};
 
 /// Centimetres per metre.
 const CM: f64 = 100.0;
@@ -84,14 +89,54 @@ fn push_rotation(line: &mut String, r: &Mat3) {
     let _ = write!(line, " {:.6} {:.6} {:.6}", e[0], e[1], e[2]);
 }
 
+/// Frames of one coordinate system mapped into the file's (y up, centimetres).
+struct ToFile {
+    coords: CoordinateSystem,
+    /// glTF's basis: the file's axes.
+    g: Mat3,
+    gt: Mat3,
+}
+
+impl ToFile {
+    fn new(coords: CoordinateSystem) -> Self {
+        let (g, _) = CoordinateSystem::CG_COORDS_GLTF.basis();
+        ToFile { coords, g, gt: transpose(&g) }
+    }
+
+    /// A frame's rotation as the native one.
+    fn native(&self, q: &[f32; 4]) -> Mat3 {
+        self.coords.to_native_rotation(&quaternion_to_matrix(&q.map(f64::from)))
+    }
+
+    /// A frame's point in the file, centimetres.
+    fn point(&self, p: &[f32; 3]) -> Vec3 {
+        mat_vec(&self.g, &self.coords.to_native_point(&p.map(f64::from))).map(|v| v * CM)
+    }
+}
+
+/// Fails on a frame with a non-finite value (a file of NaNs would load as garbage).
+fn check_finite(frames: &[Frame]) -> Result<()> {
+    for (i, f) in frames.iter().enumerate() {
+        let values = f.root_translation.iter().chain(&f.root_rotation).chain(f.body_rotations.iter().flatten());
+        let values =
+            values.chain(f.left_hand_rotations.iter().flatten()).chain(f.right_hand_rotations.iter().flatten());
+        if !values.chain(&f.object_translation).chain(&f.object_rotation).all(|v| v.is_finite()) {
+            return Err(Error::InvalidArgument(format!("frame {i} has a non-finite value: no BVH written")));
+        }
+    }
+    Ok(())
+}
+
 /// The body: `rest` the bundle's rest joints (the manifest's, in the skeleton's own frame),
-/// `frames` in glTF's basis (y up, metres), as an engine created with `CG_COORDS_GLTF`
-/// gives them.
-pub fn body(rest: &[[f32; 3]; CG_NUM_JOINTS], frames: &[Frame], fps: f64) -> String {
-    // glTF frames carry S R S^T for the native local R; BVH wants R below the root and S R
-    // at the root (the rest pose stays in the skeleton's frame).
-    let (s, _) = CoordinateSystem::CG_COORDS_GLTF.basis();
-    let st = transpose(&s);
+/// `frames` in `coords` (an engine's frames: its coordinate system).
+pub fn body(rest: &[[f32; 3]; CG_NUM_JOINTS], frames: &[Frame], coords: CoordinateSystem, fps: f64) -> Result<String> {
+    check_finite(frames)?;
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::InvalidArgument(format!("fps {fps} is not positive")));
+    }
+    // BVH wants the native local R below the root and S_g R at the root (the rest pose
+    // stays in the skeleton's frame, y up).
+    let t = ToFile::new(coords);
     let mut out = String::from("HIERARCHY\n");
     hierarchy(&mut out, rest, 0, 0);
     motion_header(&mut out, frames.len(), fps);
@@ -106,21 +151,27 @@ pub fn body(rest: &[[f32; 3]; CG_NUM_JOINTS], frames: &[Frame], fps: f64) -> Str
     visit(0, &mut order);
     for f in frames {
         let q = local_rotations(f);
-        let p = f.root_translation.map(|v| f64::from(v) * CM);
+        let p = t.point(&f.root_translation);
         let mut line = format!("{:.6} {:.6} {:.6}", p[0], p[1], p[2]);
         for &j in &order {
-            let r = quaternion_to_matrix(&q[j].map(f64::from));
-            let r = if j == 0 { mat_mul(&r, &s) } else { mat_mul(&mat_mul(&st, &r), &s) };
+            let r = t.native(&q[j]);
+            let r = if j == 0 { mat_mul(&t.g, &r) } else { r };
             push_rotation(&mut line, &r);
         }
         out.push_str(&line);
         out.push('\n');
     }
-    out
+    Ok(out)
 }
 
-/// The object's track: a one-joint hierarchy, its origin and rotation per frame.
-pub fn object(frames: &[Frame], fps: f64) -> String {
+/// The object's track: a one-joint hierarchy, its origin and rotation per frame (`frames`
+/// in `coords`).
+pub fn object(frames: &[Frame], coords: CoordinateSystem, fps: f64) -> Result<String> {
+    check_finite(frames)?;
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::InvalidArgument(format!("fps {fps} is not positive")));
+    }
+    let t = ToFile::new(coords);
     let mut out = String::from(
         "HIERARCHY\nROOT object\n{\n  OFFSET 0.000000 0.000000 0.000000\n  \
          CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n  \
@@ -128,19 +179,19 @@ pub fn object(frames: &[Frame], fps: f64) -> String {
     );
     motion_header(&mut out, frames.len(), fps);
     for f in frames {
-        let p = f.object_translation.map(|v| f64::from(v) * CM);
+        let p = t.point(&f.object_translation);
         let mut line = format!("{:.6} {:.6} {:.6}", p[0], p[1], p[2]);
-        push_rotation(&mut line, &quaternion_to_matrix(&f.object_rotation.map(f64::from)));
+        push_rotation(&mut line, &mat_mul(&mat_mul(&t.g, &t.native(&f.object_rotation)), &t.gt));
         out.push_str(&line);
         out.push('\n');
     }
-    out
+    Ok(out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use comgrasp::skeleton::{axis_angle, mat_mul};
+    use crate::skeleton::axis_angle;
 
     #[test]
     fn euler_angles_rebuild_the_rotation() {

@@ -1,6 +1,8 @@
 """comgrasp_ctypes: Python binding of the ComGrasp C ABI (include/comgrasp.h) with ctypes.
 
-Standard library only (no numpy, no compiler). Copy this one file next to your code.
+Standard library only (no numpy, no compiler). Install it with the library inside
+(``pip install bindings/python``: the package ``comgrasp``), or copy this one file next to
+your code as ``comgrasp_ctypes.py``.
 
     from comgrasp_ctypes import Engine, Coords
 
@@ -10,9 +12,10 @@ Standard library only (no numpy, no compiler). Copy this one file next to your c
                 print(frame.frame_index, list(frame.root_translation))
 
 The library is found, in order: ``$COMGRASP_LIB`` (the path of the shared library file),
-``libcomgrasp.so`` (``.dylib``, ``comgrasp.dll``) next to this module, then the newest of
-``target/release`` and ``target/debug`` of the source tree this file sits in
-(``bindings/python/../../target``). ``load(path)`` loads a given file instead.
+``libcomgrasp.so`` (``.dylib``, ``comgrasp.dll``) next to this module (where the installed
+package carries it), then the newest of ``target/release`` and ``target/debug`` of the source
+tree this file sits in (``bindings/python/comgrasp_ctypes/../../../target``). ``load(path)``
+loads a given file instead.
 
 Shared memory (iceoryx2): ``Engine(..., publish_name="game")`` also publishes every frame
 and stream event; a :class:`Subscriber` in any process reads them without running a model:
@@ -372,12 +375,14 @@ def find_library() -> Path:
     name = _lib_name()
     if (here / name).is_file():
         return here / name
-    target = here.parent.parent / "target"
+    # a source tree: this file is bindings/python/comgrasp_ctypes/__init__.py
+    tree = here.parents[2] if len(here.parents) > 2 else here
+    target = tree / "target"
     found = [target / prof / name for prof in ("release", "debug") if (target / prof / name).is_file()]
     if not found:
         raise FileNotFoundError(
             f"{name} not found: set COMGRASP_LIB to its path, put it next to {Path(__file__).name}, "
-            f"or run `cargo build --release` in {here.parent.parent}")
+            f"or run `cargo build --release` in {tree}")
     return max(found, key=lambda p: p.stat().st_mtime)
 
 
@@ -430,6 +435,7 @@ def _declare(lib: ctypes.CDLL) -> None:
         "cg_retargeter_destroy": (st, [vp]),
         "cg_retargeter_bone_count": (st, [vp, P(sz)]),
         "cg_retarget_frame": (st, [vp, P(CgFrame), P(CgBonePose), sz, P(CgRetargetObject)]),
+        "cg_engine_write_bvh": (st, [vp, P(CgFrame), sz, ctypes.c_char_p, ctypes.c_char_p]),
     }
     optional = list(shm.items()) + list(retarget.items())
     for name, (res, args) in list(sigs.items()) + [kv for kv in optional if hasattr(lib, kv[0])]:
@@ -690,6 +696,18 @@ class Engine(_Owned):
         st = self._lib.cg_engine_get_rest_joints(self.handle, buf, NUM_JOINTS)
         _check(self._lib, "cg_engine_get_rest_joints", st)
         return [tuple(buf[3 * j:3 * j + 3]) for j in range(NUM_JOINTS)]
+
+    def write_bvh(self, frames: Sequence[CgFrame], path: Union[str, os.PathLike],
+                  object_path: Union[str, os.PathLike, None] = None) -> None:
+        """Writes this engine's ``frames`` as BVH (cg_engine_write_bvh): the body (SMPL-X skeleton
+        with fingers, y up, centimetres, ZXY channels, the bundle's fps) to ``path`` and the
+        object's track to ``object_path`` when given. Frames from any coordinate system."""
+        arr = (CgFrame * max(1, len(frames)))()
+        for i, f in enumerate(frames):
+            arr[i] = f
+        enc = [None if p is None else os.fsencode(p) for p in (path, object_path)]
+        st = self._lib.cg_engine_write_bvh(self.handle, arr, len(frames), enc[0], enc[1])
+        _check(self._lib, "cg_engine_write_bvh", st)
 
     def retargeter(self, bones: Sequence[Bone], map: Optional[Sequence[Tuple[str, str]]] = None,
                    builtin: Optional[BuiltinMap] = None) -> Retargeter:

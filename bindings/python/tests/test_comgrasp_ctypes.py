@@ -1,13 +1,17 @@
-"""Tests of comgrasp_ctypes against the real library: plain asserts, runnable either way:
+"""Tests of the installed comgrasp_ctypes package against the real library: plain asserts,
+runnable either way, with the package installed (`pip install bindings/python`):
 
-    python3 bindings/python/test_comgrasp_ctypes.py        # runs every test_* function
-    python3 -m pytest bindings/python/test_comgrasp_ctypes.py
+    python3 bindings/python/tests/test_comgrasp_ctypes.py    # runs every test_* function
+    python3 -m pytest bindings/python/tests/test_comgrasp_ctypes.py
 
-Environment: COMGRASP_LIB (the library; default: comgrasp_ctypes.find_library()),
-COMGRASP_TEST_BUNDLE (default: models/tiny of this source tree), COMGRASP_C_LAYOUT (the
-output of tests/host_support/layout.c: the C compiler's struct layout; without it the
-layout is checked against the sizes documented in comgrasp.h). tests/python_binding.rs sets
-all three. The shared-memory tests publish under names with this process's id.
+The package is imported as installed (this file puts nothing on sys.path).
+Environment: COMGRASP_LIB (the library; default: comgrasp_ctypes.find_library(), which
+finds the one the package carries), COMGRASP_TEST_BUNDLE (default: models/tiny of this
+source tree), COMGRASP_C_LAYOUT (the output of tests/host_support/layout.c: the C compiler's
+struct layout; without it the layout is checked against the sizes documented in
+comgrasp.h), COMGRASP_BVH_CHECK (cli/tests/bvh_check.py: the BVH read-back check; needs
+numpy and the PyPI `bvh` package). tests/python_binding.rs sets all of them but
+COMGRASP_LIB. The shared-memory tests publish under names with this process's id.
 """
 
 import ctypes
@@ -18,13 +22,11 @@ import threading
 import time
 from pathlib import Path
 
+import comgrasp_ctypes as cg
+from comgrasp_ctypes import CgFrame, CgStreamEvent, ComgraspError, Coords, Engine, EventKind, Status, Subscriber
+
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import comgrasp_ctypes as cg  # noqa: E402
-from comgrasp_ctypes import CgFrame, CgStreamEvent, ComgraspError, Coords, Engine, EventKind, Status, Subscriber  # noqa: E402
-
-BUNDLE = os.environ.get("COMGRASP_TEST_BUNDLE", str(HERE.parent.parent / "models" / "tiny"))
+BUNDLE = os.environ.get("COMGRASP_TEST_BUNDLE", str(HERE.parents[2] / "models" / "tiny"))
 PROMPT = "A woman drinks from the mug"
 
 
@@ -439,6 +441,59 @@ def test_retarget_onto_a_unity_named_skeleton():
         err = raises(cg.builtin_map, 7)
         assert err.status == Status.ERR_INVALID_ARGUMENT
 
+
+
+def test_installed_package_carries_its_library():
+    """Imported from the installed package, which loads the library it carries."""
+    here = Path(cg.__file__).resolve().parent
+    assert here != HERE.parent / "comgrasp_ctypes", f"imported from the source tree: {here}"
+    if "COMGRASP_LIB" not in os.environ:
+        assert cg.find_library().parent == here, cg.find_library()
+
+
+def test_write_bvh_from_any_coordinate_system():
+    """The same motion from a glTF and a Unity engine gives the same BVH; read back by a BVH
+    parser from PyPI, its forward kinematics lands on the engine's joints (bvh_check.py)."""
+    import importlib.util
+    import tempfile
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("bvh_check", os.environ["COMGRASP_BVH_CHECK"])
+    check = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(check)
+    out = Path(tempfile.mkdtemp(prefix="comgrasp-bvh-"))
+    texts = {}
+    for coords in (Coords.GLTF, Coords.UNITY):
+        with engine(coords=coords, enable_fk=True) as e:
+            with e.start("Someone lifts the mug with both hands", seed=4, min_len=3, max_len=3) as s:
+                frames = s.frames()
+            body, obj = out / f"{coords.name}.bvh", out / f"{coords.name}.object.bvh"
+            e.write_bvh(frames, body, obj)
+            texts[coords] = (body.read_text(), obj.read_text())
+            if coords == Coords.GLTF:
+                np.savez(out / "frames.npz",
+                         joint_positions=np.array([[list(j) for j in f.joint_positions] for f in frames], np.float32),
+                         object_translation=np.array([list(f.object_translation) for f in frames], np.float32),
+                         object_rotation=np.array([list(f.object_rotation) for f in frames], np.float32))
+                assert check.main(body, obj, out / "frames.npz", BUNDLE) == 0, "BVH FK off the engine's joints"
+                # frames=0 is a valid file; a NaN frame or a bad path is an error, nothing written
+                e.write_bvh([], out / "empty.bvh")
+                assert "Frames: 0" in (out / "empty.bvh").read_text()
+                bad = CgFrame()
+                ctypes.memmove(ctypes.byref(bad), ctypes.byref(frames[0]), ctypes.sizeof(CgFrame))
+                bad.root_rotation[0] = float("nan")
+                err = raises(e.write_bvh, [bad], out / "nan.bvh")
+                assert err.status == Status.ERR_INVALID_ARGUMENT and "non-finite" in err.message
+                assert not (out / "nan.bvh").exists()
+                err = raises(e.write_bvh, frames, out / "missing-dir" / "x.bvh")
+                assert err.status == Status.ERR_IO, err
+    def numbers(t):
+        return np.array([float(v) for v in t.split("MOTION", 1)[1].split()[5:]])
+    for i in range(2):
+        a, b = texts[Coords.GLTF][i], texts[Coords.UNITY][i]
+        assert a.split("MOTION")[0] == b.split("MOTION")[0], "the same hierarchy"
+        assert np.abs(numbers(a) - numbers(b)).max() < 1e-3, "glTF and Unity frames give the same BVH"
 
 
 def main() -> int:
