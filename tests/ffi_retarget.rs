@@ -267,12 +267,12 @@ fn bvh_files_through_the_c_abi_and_their_errors() {
             cg_status::CG_ERR_NULL_POINTER,
         ),
         (
-            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), b"\xff\0".as_ptr() as *const c_char, null()) },
+            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), c"\xff".as_ptr(), null()) },
             "UTF-8",
             cg_status::CG_ERR_INVALID_UTF8,
         ),
         (
-            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), b"\0".as_ptr() as *const c_char, null()) },
+            unsafe { cg_engine_write_bvh(e, fs.as_ptr(), fs.len(), c"".as_ptr(), null()) },
             "empty",
             cg_status::CG_ERR_INVALID_ARGUMENT,
         ),
