@@ -209,9 +209,7 @@ static unsafe class ComGraspTest
         Eq(byJoint["left_wrist"], "LeftHand", "left_wrist -> LeftHand");
         using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
         {
-            var rest = new float[55 * 3];
-            fixed (float* r = rest)
-                Eq(ComGraspNative.cg_engine_get_rest_joints(engine.Handle, r, (UIntPtr)55), CgStatus.Ok, "rest joints");
+            float[] rest = RestJoints(engine);
             var bones = new ComGraspBone[55];
             for (int j = 0; j < 55; j++)
             {
@@ -223,15 +221,12 @@ static unsafe class ComGraspTest
             }
             // (finger bones are unmapped here: they stay at rest, so only the body is compared)
             using (var rt = new ComGraspRetargeter(engine, bones, CgBuiltinMap.UnityHumanoid))
-            using (var stream = engine.Start("A woman drinks from the mug"))
             {
                 var poses = new CgBonePose[rt.BoneCount];
-                CgFrame f = default(CgFrame);
                 int n = 0;
-                CgStatus st;
-                while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                foreach (CgFrame frame in AllFrames(engine, "A woman drinks from the mug"))
                 {
-                    if (st != CgStatus.Ok) continue;
+                    CgFrame f = frame;
                     CgRetargetObject obj;
                     rt.Retarget(ref f, poses, out obj);
                     for (int j = 0; j < 22; j++)
@@ -287,9 +282,7 @@ static unsafe class ComGraspTest
 
         using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
         {
-            var rest = new float[55 * 3];
-            fixed (float* r = rest)
-                Eq(ComGraspNative.cg_engine_get_rest_joints(engine.Handle, r, (UIntPtr)55), CgStatus.Ok, "rest joints");
+            float[] rest = RestJoints(engine);
             var jointOf = new Dictionary<HumanBone, int>();
             var avatar = new List<HumanoidBoneRest>();
             foreach (var kv in map)
@@ -315,16 +308,13 @@ static unsafe class ComGraspTest
                 Check(rig.HostBones[i].Parent < i, rig.Bones[i] + " comes after its parent");
             Eq(rig.HostBones[rig.IndexOf(HumanBone.LeftUpperArm)].Parent, rig.IndexOf(HumanBone.LeftShoulder), "arm parent");
             using (var rt = new ComGraspRetargeter(engine, rig.HostBones, CgBuiltinMap.UnityHumanoid))
-            using (var stream = engine.Start("A woman drinks from the mug"))
             {
                 var poses = rig.NewPoseBuffer();
-                CgFrame f = default(CgFrame);
                 int n = 0;
                 float worst = 0;
-                CgStatus st;
-                while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                foreach (CgFrame frame in AllFrames(engine, "A woman drinks from the mug"))
                 {
-                    if (st != CgStatus.Ok) continue;
+                    CgFrame f = frame;
                     CgRetargetObject obj;
                     rt.Retarget(ref f, poses, out obj);
                     for (int i = 0; i < rig.Bones.Length; i++)
@@ -364,13 +354,8 @@ static unsafe class ComGraspTest
     static void Bvh()
     {
         using (var engine = NewEngine(CgCoordinateSystem.Unity, true))
-        using (var stream = engine.Start("A woman drinks from the mug"))
         {
-            var frames = new List<CgFrame>();
-            CgFrame f = default(CgFrame);
-            CgStatus st;
-            while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
-                if (st == CgStatus.Ok) frames.Add(f);
+            List<CgFrame> frames = AllFrames(engine, "A woman drinks from the mug");
             string dir = Path.Combine(Path.GetTempPath(), "comgrasp-cs-bvh-" + System.Diagnostics.Process.GetCurrentProcess().Id);
             Directory.CreateDirectory(dir);
             string body = Path.Combine(dir, "m.bvh"), obj = Path.Combine(dir, "m.object.bvh");
@@ -383,6 +368,29 @@ static unsafe class ComGraspTest
             Throws<ArgumentNullException>(() => engine.WriteBvh(null, body));
             Directory.Delete(dir, true);
         }
+    }
+
+    // Every frame of a stream of the prompt, to the end.
+    static List<CgFrame> AllFrames(ComGraspEngine engine, string prompt)
+    {
+        var frames = new List<CgFrame>();
+        using (var stream = engine.Start(prompt))
+        {
+            CgFrame f = default(CgFrame);
+            CgStatus st;
+            while ((st = stream.Wait(ref f, 5000)) != CgStatus.End)
+                if (st == CgStatus.Ok) frames.Add(f);
+        }
+        return frames;
+    }
+
+    // The engine's rest skeleton: 55 joints, x y z each.
+    static unsafe float[] RestJoints(ComGraspEngine engine)
+    {
+        var rest = new float[55 * 3];
+        fixed (float* r = rest)
+            Eq(ComGraspNative.cg_engine_get_rest_joints(engine.Handle, r, (UIntPtr)55), CgStatus.Ok, "rest joints");
+        return rest;
     }
 
     static HumanoidBoneRest Bone(HumanBone b)

@@ -584,18 +584,7 @@ impl NativeStep {
                 }
             },
         );
-        let u = RowUnits::new(per_stream([&mut b.tmp, &mut b.h]), d.widths, self.blocks_of(|s| &block(s).proj.w));
-        let att = &b.att;
-        c.phase(
-            me,
-            Order::Split,
-            u,
-            |_| {},
-            |_, (s, r, [tmp, h])| {
-                block(s).proj.rows(&self.arena, &att[s], r, tmp);
-                add_assign(h, tmp);
-            },
-        );
+        self.residual(c, me, (&mut b.tmp, &mut b.h), &b.att, |s| &block(s).proj);
         let u = RowUnits::new(per_stream([&mut b.mlp]), d.hidden, self.blocks_of(|s| &block(s).fc1.w));
         let h = &b.h;
         c.phase(me, Order::Split, u, reset_have, |me, (s, r, [mlp])| {
@@ -606,15 +595,27 @@ impl NativeStep {
             bl.fc1.rows(&self.arena, x, r, mlp);
             gelu_erf(mlp);
         });
-        let u = RowUnits::new(per_stream([&mut b.tmp, &mut b.h]), d.widths, self.blocks_of(|s| &block(s).fc2.w));
-        let mlp = &b.mlp;
+        self.residual(c, me, (&mut b.tmp, &mut b.h), &b.mlp, |s| &block(s).fc2);
+    }
+
+    /// `h += lin_s(x_s)` for the four streams (a block's two residual products), by way of
+    /// `tmp`, as one phase.
+    fn residual<'a>(
+        &'a self,
+        c: &mut Crew<'_, Own>,
+        me: &mut Own,
+        (tmp, h): (&mut [Vec<f32>], &mut [Vec<f32>]),
+        x: &[Vec<f32>],
+        lin: impl Fn(usize) -> &'a Linear + Sync,
+    ) {
+        let u = RowUnits::new(per_stream([tmp, h]), self.d.widths, self.blocks_of(|s| &lin(s).w));
         c.phase(
             me,
             Order::Split,
             u,
             |_| {},
             |_, (s, r, [tmp, h])| {
-                block(s).fc2.rows(&self.arena, &mlp[s], r, tmp);
+                lin(s).rows(&self.arena, &x[s], r, tmp);
                 add_assign(h, tmp);
             },
         );
