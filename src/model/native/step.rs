@@ -531,15 +531,8 @@ impl NativeStep {
     fn blocks(&self, l: usize, pos: usize, c: &mut Crew<'_, Own>, me: &mut Own, b: &mut Bufs) {
         let d = &self.d;
         let block = |s: usize| &self.streams[s].blocks[l];
-        let u = RowUnits::new(per_stream([&mut b.qkv]), d.widths.map(|w| 3 * w), self.blocks_of(|s| &block(s).qkv.w));
-        let h = &b.h;
-        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [qkv])| {
-            let (bl, x) = (block(s), &mut me.x[s]);
-            if !std::mem::replace(&mut me.have[s], true) {
-                bl.ln1.run(&h[s], x);
-            }
-            bl.qkv.rows(&self.arena, x, r, qkv);
-        });
+        let widths3 = d.widths.map(|w| 3 * w);
+        self.normed(c, me, (&mut b.qkv, widths3), &b.h, |s| (&block(s).ln1, &block(s).qkv), false);
         // heads as units: this layer's region of the k and v caches, (H, S, D), and the
         // head's columns of the attention output
         let nh = d.n_heads;
@@ -585,17 +578,32 @@ impl NativeStep {
             },
         );
         self.residual(c, me, (&mut b.tmp, &mut b.h), &b.att, |s| &block(s).proj);
-        let u = RowUnits::new(per_stream([&mut b.mlp]), d.hidden, self.blocks_of(|s| &block(s).fc1.w));
-        let h = &b.h;
-        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [mlp])| {
-            let (bl, x) = (block(s), &mut me.x[s]);
-            if !std::mem::replace(&mut me.have[s], true) {
-                bl.ln2.run(&h[s], x);
-            }
-            bl.fc1.rows(&self.arena, x, r, mlp);
-            gelu_erf(mlp);
-        });
+        self.normed(c, me, (&mut b.mlp, d.hidden), &b.h, |s| (&block(s).ln2, &block(s).fc1), true);
         self.residual(c, me, (&mut b.tmp, &mut b.h), &b.mlp, |s| &block(s).fc2);
+    }
+
+    /// `out_s = lin_s(norm_s(h_s))` (`rows[s]` rows; then GELU) for the four streams, as one
+    /// phase: a member norms a stream's `h` once, into its own buffer, before its first unit.
+    fn normed<'a>(
+        &'a self,
+        c: &mut Crew<'_, Own>,
+        me: &mut Own,
+        (out, rows): (&mut [Vec<f32>], [usize; N_STREAMS]),
+        h: &[Vec<f32>],
+        norm_lin: impl Fn(usize) -> (&'a Norm, &'a Linear) + Sync,
+        gelu: bool,
+    ) {
+        let u = RowUnits::new(per_stream([out]), rows, self.blocks_of(|s| &norm_lin(s).1.w));
+        c.phase(me, Order::Split, u, reset_have, |me, (s, r, [out])| {
+            let ((norm, lin), x) = (norm_lin(s), &mut me.x[s]);
+            if !std::mem::replace(&mut me.have[s], true) {
+                norm.run(&h[s], x);
+            }
+            lin.rows(&self.arena, x, r, out);
+            if gelu {
+                gelu_erf(out);
+            }
+        });
     }
 
     /// `h += lin_s(x_s)` for the four streams (a block's two residual products), by way of
