@@ -41,6 +41,7 @@ namespace UnityEngine
     {
         public float x, y, z;
         public Vector3(float x, float y, float z) { this.x = x; this.y = y; this.z = z; }
+        public static Vector3 up { get { return new Vector3(0f, 1f, 0f); } }
     }
 
     public struct Quaternion
@@ -48,6 +49,7 @@ namespace UnityEngine
         public float x, y, z, w;
         public Quaternion(float x, float y, float z, float w) { this.x = x; this.y = y; this.z = z; this.w = w; }
         public static Quaternion Inverse(Quaternion q) { return new Quaternion(-q.x, -q.y, -q.z, q.w); }
+        public static Quaternion AngleAxis(float angle, Vector3 axis) { return new Quaternion(0f, 0f, 0f, 1f); }
         public static Quaternion operator *(Quaternion a, Quaternion b) { return a; }
     }
 

@@ -97,18 +97,24 @@ namespace ComGrasp
         public void Play(string text = null)
         {
             Stop();
-            var options = new ComGraspStreamOptions
-            {
-                // Scene anchoring: the motion starts where the character stands, facing its way.
-                CharacterPosition = transform.position,
-                CharacterRotation = transform.rotation,
-            };
+            var options = new ComGraspStreamOptions();
             if (seed != 0) options.Seed = seed;
-            if (chain && lastEnded != 0) options.ContinueFrom = lastEnded;
-            else if (graspedObject != null)
+            if (chain && lastEnded != 0)
             {
-                options.ObjectPosition = graspedObject.position;
-                options.ObjectRotation = graspedObject.rotation;
+                // Continues from the last motion's end: its place, pose and object (no anchors).
+                options.ContinueFrom = lastEnded;
+            }
+            else
+            {
+                // Scene anchoring: the motion starts where the character stands, facing its way
+                // (the engine's unturned character faces -z: turn it to the avatar's +z first).
+                options.CharacterPosition = transform.position;
+                options.CharacterRotation = transform.rotation * Quaternion.AngleAxis(180f, Vector3.up);
+                if (graspedObject != null)
+                {
+                    options.ObjectPosition = graspedObject.position;
+                    options.ObjectRotation = graspedObject.rotation;
+                }
             }
             stream = engine.Start(text ?? prompt, options);
             clock = 0;

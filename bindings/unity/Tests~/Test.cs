@@ -49,6 +49,7 @@ static unsafe class ComGraspTest
         Run("retarget", Retarget);
         Run("humanoid_rig", HumanoidRigTests);
         Run("bvh", Bvh);
+        Run("unity_heading", UnityHeading);
         Console.WriteLine("csharp: {0} passed, {1} failed", passed, failed);
         return failed == 0 ? 0 : 1;
     }
@@ -367,6 +368,40 @@ static unsafe class ComGraspTest
             Eq(e.Status, CgStatus.ErrIo, "unwritable path");
             Throws<ArgumentNullException>(() => engine.WriteBvh(null, body));
             Directory.Delete(dir, true);
+        }
+    }
+
+    // The heading ComGraspAnimator anchors with. The engine's heading is where the pelvis
+    // faces (its local +z; in Unity's basis the root rotation turns +y onto it), projected
+    // to the ground: unturned it faces -z in Unity coordinates; turned 180 degrees about y
+    // (what the animator passes for an avatar facing +z) it faces +z. On the embedded default
+    // model: the test bundle's random weights do not stand the pelvis upright.
+    static unsafe void UnityHeading()
+    {
+        using (var engine = new ComGraspEngine(new ComGraspEngineOptions { Coordinates = CgCoordinateSystem.Unity }))
+        {
+            foreach (bool turned in new[] { false, true })
+            {
+                var options = new ComGraspStreamOptions
+                {
+                    CharacterPosition = new CgVec3(0, 0, 0),
+                    CharacterRotation = turned ? new CgQuat(0, 1, 0, 0) : new CgQuat(0, 0, 0, 1),
+                    MinLen = 1,
+                    MaxLen = 1,
+                };
+                using (var stream = engine.Start("A woman drinks from the mug", options))
+                {
+                    CgFrame f = default(CgFrame);
+                    while (stream.Wait(ref f, 5000) != CgStatus.Ok) { }
+                    // v' = v + w t + q x t with t = 2 q x v, for v = (0, 1, 0)
+                    float x = f.RootRotation[0], y = f.RootRotation[1], z = f.RootRotation[2], w = f.RootRotation[3];
+                    float tx = -2 * z, ty = 0, tz = 2 * x;
+                    float fx = w * tx + (y * tz - z * ty), fz = w * tz + (x * ty - y * tx);
+                    float n = (float)Math.Sqrt(fx * fx + fz * fz);
+                    Check(n > 0.5f && Math.Abs(fx / n) < 1e-3f && (turned ? fz > 0 : fz < 0),
+                          (turned ? "turned" : "unturned") + ": pelvis faces (" + fx + ", " + fz + ") on the ground");
+                }
+            }
         }
     }
 

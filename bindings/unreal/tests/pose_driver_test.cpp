@@ -127,6 +127,43 @@ int main(int argc, char **argv) {
         CHECK(driver.error().find("CG_ERR_INVALID_ARGUMENT") != std::string::npos, "%s", driver.error().c_str());
     }
     {
+        // The heading UComGraspSkeletalComponent anchors with. The engine's heading is where the
+        // pelvis faces (its local +z, which the root rotation turns in Unreal's basis too),
+        // projected to the ground: unturned it faces -y; yawed by +90 degrees (FRotator(0, 90,
+        // 0)) it faces the actor's forward, +x. On the embedded default model: the test
+        // bundle's random weights do not stand the pelvis upright.
+        cg_engine_config dc;
+        cg_engine_config_init(&dc);
+        dc.coordinate_system = CG_COORDS_UNREAL;
+        cg_engine *default_engine = nullptr;
+        CHECK(cg_engine_create(&dc, &default_engine) == CG_OK, "%s", cg_last_error());
+        for (int turned = 0; turned < 2; ++turned) {
+            PoseDriver driver(default_engine, bones);
+            cg_stream_config cfg;
+            cg_stream_config_init(&cfg);
+            cfg.anchor = CG_ANCHOR_CHARACTER;
+            const float s = std::sqrt(0.5f);
+            const float yaw90[4] = {0, 0, s, s}, none[4] = {0, 0, 0, 1};
+            for (int k = 0; k < 4; ++k) cfg.character_rotation[k] = turned ? yaw90[k] : none[k];
+            cfg.min_len = cfg.max_len = 1;
+            cfg.use_defaults &= ~static_cast<uint32_t>(CG_USE_DEFAULT_MIN_LEN | CG_USE_DEFAULT_MAX_LEN);
+            CHECK(driver.start("A woman drinks from the mug", &cfg), "%s", driver.error().c_str());
+            TickResult r = TickResult::Idle;
+            for (int t = 0; t < 60000 && r != TickResult::NewPose; ++t) {
+                std::this_thread::sleep_for(std::chrono::milliseconds(1));
+                r = driver.tick(0.0, false);
+            }
+            // v' = v + w t + q x t with t = 2 q x v, for v = (0, 0, 1)
+            const float *q = driver.frame().root_rotation;
+            const float tx = 2 * q[1], ty = -2 * q[0], tz = 0;
+            const float fx = q[3] * tx + (q[1] * tz - q[2] * ty), fy = q[3] * ty + (q[2] * tx - q[0] * tz);
+            const float n = std::sqrt(fx * fx + fy * fy);
+            const bool ok = n > 0.5f && (turned ? std::fabs(fy / n) < 1e-3f && fx > 0 : std::fabs(fx / n) < 1e-3f && fy < 0);
+            CHECK(ok, "%s: pelvis faces (%.3f, %.3f) on the ground", turned ? "yawed" : "unturned", fx, fy);
+        }
+        cg_engine_destroy(default_engine);
+    }
+    {
         std::vector<BoneRest> dup = bones;
         dup[3].name = dup[0].name;
         PoseDriver bad(engine, dup);

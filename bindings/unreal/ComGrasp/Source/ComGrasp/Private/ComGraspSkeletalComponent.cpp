@@ -97,9 +97,21 @@ bool UComGraspSkeletalComponent::StartMotion(const FString& NewPrompt)
 	Prompt = NewPrompt;
 	cg_stream_config Config;
 	cg_stream_config_init(&Config);
-	// Scene anchoring: the motion's space is the actor's, so it starts at the actor's origin
-	// facing its way; a grasped object anchors the reach (it must be within arm's reach).
-	if (GraspedObject && !(bChain && Driver->last_ended() != 0))
+	const bool bChained = bChain && Driver->last_ended() != 0;
+	if (!bChained)
+	{
+		// Scene anchoring in the motion's space, which is the actor's: the ground point is
+		// the mesh's origin (a Character's actor origin is its capsule's centre), the heading
+		// the actor's forward, +X (the engine's unturned character faces -Y: yaw it by 90).
+		const FVector Ground = TargetMesh->GetComponentTransform().GetRelativeTransform(GetOwner()->GetActorTransform()).GetTranslation();
+		const FQuat Heading = FQuat(FRotator(0.0, 90.0, 0.0));
+		Config.anchor |= CG_ANCHOR_CHARACTER;
+		Config.character_position[0] = Ground.X; Config.character_position[1] = Ground.Y; Config.character_position[2] = Ground.Z;
+		Config.character_rotation[0] = Heading.X; Config.character_rotation[1] = Heading.Y;
+		Config.character_rotation[2] = Heading.Z; Config.character_rotation[3] = Heading.W;
+	}
+	// A grasped object anchors the reach (it must be within arm's reach).
+	if (GraspedObject && !bChained)
 	{
 		const FTransform InActor = GraspedObject->GetActorTransform().GetRelativeTransform(GetOwner()->GetActorTransform());
 		const FVector P = InActor.GetTranslation();
@@ -108,7 +120,7 @@ bool UComGraspSkeletalComponent::StartMotion(const FString& NewPrompt)
 		Config.object_position[0] = P.X; Config.object_position[1] = P.Y; Config.object_position[2] = P.Z;
 		Config.object_rotation[0] = Q.X; Config.object_rotation[1] = Q.Y; Config.object_rotation[2] = Q.Z; Config.object_rotation[3] = Q.W;
 	}
-	if (!Driver->start(std::string(TCHAR_TO_UTF8(*Prompt)), &Config, bChain))
+	if (!Driver->start(std::string(TCHAR_TO_UTF8(*Prompt)), &Config, bChained))
 	{
 		UE_LOG(LogComGrasp, Error, TEXT("ComGrasp: %s"), UTF8_TO_TCHAR(Driver->error().c_str()));
 		return false;
