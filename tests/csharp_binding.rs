@@ -68,9 +68,15 @@ fn csharp_binding_passes_its_tests_against_the_library() {
     );
     let groups =
         ["layout", "stream_to_end", "polling_allocates_nothing", "errors", "cancel", "cancel_from_another_thread"];
-    for group in
-        groups.iter().chain(&["runtime_options", "shm_subscriber", "shm_errors", "retarget", "humanoid_rig", "bvh", "unity_heading"])
-    {
+    for group in groups.iter().chain(&[
+        "runtime_options",
+        "shm_subscriber",
+        "shm_errors",
+        "retarget",
+        "humanoid_rig",
+        "bvh",
+        "unity_heading",
+    ]) {
         assert!(stdout.lines().any(|l| l == format!("ok {group}")), "no `ok {group}` in:\n{stdout}");
     }
     check_closing_line(&stdout, 17);
