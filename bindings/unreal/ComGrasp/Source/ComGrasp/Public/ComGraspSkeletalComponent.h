@@ -17,13 +17,14 @@
 
 THIRD_PARTY_INCLUDES_START
 #include "comgrasp.h"
+// Complete here (not forward-declared), so the generated code can destroy the unique_ptr.
+#include "ComGraspPoseDriver.h"
 THIRD_PARTY_INCLUDES_END
 
 #include <memory>
 
 #include "ComGraspSkeletalComponent.generated.h"
 
-namespace comgrasp_unreal { class PoseDriver; }
 class UPoseableMeshComponent;
 class USkeletalMeshComponent;
 
