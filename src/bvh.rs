@@ -114,8 +114,12 @@ impl ToFile {
     }
 }
 
-/// Fails on a frame with a non-finite value (a file of NaNs would load as garbage).
-fn check_finite(frames: &[Frame]) -> Result<()> {
+/// Fails on a frame with a non-finite value (a file of NaNs would load as garbage), or an
+/// fps that is not positive.
+fn check(frames: &[Frame], fps: f64) -> Result<()> {
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::InvalidArgument(format!("fps {fps} is not positive")));
+    }
     for (i, f) in frames.iter().enumerate() {
         let values = f.root_translation.iter().chain(&f.root_rotation).chain(f.body_rotations.iter().flatten());
         let values =
@@ -130,10 +134,7 @@ fn check_finite(frames: &[Frame]) -> Result<()> {
 /// The body: `rest` the bundle's rest joints (the manifest's, in the skeleton's own frame),
 /// `frames` in `coords` (an engine's frames: its coordinate system).
 pub fn body(rest: &[[f32; 3]; CG_NUM_JOINTS], frames: &[Frame], coords: CoordinateSystem, fps: f64) -> Result<String> {
-    check_finite(frames)?;
-    if !(fps.is_finite() && fps > 0.0) {
-        return Err(Error::InvalidArgument(format!("fps {fps} is not positive")));
-    }
+    check(frames, fps)?;
     // BVH wants the native local R below the root and S_g R at the root (the rest pose
     // stays in the skeleton's frame, y up).
     let t = ToFile::new(coords);
@@ -167,10 +168,7 @@ pub fn body(rest: &[[f32; 3]; CG_NUM_JOINTS], frames: &[Frame], coords: Coordina
 /// The object's track: a one-joint hierarchy, its origin and rotation per frame (`frames`
 /// in `coords`).
 pub fn object(frames: &[Frame], coords: CoordinateSystem, fps: f64) -> Result<String> {
-    check_finite(frames)?;
-    if !(fps.is_finite() && fps > 0.0) {
-        return Err(Error::InvalidArgument(format!("fps {fps} is not positive")));
-    }
+    check(frames, fps)?;
     let t = ToFile::new(coords);
     let mut out = String::from(
         "HIERARCHY\nROOT object\n{\n  OFFSET 0.000000 0.000000 0.000000\n  \

@@ -518,7 +518,12 @@ impl NativeStep {
 
     /// Rows per unit of the products `mat(s)` of the four streams.
     fn blocks_of<'a>(&'a self, mat: impl Fn(usize) -> &'a Wm) -> [usize; N_STREAMS] {
-        std::array::from_fn(|s| self.row_block(mat(s).bytes() / mat(s).rows.max(1)))
+        std::array::from_fn(|s| self.block_of(mat(s)))
+    }
+
+    /// Rows per unit of a product by `m`.
+    fn block_of(&self, m: &Wm) -> usize {
+        self.row_block(m.bytes() / m.rows.max(1))
     }
 
     /// Rows per unit for rows of `row_bytes`: a multiple of 4 (the GEMV kernels' row
@@ -665,11 +670,7 @@ impl NativeStep {
             let mut rows = out.chunks_mut(width.max(1));
             let outs: [&mut [f32]; N_STREAMS] = std::array::from_fn(|_| rows.next().unwrap_or_default());
             let none = || std::array::from_fn(|_| <&mut [f32]>::default());
-            let u = RowUnits::new(
-                [outs, none(), none(), none()],
-                [width, 0, 0, 0],
-                [self.row_block(lin.w.bytes() / width.max(1)), 1, 1, 1],
-            );
+            let u = RowUnits::new([outs, none(), none(), none()], [width, 0, 0, 0], [self.block_of(&lin.w), 1, 1, 1]);
             c.phase(
                 me,
                 Order::Split,

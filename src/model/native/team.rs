@@ -81,6 +81,15 @@ struct Shared {
     done_cv: Condvar,
 }
 
+impl Shared {
+    /// Blocks (holding `g`, the slot's lock) until the slot says `done`.
+    fn wait_done(&self, mut g: MutexGuard<'_, Slot>) {
+        while !g.done {
+            g = self.done_cv.wait(g).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     // Nothing panics while these locks are held (work runs unlocked); be robust anyway.
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -130,11 +139,7 @@ impl Helper {
         })?;
         // Wait until the thread runs: its start-up allocates, which belongs to the load,
         // not to the first computation (a crew that finds its job not taken takes it back).
-        let mut g = lock(&shared.slot);
-        while !g.done {
-            g = shared.done_cv.wait(g).unwrap_or_else(|e| e.into_inner());
-        }
-        drop(g);
+        shared.wait_done(lock(&shared.slot));
         Ok(Helper { shared, busy: Mutex::new(()), handle: Some(handle) })
     }
 
@@ -186,9 +191,7 @@ impl Helper {
                 if g.job.take().is_some() {
                     return; // the helper never started it
                 }
-                while !g.done {
-                    g = self.shared.done_cv.wait(g).unwrap_or_else(|e| e.into_inner());
-                }
+                self.shared.wait_done(g);
             }
         }
         let end = End { shared: &self.shared, session: &session };
