@@ -43,8 +43,9 @@ namespace ComGrasp
         Transform[] bones;
         CgBonePose[] poses;
         ComGraspStream stream;
-        CgFrame frame;
-        bool held; // `frame` was polled and waits for its time
+        CgFrame frame; // the newest frame shown
+        CgFrame next;  // polled, waiting for its time while `held`
+        bool held;
         double clock;
         ulong lastEnded;
 
@@ -141,17 +142,20 @@ namespace ComGrasp
         {
             if (stream == null) return;
             clock += Time.deltaTime;
-            // Show the frames due by now, in order (frame.TimeS: seconds from the motion's start).
+            // Take the frames due by now (frame.TimeS: seconds from the motion's start) and
+            // pose the newest: polling into `next` keeps a frame not yet due from
+            // replacing the one shown.
+            bool fresh = false;
             while (true)
             {
                 if (!held)
                 {
-                    CgStatus st = stream.Poll(ref frame);
+                    CgStatus st = stream.Poll(ref next);
                     if (st == CgStatus.End)
                     {
                         lastEnded = stream.Id;
                         Stop();
-                        return;
+                        break;
                     }
                     if (st != CgStatus.Ok)
                     {
@@ -160,14 +164,16 @@ namespace ComGrasp
                             Debug.LogError("ComGrasp: " + st + ": " + ComGraspNative.LastError(), this);
                             Stop();
                         }
-                        return; // pending: generation is behind the clock
+                        break; // pending: generation is behind the clock
                     }
                     held = true;
                 }
-                if (frame.TimeS > clock) return;
-                Apply();
+                if (next.TimeS > clock) break;
+                frame = next;
                 held = false;
+                fresh = true;
             }
+            if (fresh) Apply();
         }
 
         unsafe void Apply()

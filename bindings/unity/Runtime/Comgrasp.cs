@@ -796,21 +796,13 @@ namespace ComGrasp
         public void WriteBvh(CgFrame[] frames, string bodyPath, string objectPath = null)
         {
             if (frames == null) throw new ArgumentNullException("frames");
-            byte[] body = bodyPath == null ? null : Nul(bodyPath);
-            byte[] obj = objectPath == null ? null : Nul(objectPath);
+            byte[] body = bodyPath == null ? null : ComGraspNative.NulTerminated(bodyPath);
+            byte[] obj = objectPath == null ? null : ComGraspNative.NulTerminated(objectPath);
             fixed (CgFrame* f = frames)
             fixed (byte* b = body)
             fixed (byte* o = obj)
                 ComGraspException.Check("cg_engine_write_bvh",
                     ComGraspNative.cg_engine_write_bvh(Handle, f, (UIntPtr)frames.Length, b, o));
-        }
-
-        static byte[] Nul(string s)
-        {
-            byte[] u = Encoding.UTF8.GetBytes(s);
-            var r = new byte[u.Length + 1];
-            Array.Copy(u, r, u.Length);
-            return r;
         }
 
         /// <summary>Streams of this engine alive (started and not yet disposed).</summary>

@@ -80,18 +80,7 @@ static unsafe class ComGraspTest
             throw new Exception(string.Format("{0}: got {1}, expected {2}", what, actual, expected));
     }
 
-    static ComGraspException Throws(string what, Action a)
-    {
-        try
-        {
-            a();
-        }
-        catch (ComGraspException e)
-        {
-            return e;
-        }
-        throw new Exception(what + ": no ComGraspException");
-    }
+    static ComGraspException Throws(string what, Action a) { return Throws<ComGraspException>(a, what); }
 
     static ComGraspEngine NewEngine(CgCoordinateSystem coords = CgCoordinateSystem.Native, bool fk = false,
                                     uint? ring = null, uint? maxStreams = null)
@@ -202,9 +191,6 @@ static unsafe class ComGraspTest
     {
         var map = ComGraspRetargeter.BuiltinMap(CgBuiltinMap.UnityHumanoid);
         Eq(map.Length, 52, "Unity map entries");
-        var smplxNames = new[] { "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-            "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
-            "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist" };
         var byJoint = new Dictionary<string, string>();
         foreach (var kv in map) byJoint[kv.Key] = kv.Value;
         Eq(byJoint["left_wrist"], "LeftHand", "left_wrist -> LeftHand");
@@ -215,7 +201,7 @@ static unsafe class ComGraspTest
             for (int j = 0; j < 55; j++)
             {
                 int p = SmplxParents[j];
-                string name = j < smplxNames.Length ? byJoint[smplxNames[j]] : "joint" + j;
+                string name = j < 22 ? byJoint[SmplxJointNames[j]] : "joint" + j;  // the body joints
                 var t = new float[3];
                 for (int k = 0; k < 3; k++) t[k] = rest[3 * j + k] - (p < 0 ? 0 : rest[3 * p + k]);
                 bones[j] = new ComGraspBone { Name = name, Parent = p, RestTranslation = t, RestRotation = new[] { 0f, 0f, 0f, 1f } };
@@ -433,11 +419,11 @@ static unsafe class ComGraspTest
         return new HumanoidBoneRest { Bone = b, Position = new[] { 0f, 0f, 0f }, Rotation = new[] { 0f, 0f, 0f, 1f } };
     }
 
-    static T Throws<T>(Action a) where T : Exception
+    static T Throws<T>(Action a, string what = null) where T : Exception
     {
         try { a(); }
         catch (T e) { return e; }
-        throw new Exception("expected " + typeof(T).Name);
+        throw new Exception((what == null ? "" : what + ": ") + "no " + typeof(T).Name);
     }
 
     static void VersionInfo()
