@@ -26,6 +26,9 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
+// Most crowd scheduler threads (`RuntimeOptions::scheduler_threads`).
+#define MAX_SCHEDULER_THREADS 64
+
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -79,6 +82,16 @@
 
 // At most AVX-512F (the same as `CG_ISA_BEST` today).
 #define CG_ISA_AVX512 3
+
+// `cg_engine_config.scheduling`: the crowd scheduler.
+#define CG_SCHEDULING_AUTO 0
+
+// The crowd scheduler: a few threads drive every stream, their token steps batched (each
+// weight read once per batch); the frames are the same as on a thread per stream.
+#define CG_SCHEDULING_CROWD 1
+
+// One worker thread per stream (each step and decode may use two threads).
+#define CG_SCHEDULING_PER_STREAM 2
 
 // Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
 #define CG_USE_DEFAULT_SEED (1 << 0)
@@ -292,6 +305,12 @@ typedef struct cg_engine_config {
   uint32_t max_isa;
   // Reserved, must be 0.
   uint32_t reserved2;
+  // How streams are driven (appended in library 0.4): a `CG_SCHEDULING_*` value.
+  // Default `CG_SCHEDULING_AUTO` (the crowd scheduler).
+  uint32_t scheduling;
+  // Threads of the crowd scheduler: 0 automatic (the machine's cores minus one, at
+  // least one, so the game keeps a core), or 1 to `CG_MAX_SCHEDULER_THREADS`.
+  uint32_t scheduler_threads;
 } cg_engine_config;
 
 // Sampling settings of one stream. Initialize with `cg_stream_config_init` (which sets

@@ -78,6 +78,33 @@ impl InstructionSet {
     }
 }
 
+/// How an engine drives its streams' generations.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Scheduling {
+    /// The crowd scheduler.
+    #[default]
+    Auto,
+    /// The crowd scheduler (`crate::crowd`): a few threads for all streams, their token
+    /// steps batched (each weight read once per batch).
+    Crowd,
+    /// One worker thread per stream (each step and decode on up to two threads of its own).
+    PerStream,
+}
+
+impl Scheduling {
+    /// `"crowd"`, `"per-stream"` or `"auto"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Scheduling::Auto => "auto",
+            Scheduling::Crowd => "crowd",
+            Scheduling::PerStream => "per-stream",
+        }
+    }
+}
+
+/// Most crowd scheduler threads (`RuntimeOptions::scheduler_threads`).
+pub const MAX_SCHEDULER_THREADS: usize = 64;
+
 /// Most tokens one grouped decode takes (`RuntimeOptions::decode_group`).
 pub const MAX_DECODE_GROUP: usize = 8;
 
@@ -105,10 +132,15 @@ pub struct RuntimeOptions {
     /// for the whole process from then on (it never rises again). Results differ only in
     /// the last bits between instruction sets.
     pub max_isa: Option<InstructionSet>,
+    /// How streams are driven; `Auto`: the crowd scheduler.
+    pub scheduling: Scheduling,
+    /// Threads of the crowd scheduler, 1 ..= [`MAX_SCHEDULER_THREADS`]; `None`: the
+    /// machine's cores minus one (at least one), so a game keeps a core.
+    pub scheduler_threads: Option<usize>,
 }
 
 /// The environment variables [`RuntimeOptions::from_env`] reads, one per field.
-pub const RUNTIME_ENV: [&str; 7] = [
+pub const RUNTIME_ENV: [&str; 9] = [
     "COMGRASP_STEP",
     "COMGRASP_DECODER",
     "COMGRASP_STEP_THREADS",
@@ -116,6 +148,8 @@ pub const RUNTIME_ENV: [&str; 7] = [
     "COMGRASP_DECODE_GROUP",
     "COMGRASP_OVERLAP",
     "COMGRASP_NATIVE_ISA",
+    "COMGRASP_SCHEDULING",
+    "COMGRASP_SCHEDULER_THREADS",
 ];
 
 impl RuntimeOptions {
@@ -128,6 +162,13 @@ impl RuntimeOptions {
                         "runtime {name} must be 1 or 2 (or automatic), got {n}"
                     )));
                 }
+            }
+        }
+        if let Some(n) = self.scheduler_threads {
+            if !(1..=MAX_SCHEDULER_THREADS).contains(&n) {
+                return Err(Error::InvalidArgument(format!(
+                    "runtime scheduler_threads must be 1 to {MAX_SCHEDULER_THREADS} (or automatic), got {n}"
+                )));
             }
         }
         if let Some(g) = self.decode_group {
@@ -152,7 +193,8 @@ impl RuntimeOptions {
 
     /// [`from_env`](Self::from_env) over any lookup (tests pass a map).
     pub fn from_vars(get: impl Fn(&str) -> Result<Option<String>>) -> Result<RuntimeOptions> {
-        let [step, decoder, step_threads, decoder_threads, group, overlap, isa] = RUNTIME_ENV;
+        let [step, decoder, step_threads, decoder_threads, group, overlap, isa, scheduling, sched_threads] =
+            RUNTIME_ENV;
         let var = |name: &str| -> Result<Option<String>> {
             Ok(get(name)?.map(|v| v.trim().to_ascii_lowercase()).filter(|v| !v.is_empty()))
         };
@@ -191,6 +233,19 @@ impl RuntimeOptions {
                 Some("avx2") => Some(InstructionSet::Avx2),
                 Some("avx512") => Some(InstructionSet::Avx512),
                 Some(v) => return Err(bad(isa, v, "portable, avx2 or avx512")),
+            },
+            scheduling: match var(scheduling)?.as_deref() {
+                None | Some("auto") => Scheduling::Auto,
+                Some("crowd") => Scheduling::Crowd,
+                Some("per-stream") => Scheduling::PerStream,
+                Some(v) => return Err(bad(scheduling, v, "crowd, per-stream or auto")),
+            },
+            scheduler_threads: match var(sched_threads)? {
+                None => None,
+                Some(v) => match v.parse::<usize>() {
+                    Ok(n) if (1..=MAX_SCHEDULER_THREADS).contains(&n) => Some(n),
+                    _ => return Err(bad(sched_threads, &v, &format!("1 to {MAX_SCHEDULER_THREADS}"))),
+                },
             },
         };
         options.validate()?;
@@ -443,6 +498,8 @@ mod tests {
             ("COMGRASP_DECODE_GROUP", "8"),
             ("COMGRASP_OVERLAP", "0"),
             ("COMGRASP_NATIVE_ISA", "avx2"),
+            ("COMGRASP_SCHEDULING", "per-stream"),
+            ("COMGRASP_SCHEDULER_THREADS", "3"),
         ])
         .unwrap();
         assert_eq!(
@@ -455,6 +512,8 @@ mod tests {
                 decode_group: Some(8),
                 overlap: Some(false),
                 max_isa: Some(InstructionSet::Avx2),
+                scheduling: Scheduling::PerStream,
+                scheduler_threads: Some(3),
             }
         );
     }
@@ -470,6 +529,9 @@ mod tests {
             ("COMGRASP_DECODE_GROUP", "x"),
             ("COMGRASP_OVERLAP", "yes"),
             ("COMGRASP_NATIVE_ISA", "sse2"),
+            ("COMGRASP_SCHEDULING", "threads"),
+            ("COMGRASP_SCHEDULER_THREADS", "0"),
+            ("COMGRASP_SCHEDULER_THREADS", "65"),
         ] {
             let e = parse(&[(k, v)]).unwrap_err().to_string();
             assert!(e.contains(k) && e.contains(v), "{k}={v}: {e}");
@@ -485,6 +547,8 @@ mod tests {
             RuntimeOptions { decoder_threads: Some(3), ..Default::default() },
             RuntimeOptions { decode_group: Some(0), ..Default::default() },
             RuntimeOptions { decode_group: Some(MAX_DECODE_GROUP + 1), ..Default::default() },
+            RuntimeOptions { scheduler_threads: Some(0), ..Default::default() },
+            RuntimeOptions { scheduler_threads: Some(MAX_SCHEDULER_THREADS + 1), ..Default::default() },
         ] {
             assert!(matches!(bad.validate(), Err(Error::InvalidArgument(_))), "{bad:?}");
         }

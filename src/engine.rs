@@ -19,8 +19,11 @@ use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 
+use crate::config::Scheduling;
+use crate::crowd::Scheduler;
 use crate::error::{Error, Result};
 use crate::frame::{Frame, CG_NUM_JOINTS};
+use crate::generator::{ChunkSource, Generator, Pipeline};
 use crate::model::Bundle;
 use crate::shm::publisher::StreamPublication;
 use crate::shm::{FramePublisher, PublisherStats};
@@ -57,6 +60,9 @@ pub struct Engine {
     factory: SourceFactory,
     streams: Arc<StreamSet>,
     publisher: Option<Arc<FramePublisher>>,
+    /// The crowd scheduler and the pipeline its generations run on (`None`: a worker
+    /// thread per stream).
+    crowd: Option<(Scheduler, Arc<Pipeline>)>,
 }
 
 impl Engine {
@@ -64,8 +70,14 @@ impl Engine {
     /// the graphs once, so starting a stream is cheap.
     pub fn new(config: EngineConfig) -> Result<Engine> {
         validate(&config)?;
-        let (bundle, factory) = crate::generator::source_factory(&config)?;
-        Engine::from_parts(config, Some(bundle), factory)
+        let (pipeline, factory) = crate::generator::source_factory(&config)?;
+        let mut engine = Engine::from_parts(config, Some(Arc::clone(pipeline.bundle())), factory)?;
+        let r = &engine.config.runtime;
+        if r.scheduling != Scheduling::PerStream {
+            let threads = r.scheduler_threads.unwrap_or_else(crate::crowd::default_threads);
+            engine.crowd = Some((Scheduler::new(threads, engine.config.max_streams)?, pipeline));
+        }
+        Ok(engine)
     }
 
     /// An engine whose streams come from `factory` instead of a bundle. For tests and
@@ -82,7 +94,7 @@ impl Engine {
             Some(name) => Some(Arc::new(FramePublisher::new(name)?)),
             None => None,
         };
-        Ok(Engine { config, bundle, factory, streams, publisher })
+        Ok(Engine { config, bundle, factory, streams, publisher, crowd: None })
     }
 
     /// The loaded bundle (manifest: fps, skeleton, object catalogue; files such as the
@@ -131,6 +143,11 @@ impl Engine {
         self.publisher.as_ref().map(|p| p.stats())
     }
 
+    /// Threads of the crowd scheduler; `None` when each stream has its own worker thread.
+    pub fn scheduler_threads(&self) -> Option<usize> {
+        self.crowd.as_ref().map(|(s, _)| s.threads())
+    }
+
     /// Streams alive right now (started and not yet dropped).
     pub fn live_streams(&self) -> usize {
         self.streams.live.lock().len()
@@ -149,14 +166,27 @@ impl Engine {
         let shared = Arc::new(StreamShared::new(id));
         let reservation = self.streams.reserve(&shared)?;
         let request = StreamRequest { stream_id: id, text, config: &config };
-        let source = (self.factory)(&request)?;
         let sink = self.publisher.as_ref().map(|p| -> Box<dyn StreamSink> {
             let fps = self.bundle.as_ref().map_or(0.0, |b| b.manifest.fps as f32);
             Box::new(StreamPublication::new(Arc::clone(p), id, text, fps))
         });
-        let object = source.object();
-        let mut stream = Stream::spawn(shared, source, self.config.ring_capacity, Arc::clone(&self.streams), sink)?;
-        stream.set_object(object);
+        let (ring, set) = (self.config.ring_capacity, Arc::clone(&self.streams));
+        let stream = match &self.crowd {
+            Some((scheduler, pipeline)) => {
+                let gen = Generator::new(Arc::clone(pipeline), &request)?;
+                let object = gen.object();
+                let mut stream = scheduler.start(gen, shared, ring, set, sink)?;
+                stream.set_object(object);
+                stream
+            }
+            None => {
+                let source = (self.factory)(&request)?;
+                let object = source.object();
+                let mut stream = Stream::spawn(shared, source, ring, set, sink)?;
+                stream.set_object(object);
+                stream
+            }
+        };
         // From here on the stream removes itself from the set when it is dropped.
         reservation.keep();
         Ok(stream)

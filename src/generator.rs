@@ -53,7 +53,7 @@ use crate::config::{EngineConfig, StreamConfig};
 use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurface};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::model::{decode_group, overlap, Bundle, DecoderState, StepState, MAX_DECODE_GROUP};
+use crate::model::{decode_group, overlap, Bundle, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
 use crate::sampler::{SamplingParams, TokenSampler};
 use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 
@@ -112,13 +112,14 @@ pub type SourceFactory = Box<dyn Fn(&StreamRequest<'_>) -> Result<Box<dyn ChunkS
 /// else the embedded default), verifying it, and returns it with the factory that builds
 /// one [`Generator`] per stream. Everything expensive (graph loading, the assembler)
 /// happens here, once per engine.
-pub fn source_factory(config: &EngineConfig) -> Result<(Arc<Bundle>, SourceFactory)> {
+pub fn source_factory(config: &EngineConfig) -> Result<(Arc<Pipeline>, SourceFactory)> {
     let bundle = Bundle::select(config.bundle_path.as_deref(), &config.runtime)?;
-    let pipeline = Arc::new(Pipeline::new(Arc::clone(&bundle), config)?);
+    let pipeline = Arc::new(Pipeline::new(bundle, config)?);
+    let pipe = Arc::clone(&pipeline);
     let factory: SourceFactory = Box::new(move |req: &StreamRequest<'_>| -> Result<Box<dyn ChunkSource>> {
-        Ok(Box::new(Generator::new(Arc::clone(&pipeline), req)?))
+        Ok(Box::new(Generator::new(Arc::clone(&pipe), req)?))
     });
-    Ok((bundle, factory))
+    Ok((pipeline, factory))
 }
 
 /// What every stream of an engine shares: the bundle and the frame assembler.
@@ -482,23 +483,7 @@ impl ChunkSource for Generator {
         } else {
             let codes = if self.k >= self.max_len { None } else { self.sample(self.k, self.prev)? };
             let Some(codes) = codes else {
-                // The previous chunk was the last one: release its held frame, marked.
-                self.done = true;
-                if let Some(mut f) = self.held.take() {
-                    // The contact stage's last word (an object still falling lands), then
-                    // the same frame again, marked.
-                    let assembler = &self.pipe.assembler;
-                    let mut pose = self.held_pose;
-                    if let Some(stage) = &mut self.contact {
-                        stage.finish(assembler.skeleton(), &mut pose);
-                    }
-                    if let Some(anchor) = &self.anchor {
-                        anchor.apply(&mut pose);
-                    }
-                    assembler.emit(&pose, f.stream_id, f.frame_index, true, &mut f);
-                    self.remember(&pose);
-                    out.push(f);
-                }
+                self.release_last(out);
                 return Ok(false);
             };
             if let Some(f) = self.held.take() {
@@ -560,8 +545,41 @@ impl ChunkSource for Generator {
             b.decoder.decode_group(&mut state.decoder, &group[..g], normalized)?;
             None
         };
-        let width = crate::bundle::manifest::FRAME_DIM;
         let used = normalized.len();
+        self.emit_group(used, last, out);
+        self.prev = group[g - 1];
+        self.k = next;
+        Ok(last != Some(true))
+    }
+}
+
+impl Generator {
+    /// The previous chunk was the last one: releases its held frame, marked, and ends.
+    fn release_last(&mut self, out: &mut Vec<Frame>) {
+        self.done = true;
+        if let Some(mut f) = self.held.take() {
+            // The contact stage's last word (an object still falling lands), then the same
+            // frame again, marked.
+            let assembler = &self.pipe.assembler;
+            let mut pose = self.held_pose;
+            if let Some(stage) = &mut self.contact {
+                stage.finish(assembler.skeleton(), &mut pose);
+            }
+            if let Some(anchor) = &self.anchor {
+                anchor.apply(&mut pose);
+            }
+            assembler.emit(&pose, f.stream_id, f.frame_index, true, &mut f);
+            self.remember(&pose);
+            out.push(f);
+        }
+    }
+
+    /// Assembles the first `used` values of the decode buffer (whole frames) into frames:
+    /// `last`: whether the group's last chunk ends the sequence (`None`: not known yet, its
+    /// final frame is held for the next step's verdict).
+    fn emit_group(&mut self, used: usize, last: Option<bool>, out: &mut Vec<Frame>) {
+        let Some(state) = self.state.as_mut() else { return };
+        let width = crate::bundle::manifest::FRAME_DIM;
         // Moved out (no copy, no allocation) so the frame loop may borrow the generator.
         let buffer = std::mem::take(&mut state.normalized);
         let n = used / width;
@@ -614,11 +632,122 @@ impl ChunkSource for Generator {
         if let Some(state) = &mut self.state {
             state.normalized = buffer;
         }
-        self.prev = group[g - 1];
-        self.k = next;
         if last == Some(true) {
             self.done = true;
         }
-        Ok(last != Some(true))
+    }
+}
+
+/// What a generation needs next when the crowd scheduler drives it (`crate::crowd`)
+/// instead of [`ChunkSource::next_chunk`]: the same tokens and frames, one step per round.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Need {
+    /// A token step ([`Generator::step_job`], then [`Generator::sampled`]).
+    Step,
+    /// A decode of the tokens gathered ([`Generator::decode`]).
+    Decode,
+    /// The end: the held frame goes out marked ([`Generator::finish`]).
+    Finish,
+    /// Nothing more.
+    Done,
+}
+
+impl Generator {
+    /// What this generation needs next. The group of tokens a decode takes fills up in
+    /// `ahead`, one token per round: 1 for the first chunk, then the pipeline's group.
+    pub fn need(&self) -> Need {
+        if self.done {
+            Need::Done
+        } else if self.ahead_end || self.ahead_n == decode_group::tokens_at(self.k, self.pipe.group) {
+            Need::Decode
+        } else if self.k + self.ahead_n < self.max_len {
+            Need::Step
+        } else if self.ahead_n > 0 {
+            // the step limit: the group decodes as it is, as the last one
+            Need::Decode
+        } else {
+            Need::Finish
+        }
+    }
+
+    /// The token step this generation needs ([`Need::Step`]), checked: the first one
+    /// encodes the text and makes the model state.
+    pub(crate) fn step_job(&mut self) -> Result<StepJob<'_>> {
+        let pipe = Arc::clone(&self.pipe);
+        if self.text_emb.is_none() {
+            self.text_emb = Some(pipe.bundle.text.embed(&self.text)?);
+        }
+        let j = self.job();
+        pipe.bundle.step.check(j.state, j.tokens, j.pos, j.text_emb)?;
+        Ok(j)
+    }
+
+    /// [`step_job`](Self::step_job) again, once it passed (unchecked).
+    pub(crate) fn job(&mut self) -> StepJob<'_> {
+        let b = &self.pipe.bundle;
+        let pos = self.k + self.ahead_n;
+        let tokens = if self.ahead_n > 0 { self.ahead[self.ahead_n - 1] } else { self.prev };
+        let text_emb = self.text_emb.as_deref().unwrap_or_default();
+        let state = &mut self.state.get_or_insert_with(|| State::new(b)).step;
+        StepJob { state, tokens, pos, text_emb }
+    }
+
+    /// Samples the step [`step_job`](Self::step_job) gave, once it ran: the token joins
+    /// the group, or the sequence ends. The first token after a decode decides the held
+    /// frame: it goes out into `out`, marked last if the sequence ended.
+    pub fn sampled(&mut self, out: &mut Vec<Frame>) -> Result<()> {
+        let pos = self.k + self.ahead_n;
+        let state = self.state.as_ref().ok_or_else(|| Error::WrongState("no step ran".into()))?;
+        let codes = self.sampler.sample_step(pos, state.step.logits())?;
+        if self.pipe.ends(&codes) {
+            if self.ahead_n == 0 {
+                self.release_last(out);
+            } else {
+                self.ahead_end = true;
+            }
+            return Ok(());
+        }
+        if self.ahead_n == 0 {
+            out.extend(self.held.take());
+        }
+        self.ahead[self.ahead_n] = codes.map(|c| c as i64);
+        self.ahead_n += 1;
+        Ok(())
+    }
+
+    /// Decodes the gathered tokens ([`Need::Decode`]) into `out`, the final frame held
+    /// unless the sequence is known to end with them. `team`: the decoder may use its
+    /// helper thread. The same bits either way.
+    pub fn decode(&mut self, team: bool, out: &mut Vec<Frame>) -> Result<()> {
+        let g = self.ahead_n;
+        if g == 0 {
+            return Err(Error::WrongState("no tokens to decode".into()));
+        }
+        let next = self.k + g;
+        let ended = self.ahead_end || next >= self.max_len;
+        let b = &self.pipe.bundle;
+        let state = self.state.get_or_insert_with(|| State::new(b));
+        let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
+        if team {
+            b.decoder.decode_group(&mut state.decoder, &self.ahead[..g], normalized)?;
+        } else {
+            b.decoder.decode_group_solo(&mut state.decoder, &self.ahead[..g], normalized)?;
+        }
+        let used = normalized.len();
+        self.emit_group(used, ended.then_some(true), out);
+        self.prev = self.ahead[g - 1];
+        self.k = next;
+        (self.ahead_n, self.ahead_end) = (0, false);
+        Ok(())
+    }
+
+    /// The end ([`Need::Finish`]): the held frame goes out into `out`, marked last.
+    pub fn finish(&mut self, out: &mut Vec<Frame>) {
+        self.release_last(out);
+    }
+
+    /// The pipeline this generation runs on.
+    pub fn pipeline(&self) -> &Arc<Pipeline> {
+        &self.pipe
     }
 }

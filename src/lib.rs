@@ -17,6 +17,8 @@
 //!    in `model::graph` only);
 //! 5. [`generator`]: one generation, text -> tokens -> 16-frame chunks (a [`ChunkSource`]);
 //! 6. [`stream`]: a worker thread, its ring buffer, cancellation, [`stream::StreamSink`]s;
+//!    then [`crowd`]: the scheduler that drives many streams' generations on a few threads,
+//!    their token steps batched;
 //! 7. [`shm`]: frames shared with other processes over iceoryx2 (a sink the engine attaches);
 //! 8. [`engine`]: the bundle, the streams, the publisher;
 //! 9. [`ffi`]: the C ABI, a thin wrapper with a panic boundary.
@@ -48,6 +50,7 @@ pub mod model;
 #[doc(hidden)]
 pub mod generator;
 pub mod stream;
+pub mod crowd;
 pub mod shm;
 pub mod engine;
 pub mod ffi;

@@ -124,7 +124,7 @@ impl StreamShared {
         self.id
     }
 
-    fn is_cancelled(&self) -> bool {
+    pub(crate) fn is_cancelled(&self) -> bool {
         self.cancelled.load(Ordering::SeqCst)
     }
 
@@ -151,8 +151,17 @@ impl StreamShared {
         self.wake.notify_all();
     }
 
+    /// A producer that is not this stream's own worker (the crowd scheduler) found the ring
+    /// full: the consumer's next pop unparks the producer's thread. The producer looks at
+    /// the ring once more after this (the Dekker pair of the module doc); a stale request
+    /// only costs a spurious unpark.
+    pub(crate) fn request_room(&self) {
+        self.producer_parked.store(true, Ordering::SeqCst);
+        fence(Ordering::SeqCst);
+    }
+
     /// Called by the worker after every push: cheap unless a consumer is blocked in `wait`.
-    fn wake_consumer_if_waiting(&self) {
+    pub(crate) fn wake_consumer_if_waiting(&self) {
         fence(Ordering::SeqCst);
         if self.consumer_waiting.load(Ordering::Relaxed) {
             self.wake_consumer_always();
@@ -180,7 +189,8 @@ pub struct Stream {
     shared: Arc<StreamShared>,
     /// `None` once the stream was cancelled and its buffer released.
     cons: Option<HeapCons<Frame>>,
-    join: Option<JoinHandle<()>>,
+    /// Who produces the frames; `None` once closed.
+    producer: Option<Source>,
     /// Lets the engine know the stream is gone (live count, `max_streams`).
     set: Arc<StreamSet>,
     /// `End` once the `is_last` frame was delivered, `Error` once the error was reported:
@@ -220,7 +230,27 @@ impl Stream {
             }
         };
         let _ = shared.worker.set(join.thread().clone());
-        Ok(Stream { shared, cons: Some(cons), join: Some(join), set, finished: None, object: None })
+        Ok(Stream { shared, cons: Some(cons), producer: Some(Source::Thread(join)), set, finished: None, object: None })
+    }
+
+    /// A stream whose frames another thread produces (the crowd scheduler, running as
+    /// `thread`): returns the stream and the ring's producer half. `shared` must already
+    /// be registered in `set`; the producer counts itself as a worker of `set`
+    /// ([`StreamSet::worker_started`]) and ends with [`finish`].
+    pub(crate) fn produced_by(
+        shared: Arc<StreamShared>,
+        thread: Thread,
+        ring_capacity: usize,
+        set: Arc<StreamSet>,
+    ) -> Result<(Stream, HeapProd<Frame>)> {
+        if ring_capacity == 0 {
+            return Err(Error::InvalidArgument("ring capacity must be at least 1 frame".into()));
+        }
+        let (prod, cons) = HeapRb::<Frame>::new(ring_capacity).split();
+        let _ = shared.worker.set(thread);
+        let stream =
+            Stream { shared, cons: Some(cons), producer: Some(Source::Scheduler), set, finished: None, object: None };
+        Ok((stream, prod))
     }
 
     /// The stream's id (unique per engine, starting at 1); frames carry it as `stream_id`.
@@ -345,14 +375,25 @@ impl Stream {
     /// Cancels (unless already finished) and joins the worker, then frees the ring. Waits at
     /// most one generator call (~8 ms with the default bundle on 2 cores). Idempotent; `Drop` calls it.
     pub fn close(&mut self) {
-        if let Some(join) = self.join.take() {
-            if self.shared.state.load(Ordering::Acquire) == RUNNING {
-                self.shared.cancel();
+        if let Some(producer) = self.producer.take() {
+            let shared = &self.shared;
+            if shared.state.load(Ordering::Acquire) == RUNNING {
+                shared.cancel();
             }
-            // The worker catches its own panics, so join only fails if the runtime itself
-            // failed while unwinding; nothing useful to do with that here.
-            let _ = join.join();
-            self.set.remove(self.shared.id);
+            match producer {
+                // The worker catches its own panics, so join only fails if the runtime
+                // itself failed while unwinding; nothing useful to do with that here.
+                Source::Thread(join) => drop(join.join()),
+                // The scheduler drops the generation within one round, then publishes the
+                // terminal state and wakes this condvar (under its lock: no lost wake-up).
+                Source::Scheduler => {
+                    let mut guard = shared.wake_lock.lock();
+                    while shared.state.load(Ordering::Acquire) == RUNNING {
+                        shared.wake.wait(&mut guard);
+                    }
+                }
+            }
+            self.set.remove(shared.id);
         }
         self.cons = None;
     }
@@ -364,8 +405,17 @@ impl Drop for Stream {
     }
 }
 
-/// What the worker loop ended with.
-enum Outcome {
+/// Who produces a stream's frames.
+enum Source {
+    /// Its own worker thread.
+    Thread(JoinHandle<()>),
+    /// The engine's crowd scheduler (`crate::crowd`), which publishes a terminal state
+    /// once it has dropped the stream's generation.
+    Scheduler,
+}
+
+/// What a producer ended with.
+pub(crate) enum Outcome {
     Ended,
     Cancelled,
     Failed(Error),
@@ -401,7 +451,13 @@ fn worker_main(
     // end, so a host that sees End/Cancelled can rely on the memory being released.
     drop(catch_unwind(AssertUnwindSafe(move || drop(source))));
     drop(prod);
-    if let Some(s) = sink.as_mut() {
+    finish(&shared, outcome, sink.as_deref_mut());
+}
+
+/// A producer's last word, after it dropped the stream's generation and its half of the
+/// ring: tells the sink, publishes the terminal state and wakes the consumer.
+pub(crate) fn finish(shared: &StreamShared, outcome: Outcome, sink: Option<&mut (dyn StreamSink + 'static)>) {
+    if let Some(s) = sink {
         s.finished(match outcome {
             Outcome::Ended => StreamOutcome::Ended,
             Outcome::Cancelled => StreamOutcome::Cancelled,

@@ -20,6 +20,7 @@ const FLOORS: [&str; 17] = [
     "model",
     "generator",
     "stream",
+    "crowd",
     "shm",
     "engine",
     "ffi",

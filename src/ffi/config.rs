@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use super::panic::{boundary, Failure};
 use super::status::cg_status;
 use crate::config::{Anchor, Placement};
-use crate::config::{DecoderBackend, InstructionSet, RuntimeOptions, StepBackend};
+use crate::config::{DecoderBackend, InstructionSet, RuntimeOptions, Scheduling, StepBackend};
 use crate::engine::{EngineConfig, StreamConfig};
 use crate::frame::{cg_coordinate_system, CoordinateSystem};
 
@@ -80,6 +80,12 @@ pub struct cg_engine_config {
     pub max_isa: u32,
     /// Reserved, must be 0.
     pub reserved2: u32,
+    /// How streams are driven (appended in library 0.4): a `CG_SCHEDULING_*` value.
+    /// Default `CG_SCHEDULING_AUTO` (the crowd scheduler).
+    pub scheduling: u32,
+    /// Threads of the crowd scheduler: 0 automatic (the machine's cores minus one, at
+    /// least one, so the game keeps a core), or 1 to `CG_MAX_SCHEDULER_THREADS`.
+    pub scheduler_threads: u32,
 }
 
 /// `cg_engine_config.step_backend` / `decoder_backend`: native when the bundle has native
@@ -104,6 +110,15 @@ pub const CG_ISA_PORTABLE: u32 = 1;
 pub const CG_ISA_AVX2: u32 = 2;
 /// At most AVX-512F (the same as `CG_ISA_BEST` today).
 pub const CG_ISA_AVX512: u32 = 3;
+/// `cg_engine_config.scheduling`: the crowd scheduler.
+pub const CG_SCHEDULING_AUTO: u32 = 0;
+/// The crowd scheduler: a few threads drive every stream, their token steps batched (each
+/// weight read once per batch); the frames are the same as on a thread per stream.
+pub const CG_SCHEDULING_CROWD: u32 = 1;
+/// One worker thread per stream (each step and decode may use two threads).
+pub const CG_SCHEDULING_PER_STREAM: u32 = 2;
+/// Most crowd scheduler threads (`cg_engine_config.scheduler_threads`).
+pub const CG_MAX_SCHEDULER_THREADS: u32 = crate::config::MAX_SCHEDULER_THREADS as u32;
 /// Most tokens in one decode (`cg_engine_config.decode_group`).
 pub const CG_MAX_DECODE_GROUP: u32 = crate::config::MAX_DECODE_GROUP as u32;
 
@@ -212,6 +227,8 @@ impl Default for cg_engine_config {
             overlap: CG_OVERLAP_AUTO,
             max_isa: CG_ISA_BEST,
             reserved2: 0,
+            scheduling: CG_SCHEDULING_AUTO,
+            scheduler_threads: 0,
         }
     }
 }
@@ -322,6 +339,27 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
             std::ptr::addr_of!((*p).reserved2).read(),
         ]
     })?;
+    // Appended in 0.4 (a shorter host struct left our defaults in the copy). SAFETY: plain integers.
+    let (scheduling, scheduler_threads) = unsafe {
+        (std::ptr::addr_of!((*p).scheduling).read(), std::ptr::addr_of!((*p).scheduler_threads).read())
+    };
+    let invalid_field = |field: &str, v: u32, want: &str| {
+        Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, format_args!("cg_engine_config.{field} is {v}, expected {want}"))
+    };
+    let runtime = RuntimeOptions {
+        scheduling: match scheduling {
+            CG_SCHEDULING_AUTO => Scheduling::Auto,
+            CG_SCHEDULING_CROWD => Scheduling::Crowd,
+            CG_SCHEDULING_PER_STREAM => Scheduling::PerStream,
+            v => return Err(invalid_field("scheduling", v, "a CG_SCHEDULING_* value (0 to 2)")),
+        },
+        scheduler_threads: match scheduler_threads {
+            0 => None,
+            n if n <= CG_MAX_SCHEDULER_THREADS => Some(n as usize),
+            n => return Err(invalid_field("scheduler_threads", n, "0 (automatic) to CG_MAX_SCHEDULER_THREADS")),
+        },
+        ..runtime
+    };
     Ok(EngineConfig {
         bundle_path,
         coordinate_system,
@@ -385,6 +423,7 @@ fn runtime_from_c(fields: [u32; 8]) -> Result<RuntimeOptions, Failure> {
             CG_ISA_AVX512 => Some(InstructionSet::Avx512),
             v => return Err(invalid("max_isa", v, "a CG_ISA_* value (0 to 3)")),
         },
+        ..RuntimeOptions::default()
     })
 }
 
@@ -658,6 +697,8 @@ mod tests {
             decode_group: CG_MAX_DECODE_GROUP,
             overlap: CG_OVERLAP_OFF,
             max_isa: CG_ISA_AVX2,
+            scheduling: CG_SCHEDULING_PER_STREAM,
+            scheduler_threads: 5,
             ..Default::default()
         };
         assert_eq!(
@@ -670,6 +711,8 @@ mod tests {
                 decode_group: Some(8),
                 overlap: Some(false),
                 max_isa: Some(InstructionSet::Avx2),
+                scheduling: Scheduling::PerStream,
+                scheduler_threads: Some(5),
             }
         );
         let d = cg_engine_config::default();
@@ -682,6 +725,8 @@ mod tests {
             (cg_engine_config { overlap: 3, ..d }, "overlap"),
             (cg_engine_config { max_isa: 4, ..d }, "max_isa"),
             (cg_engine_config { reserved2: 1, ..d }, "reserved2"),
+            (cg_engine_config { scheduling: 3, ..d }, "scheduling"),
+            (cg_engine_config { scheduler_threads: CG_MAX_SCHEDULER_THREADS + 1, ..d }, "scheduler_threads"),
         ] {
             let f = unsafe { engine_config_from_c(&bad) }.unwrap_err();
             assert_eq!(f.0, cg_status::CG_ERR_INVALID_ARGUMENT, "{field}");

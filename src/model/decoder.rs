@@ -177,7 +177,20 @@ impl DecoderModel {
     /// per token; tract decodes them one by one).
     pub fn decode_group(&self, state: &mut DecoderState, tokens: &[[i64; N_STREAMS]], out: &mut [f32]) -> Result<()> {
         self.check(state, tokens, out)?;
-        self.decode_checked(state, tokens, out, None)
+        self.decode_checked(state, tokens, out, None, true)
+    }
+
+    /// [`decode_group`](Self::decode_group) on the calling thread alone (the native
+    /// decoder's helper is left to others: the crowd scheduler runs one decode per
+    /// thread), the same bits.
+    pub(crate) fn decode_group_solo(
+        &self,
+        state: &mut DecoderState,
+        tokens: &[[i64; N_STREAMS]],
+        out: &mut [f32],
+    ) -> Result<()> {
+        self.check(state, tokens, out)?;
+        self.decode_checked(state, tokens, out, None, false)
     }
 
     /// The errors [`decode_group`](Self::decode_group) reports before it touches `state`.
@@ -216,12 +229,14 @@ impl DecoderModel {
 
     /// [`decode`](Self::decode) after [`check`](Self::check) passed. The native decoder
     /// runs `extra` as one more job of its two threads; otherwise it runs after the decode.
+    /// `team`: the native decoder may use its helper thread.
     pub(crate) fn decode_checked(
         &self,
         state: &mut DecoderState,
         tokens: &[[i64; N_STREAMS]],
         out: &mut [f32],
         extra: Option<&mut (dyn FnMut() + Send)>,
+        team: bool,
     ) -> Result<()> {
         match &mut state.imp {
             StateImp::Tract { run, inputs, .. } => {
@@ -238,7 +253,7 @@ impl DecoderModel {
                 for (d, t) in ids.iter_mut().zip(tokens) {
                     *d = t.map(|c| c as usize);
                 }
-                model.decode_with(st, &ids[..tokens.len()], out, extra)?;
+                model.decode_with(st, &ids[..tokens.len()], out, extra, team)?;
                 state.decoded += tokens.len();
             }
         }

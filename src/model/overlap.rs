@@ -134,9 +134,9 @@ fn decode_with(
     overlap: bool,
 ) -> Result<()> {
     if overlap {
-        decoder.decode_checked(dstate, codes, out, Some(job))
+        decoder.decode_checked(dstate, codes, out, Some(job), true)
     } else {
-        decoder.decode_checked(dstate, codes, out, None)?;
+        decoder.decode_checked(dstate, codes, out, None, true)?;
         job();
         Ok(())
     }

@@ -27,7 +27,7 @@ use parking_lot::Mutex;
 use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
-use super::native::step::{NativeStep, NativeStepState};
+use super::native::step::{Member, Members, NativeStep, NativeStepState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::config::RuntimeOptions;
@@ -289,6 +289,28 @@ impl StepModel {
         Ok(())
     }
 
+    /// One step for every job, as [`step`](Self::step) on each (the same bits: each job's
+    /// logits and cache are the ones it gets alone), every job already passed
+    /// [`check`](Self::check). Native: one batched step on the calling thread, each weight
+    /// block read once for all jobs (`model::native::step::batch`); tract: one after the other.
+    pub(crate) fn step_batch_checked(&self, jobs: &mut dyn StepJobs) -> Result<()> {
+        match &self.imp {
+            Imp::Native(n) => n.step_batch(&mut NativeJobs(jobs)),
+            Imp::Tract(_) => {
+                for i in 0..jobs.count() {
+                    let j = jobs.job(i);
+                    self.run_checked(j.state, j.tokens, j.pos, j.text_emb, true)?;
+                }
+            }
+        }
+        for i in 0..jobs.count() {
+            let j = jobs.job(i);
+            // Rows after `pos` (from an earlier, longer run) are stale now.
+            j.state.filled = j.pos + 1;
+        }
+        Ok(())
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn tract_step(
         &self,
@@ -332,6 +354,39 @@ impl StepModel {
         }
         drop(out);
         Ok(())
+    }
+}
+
+/// One generation's step in [`StepModel::step_batch_checked`]: what [`StepModel::step`] takes.
+pub(crate) struct StepJob<'a> {
+    pub(crate) state: &'a mut StepState,
+    pub(crate) tokens: [i64; N_STREAMS],
+    pub(crate) pos: usize,
+    pub(crate) text_emb: &'a [f32],
+}
+
+/// The jobs of a batched step, by index (the caller keeps them in its own structures).
+pub(crate) trait StepJobs {
+    fn count(&self) -> usize;
+    fn job(&mut self, i: usize) -> StepJob<'_>;
+}
+
+/// Checked jobs of a native model as the native batch's members.
+struct NativeJobs<'j>(&'j mut dyn StepJobs);
+
+impl Members for NativeJobs<'_> {
+    fn count(&self) -> usize {
+        self.0.count()
+    }
+
+    fn member(&mut self, i: usize) -> Member<'_> {
+        let StepJob { state, tokens, pos, text_emb } = self.0.job(i);
+        let StepState { imp, logits, .. } = state;
+        match imp {
+            StateImp::Native(st) => Member { st, logits, tokens, pos, text_emb },
+            // `check` (the same model made the state) rules this out
+            StateImp::Tract { .. } => panic!("a tract StepState in a native batch"),
+        }
     }
 }
 

@@ -453,7 +453,7 @@ impl NativeDecoder {
     /// and runs `extra`
     /// (independent work, once, on either thread) as one more job for the two threads: how
     /// a stream overlaps the next token step with a decode (`model::overlap`).
-    /// Allocation-free. Fails only if the helper thread panicked (`Error::Panic`; the state
+    /// `team`: the helper may take jobs. Allocation-free. Fails only if the helper thread panicked (`Error::Panic`; the state
     /// is then not to be trusted).
     pub(crate) fn decode_with(
         &self,
@@ -461,6 +461,7 @@ impl NativeDecoder {
         ids: &[[usize; N_STREAMS]],
         out: &mut [f32],
         extra: Option<&mut (dyn FnMut() + Send)>,
+        team: bool,
     ) -> Result<()> {
         assert_eq!(st.comps.len(), self.comps.len(), "a NativeState of another decoder");
         assert!((1..=MAX_GROUP).contains(&ids.len()), "decode of {} tokens", ids.len());
@@ -500,7 +501,7 @@ impl NativeDecoder {
             )
         };
         // (alone if another stream's decode has the helper)
-        let ((), helper_panicked) = match &self.helper {
+        let ((), helper_panicked) = match self.helper.as_ref().filter(|_| team) {
             Some(h) => h.crew(&mut (), run),
             None => (run(&mut Crew::solo()), false),
         };

@@ -51,6 +51,9 @@ use crate::bundle::BundleSource;
 use crate::config::two_threads;
 use crate::error::{Error, Result};
 
+mod batch;
+pub(crate) use batch::{Member, Members};
+
 const LN_EPS: f32 = 1e-5;
 
 /// Below this many weight bytes per step one thread is faster than two (the module doc's
@@ -455,14 +458,8 @@ impl NativeStep {
         logits: &mut [Vec<f32>; N_STREAMS],
         team: bool,
     ) {
-        let d = &self.d;
+        self.check_state(st);
         let b = &mut st.bufs;
-        assert!(
-            b.h.len() == N_STREAMS
-                && (0..N_STREAMS)
-                    .all(|s| b.h[s].len() == d.widths[s] && b.k[s].len() == d.n_layers * d.slots * d.widths[s]),
-            "a NativeStepState of another model"
-        );
         let [mine, theirs] = &mut st.own;
         let input = Input { tokens, pos, text_emb };
         let mut work = |c: &mut Crew<'_, Own>| self.run(c, mine, b, logits, &input);
@@ -475,6 +472,17 @@ impl NativeStep {
             }
             None => work(&mut Crew::solo()),
         }
+    }
+
+    /// Panics unless `st` was made by a model of this one's sizes.
+    fn check_state(&self, st: &NativeStepState) {
+        let (d, b) = (&self.d, &st.bufs);
+        assert!(
+            b.h.len() == N_STREAMS
+                && (0..N_STREAMS)
+                    .all(|s| b.h[s].len() == d.widths[s] && b.k[s].len() == d.n_layers * d.slots * d.widths[s]),
+            "a NativeStepState of another model"
+        );
     }
 
     /// A step on crew `c` (`me`: the caller's scratch). Every phase hands out units (blocks
@@ -541,10 +549,6 @@ impl NativeStep {
         // heads as units: this layer's region of the k and v caches, (H, S, D), and the
         // head's columns of the attention output
         let nh = d.n_heads;
-        fn layer(c: &mut [f32], l: usize, n_layers: usize) -> &mut [f32] {
-            let n = c.len() / n_layers;
-            &mut c[l * n..(l + 1) * n]
-        }
         let mut kv = b.k.iter_mut().zip(b.v.iter_mut()).zip(b.att.iter_mut());
         let bufs = std::array::from_fn(|_| {
             let ((k, v), att) = kv.next().expect("one buffer per stream");
@@ -565,26 +569,34 @@ impl NativeStep {
                 let parts = ck.chunks_exact_mut(region).zip(cv.chunks_exact_mut(region)).zip(out.chunks_exact_mut(hd));
                 for (head, ((ck, cv), out)) in heads.zip(parts) {
                     let hs = head * hd..(head + 1) * hd;
-                    ck[pos * hd..(pos + 1) * hd].copy_from_slice(&k[hs.clone()]);
-                    cv[pos * hd..(pos + 1) * hd].copy_from_slice(&vv[hs.clone()]);
-                    let qh = &q[hs];
-                    let scores = &mut me.scores[..=pos];
-                    for (t, sc) in scores.iter_mut().enumerate() {
-                        *sc = dot(qh, &ck[t * hd..(t + 1) * hd]) * self.scale[s];
-                    }
-                    softmax(scores);
-                    out.fill(0.0);
-                    for (t, &p) in scores.iter().enumerate() {
-                        for (o, &vv) in out.iter_mut().zip(&cv[t * hd..(t + 1) * hd]) {
-                            *o += p * vv;
-                        }
-                    }
+                    let qkv = [&q[hs.clone()], &k[hs.clone()], &vv[hs]];
+                    self.attend(s, pos, qkv, [ck, cv, out], &mut me.scores);
                 }
             },
         );
         self.residual(c, me, (&mut b.tmp, &mut b.h), &b.att, |s| &block(s).proj);
         self.normed(c, me, (&mut b.mlp, d.hidden), &b.h, |s| (&block(s).ln2, &block(s).fc1), true);
         self.residual(c, me, (&mut b.tmp, &mut b.h), &b.mlp, |s| &block(s).fc2);
+    }
+
+    /// One attention head of stream `s` at `pos`: writes the head's new k/v row into its
+    /// cache region `ck`/`cv` (S x D), then `out` (D) = softmax(q K^T scale) V over slots
+    /// `0..=pos`. `q`, `k`, `v`: the head's columns of the qkv product.
+    fn attend(&self, s: usize, pos: usize, [q, k, v]: [&[f32]; 3], [ck, cv, out]: [&mut [f32]; 3], scores: &mut [f32]) {
+        let hd = self.d.head_dims[s];
+        ck[pos * hd..(pos + 1) * hd].copy_from_slice(k);
+        cv[pos * hd..(pos + 1) * hd].copy_from_slice(v);
+        let scores = &mut scores[..=pos];
+        for (t, sc) in scores.iter_mut().enumerate() {
+            *sc = dot(q, &ck[t * hd..(t + 1) * hd]) * self.scale[s];
+        }
+        softmax(scores);
+        out.fill(0.0);
+        for (t, &p) in scores.iter().enumerate() {
+            for (o, &vv) in out.iter_mut().zip(&cv[t * hd..(t + 1) * hd]) {
+                *o += p * vv;
+            }
+        }
     }
 
     /// `out_s = lin_s(norm_s(h_s))` (`rows[s]` rows; then GELU) for the four streams, as one
@@ -654,15 +666,7 @@ impl NativeStep {
                 co.inp[s].rows(&self.arena, &h[s], r, out);
             },
         );
-        // concatenation i: the other streams' projections in stream order
-        let cat_len = (N_STREAMS - 1) * cw;
-        for i in 0..N_STREAMS {
-            let mut at = i * cat_len;
-            for j in (0..N_STREAMS).filter(|&j| j != i) {
-                b.ccat[at..at + cw].copy_from_slice(&b.cp[j * cw..(j + 1) * cw]);
-                at += cw;
-            }
-        }
+        concat_others(&b.cp, &mut b.ccat, cw);
         // The shared MLP on the four concatenations at once (rows of one matrix as units,
         // each with its rows of the four outputs).
         let mlp = |c: &mut Crew<'_, Own>, me: &mut Own, lin: &Linear, x: &[f32], out: &mut [f32], gelu: bool| {
@@ -706,6 +710,25 @@ impl NativeStep {
         let u = RowUnits::new(per_stream([&mut b.h]), d.widths, d.widths);
         let tmp = &b.tmp;
         c.phase(me, Order::Split, u, |_| {}, |_, (s, r, [h])| co.norm[s].rows(&tmp[s], r, h));
+    }
+}
+
+/// Layer `l`'s region of a per-stream cache of `n_layers` layers.
+fn layer(c: &mut [f32], l: usize, n_layers: usize) -> &mut [f32] {
+    let n = c.len() / n_layers;
+    &mut c[l * n..(l + 1) * n]
+}
+
+/// Concatenation i of the coordination's input: the other streams' projections (`cp`, four
+/// rows of `cw`) in stream order, into `ccat`.
+fn concat_others(cp: &[f32], ccat: &mut [f32], cw: usize) {
+    let cat_len = (N_STREAMS - 1) * cw;
+    for i in 0..N_STREAMS {
+        let mut at = i * cat_len;
+        for j in (0..N_STREAMS).filter(|&j| j != i) {
+            ccat[at..at + cw].copy_from_slice(&cp[j * cw..(j + 1) * cw]);
+            at += cw;
+        }
     }
 }
 
@@ -967,7 +990,7 @@ mod tests {
 
     /// Odd sizes: no width, hidden width or vocabulary a multiple of 4 or 8 everywhere, so
     /// the row splits fall inside and beside the kernels' row blocks and column tails.
-    fn odd_dims() -> Dims {
+    pub(super) fn odd_dims() -> Dims {
         let widths = [20, 36, 28, 12];
         Dims {
             n_layers: 3,

@@ -1,0 +1,485 @@
+//! The crowd scheduler: one per engine, a few threads that drive every stream's generation
+//! instead of a worker thread per stream, with the token steps of all streams batched.
+//!
+//! **Shape.** Each scheduler thread (a *shard*) owns the streams handed to it (a new stream
+//! goes to the shard with the fewest) and runs rounds:
+//! 1. streams that were cancelled are dropped (`cg_cancel` takes effect within a round);
+//!    frames a full ring did not take are pushed;
+//! 2. every stream that needs a token step gets it in **one batched step**
+//!    (`StepModel::step_batch_checked`: each block of weight rows is applied to every
+//!    stream before the next is read, so the step's weights stream from memory once per
+//!    batch instead of once per stream), then samples its token;
+//! 3. every stream whose group of tokens is complete decodes it (on this thread alone) and
+//!    its frames are assembled and pushed; streams that have not produced a frame yet go
+//!    first.
+//!
+//! A stream's tokens and frames are **bit-identical** to the same stream run alone, on this
+//! scheduler or on its own worker thread: every value of the batched step is computed by
+//! the kernel, inputs and row blocks of the one-stream step, and the decoder computes the
+//! same bits on one thread or two (tests/crowd.rs starts streams at staggered times).
+//!
+//! **Fairness.** Every stream that can run gets one step or one decode per round, so none
+//! starves. A stream whose ring is full (a host that polls slowly) is skipped until the
+//! host takes a frame; only that stream waits. New streams do not wait for the round:
+//! between decodes and between parts of the batched step the shard looks for new streams
+//! and runs their first step and first decode at once, so the time to first frame is
+//! about one decode plus one first chunk, not a round. A shard with nothing to do parks;
+//! a host's poll that frees room, a cancel and a new stream unpark it.
+//!
+//! **Threads.** `RuntimeOptions::scheduler_threads` (default: the machine's cores minus
+//! one, at least one, so a game keeps a core). A lone stream on the whole scheduler runs
+//! its step and decode with the models' helper threads too, as on its own worker thread.
+//!
+//! **Memory.** A stream's model state (KV cache, decoder context, decode buffer) is
+//! allocated once, at its first step; the shard's lists are allocated at engine creation
+//! for `max_streams` streams, so a round allocates nothing.
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::thread::{self, JoinHandle};
+
+use parking_lot::Mutex;
+use ringbuf::traits::Producer;
+use ringbuf::HeapProd;
+
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+use crate::generator::{ChunkSource, Generator, Need};
+use crate::model::{StepJob, StepJobs};
+use crate::stream::{finish, panic_message, Outcome, Stream, StreamSet, StreamShared, StreamSink};
+
+/// Most streams in one batched step; the shard looks for new streams between batches.
+const MAX_BATCH: usize = 64;
+
+/// The default number of scheduler threads: the machine's cores minus one (at least one).
+pub fn default_threads() -> usize {
+    thread::available_parallelism().map_or(1, |n| n.get()).saturating_sub(1).max(1)
+}
+
+/// An engine's scheduler: its threads and where new streams go.
+pub struct Scheduler {
+    shards: Vec<Shard>,
+    /// Streams on the scheduler, all shards together.
+    live: Arc<AtomicUsize>,
+    max_streams: usize,
+}
+
+struct Shard {
+    shared: Arc<ShardShared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+/// What a shard's thread and the engine share.
+struct ShardShared {
+    /// New streams, taken by the shard at its next look.
+    inbox: Mutex<Vec<Member>>,
+    /// Streams on this shard (new ones included): where the next stream goes.
+    load: AtomicUsize,
+    stop: AtomicBool,
+}
+
+/// One stream on a shard.
+struct Member {
+    gen: Box<Generator>,
+    shared: Arc<StreamShared>,
+    prod: HeapProd<Frame>,
+    sink: Option<Box<dyn StreamSink>>,
+    set: Arc<StreamSet>,
+    /// Frames made and not yet in the ring (it was full): `out[sent..]`.
+    out: Vec<Frame>,
+    sent: usize,
+    /// Frames made so far (new streams go first).
+    made: u64,
+    /// Set when the generation failed or ended: the member leaves at the end of the round.
+    outcome: Option<Outcome>,
+}
+
+impl Scheduler {
+    /// Starts `threads` scheduler threads (at least one) for up to `max_streams` streams.
+    pub fn new(threads: usize, max_streams: usize) -> Result<Scheduler> {
+        let live = Arc::new(AtomicUsize::new(0));
+        let mut shards = Vec::new();
+        for i in 0..threads.max(1) {
+            let shared = Arc::new(ShardShared {
+                inbox: Mutex::new(Vec::with_capacity(max_streams)),
+                load: AtomicUsize::new(0),
+                stop: AtomicBool::new(false),
+            });
+            let (sh, lv) = (Arc::clone(&shared), Arc::clone(&live));
+            let spawned = thread::Builder::new()
+                .name(format!("comgrasp-crowd-{i}"))
+                .spawn(move || Round::new(sh, lv, max_streams).run());
+            let mut shard = Shard { shared, thread: None };
+            match spawned {
+                Ok(j) => shard.thread = Some(j),
+                Err(e) => {
+                    // (the shards started so far stop when `shards` drops)
+                    drop(Scheduler { shards, live, max_streams });
+                    return Err(Error::Io(e));
+                }
+            }
+            shards.push(shard);
+        }
+        Ok(Scheduler { shards, live, max_streams })
+    }
+
+    /// Threads the scheduler runs.
+    pub fn threads(&self) -> usize {
+        self.shards.len()
+    }
+
+    /// Hands `gen` to the least loaded shard and returns its stream. `shared` must be
+    /// registered in `set` (as for `Stream::spawn`).
+    pub(crate) fn start(
+        &self,
+        gen: Generator,
+        shared: Arc<StreamShared>,
+        ring_capacity: usize,
+        set: Arc<StreamSet>,
+        sink: Option<Box<dyn StreamSink>>,
+    ) -> Result<Stream> {
+        let shard = self
+            .shards
+            .iter()
+            .min_by_key(|s| s.shared.load.load(Ordering::Relaxed))
+            .ok_or_else(|| Error::WrongState("the scheduler has no thread".into()))?;
+        let thread = shard.thread.as_ref().map(|j| j.thread().clone()).ok_or_else(|| {
+            Error::WrongState("the scheduler's thread is gone".into())
+        })?;
+        let mut inbox = shard.shared.inbox.lock();
+        if inbox.len() >= self.max_streams {
+            return Err(Error::LimitReached("the scheduler's inbox is full".into()));
+        }
+        // Nothing fails from here on: a stream made by `produced_by` waits for the shard
+        // when it is dropped, so it must reach the shard.
+        let (stream, prod) = Stream::produced_by(Arc::clone(&shared), thread.clone(), ring_capacity, Arc::clone(&set))?;
+        let out = Vec::with_capacity(gen.max_chunk_frames());
+        let mut sink = sink;
+        if let Some(s) = sink.as_mut() {
+            s.started();
+        }
+        // Counted as a worker before the shard can finish it, so the engine's drop waits
+        // for it.
+        set.worker_started();
+        shard.shared.load.fetch_add(1, Ordering::Relaxed);
+        self.live.fetch_add(1, Ordering::Relaxed);
+        inbox.push(Member { gen: Box::new(gen), shared, prod, sink, set, out, sent: 0, made: 0, outcome: None });
+        drop(inbox);
+        thread.unpark();
+        Ok(stream)
+    }
+}
+
+impl Drop for Scheduler {
+    /// Stops the threads (the engine has cancelled its streams and waited for them first;
+    /// a stream still on a shard is released as cancelled).
+    fn drop(&mut self) {
+        for s in &self.shards {
+            s.shared.stop.store(true, Ordering::SeqCst);
+            if let Some(j) = &s.thread {
+                j.thread().unpark();
+            }
+        }
+        for s in &mut self.shards {
+            if let Some(j) = s.thread.take() {
+                let _ = j.join();
+            }
+        }
+    }
+}
+
+/// A shard's thread: its members and scratch lists, all allocated once.
+struct Round {
+    sh: Arc<ShardShared>,
+    live: Arc<AtomicUsize>,
+    members: Vec<Member>,
+    /// Members of this round's batched step / decodes (indices into `members`).
+    batch: Vec<usize>,
+    work: Vec<usize>,
+    /// Members that joined during the round (indices), served at once.
+    fresh: Vec<usize>,
+}
+
+impl Round {
+    fn new(sh: Arc<ShardShared>, live: Arc<AtomicUsize>, max_streams: usize) -> Round {
+        Round {
+            sh,
+            live,
+            members: Vec::with_capacity(max_streams),
+            batch: Vec::with_capacity(max_streams),
+            work: Vec::with_capacity(max_streams),
+            fresh: Vec::with_capacity(max_streams),
+        }
+    }
+
+    fn run(mut self) {
+        loop {
+            self.take_new();
+            let stop = self.sh.stop.load(Ordering::SeqCst);
+            if stop {
+                for m in &mut self.members {
+                    m.outcome.get_or_insert(Outcome::Cancelled);
+                }
+                self.retire();
+                return;
+            }
+            let progressed = self.round();
+            self.retire();
+            if !progressed && self.sh.inbox.lock().is_empty() {
+                // Unparked by a poll that frees room, a cancel, a new stream or the stop.
+                thread::park();
+            }
+        }
+    }
+
+    /// Moves new streams from the inbox to the members; returns where they start.
+    fn take_new(&mut self) -> usize {
+        let first = self.members.len();
+        let mut inbox = self.sh.inbox.lock();
+        self.members.extend(inbox.drain(..));
+        first
+    }
+
+    /// One round (module doc); whether any member made progress.
+    fn round(&mut self) -> bool {
+        let mut progressed = false;
+        for m in &mut self.members {
+            progressed |= m.flush();
+        }
+        self.batch.clear();
+        for (i, m) in self.members.iter().enumerate() {
+            if m.runnable() && m.gen.need() == Need::Step {
+                self.batch.push(i);
+            }
+        }
+        let mut at = 0;
+        while at < self.batch.len() {
+            let end = (at + MAX_BATCH).min(self.batch.len());
+            progressed |= step(&mut self.members, &self.batch[at..end], &self.live);
+            at = end;
+            self.serve_new();
+        }
+        self.work.clear();
+        for (i, m) in self.members.iter().enumerate() {
+            if m.runnable() && matches!(m.gen.need(), Need::Decode | Need::Finish) {
+                self.work.push(i);
+            }
+        }
+        // the ones without a frame yet first (stable: otherwise in join order)
+        let members = &self.members;
+        self.work.sort_by_key(|&i| members[i].made > 0);
+        for w in 0..self.work.len() {
+            let i = self.work[w];
+            progressed |= decode(&mut self.members[i], &self.live);
+            self.serve_new();
+        }
+        for m in &mut self.members {
+            m.check_done();
+        }
+        progressed
+    }
+
+    /// New streams get their first step and first decode now, not after the round.
+    fn serve_new(&mut self) {
+        if self.sh.inbox.lock().is_empty() {
+            return;
+        }
+        let first = self.take_new();
+        self.fresh.clear();
+        self.fresh.extend(first..self.members.len());
+        for &i in &self.fresh {
+            self.members[i].flush();
+        }
+        let fresh = std::mem::take(&mut self.fresh);
+        let stepping: usize = fresh.iter().filter(|&&i| self.members[i].gen.need() == Need::Step).count();
+        if stepping == fresh.len() {
+            step(&mut self.members, &fresh, &self.live);
+        } else {
+            for &i in &fresh {
+                if self.members[i].gen.need() == Need::Step {
+                    step(&mut self.members, &[i], &self.live);
+                }
+            }
+        }
+        for &i in &fresh {
+            if self.members[i].runnable() && matches!(self.members[i].gen.need(), Need::Decode | Need::Finish) {
+                decode(&mut self.members[i], &self.live);
+            }
+        }
+        self.fresh = fresh;
+    }
+
+    /// Members that were cancelled, failed or are done (every frame in the ring) leave:
+    /// their generation is dropped, then the stream hears the outcome.
+    fn retire(&mut self) {
+        let mut i = 0;
+        while i < self.members.len() {
+            let m = &mut self.members[i];
+            if m.outcome.is_none() && m.shared.is_cancelled() {
+                m.outcome = Some(Outcome::Cancelled);
+            }
+            if m.outcome.is_some() {
+                let m = self.members.swap_remove(i);
+                self.sh.load.fetch_sub(1, Ordering::Relaxed);
+                self.live.fetch_sub(1, Ordering::Relaxed);
+                m.leave();
+            } else {
+                i += 1;
+            }
+        }
+    }
+}
+
+impl Member {
+    /// Whether the member can take work: not cancelled, not finished, every frame it made
+    /// already in the ring.
+    fn runnable(&self) -> bool {
+        self.outcome.is_none() && self.sent == self.out.len() && !self.shared.is_cancelled()
+    }
+
+    /// Pushes what the ring takes of the frames not yet in it; whether any went in.
+    fn flush(&mut self) -> bool {
+        if self.sent == self.out.len() {
+            return false;
+        }
+        let mut n = self.prod.push_slice(&self.out[self.sent..]);
+        if self.sent + n < self.out.len() {
+            // Full: ask the host's next poll to unpark this shard (stream.rs wake-up
+            // protocol), then look once more in case it polled in between.
+            self.shared.request_room();
+            n += self.prod.push_slice(&self.out[self.sent + n..]);
+        }
+        if n > 0 {
+            self.shared.wake_consumer_if_waiting();
+        }
+        self.sent += n;
+        if self.sent == self.out.len() {
+            self.out.clear();
+            self.sent = 0;
+        }
+        n > 0
+    }
+
+    /// Hands the frames `out[from..]` just made to the sink, then to the ring.
+    fn produced(&mut self, from: usize) {
+        if let Some(s) = self.sink.as_mut() {
+            for f in &self.out[from..] {
+                s.frame(f);
+            }
+        }
+        self.made += (self.out.len() - from) as u64;
+        self.flush();
+    }
+
+    /// A generation that ended with every frame in the ring is done.
+    fn check_done(&mut self) {
+        if self.outcome.is_none() && self.gen.need() == Need::Done && self.sent == self.out.len() {
+            self.outcome = Some(Outcome::Ended);
+        }
+    }
+
+    fn fail(&mut self, e: Error) {
+        self.outcome.get_or_insert(Outcome::Failed(e));
+    }
+
+    /// Drops the generation and the ring's producer half, then publishes the outcome.
+    fn leave(self) {
+        let Member { gen, shared, prod, mut sink, set, outcome, .. } = self;
+        drop(catch_unwind(AssertUnwindSafe(move || drop(gen))));
+        drop(prod);
+        finish(&shared, outcome.unwrap_or(Outcome::Cancelled), sink.as_deref_mut());
+        set.worker_finished();
+    }
+}
+
+/// The batched token step of `batch` (indices into `members`, each needing a step), then
+/// each member samples its token. A member whose step cannot be prepared fails alone; a
+/// panic inside the batch fails the batch's members.
+fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize) -> bool {
+    let mut ok = 0usize;
+    // Prepare (text encoding, state, checks) one by one; keep the good ones up front of
+    // a fixed-size index list (no allocation: at most MAX_BATCH per call).
+    let mut good = [0usize; MAX_BATCH];
+    for &i in batch.iter().take(MAX_BATCH) {
+        let m = &mut members[i];
+        match catch_unwind(AssertUnwindSafe(|| m.gen.step_job().map(|_| ()))) {
+            Ok(Ok(())) => {
+                good[ok] = i;
+                ok += 1;
+            }
+            Ok(Err(e)) => m.fail(e),
+            Err(p) => m.fail(Error::Panic(panic_message(&*p))),
+        }
+    }
+    let good = &good[..ok];
+    if good.is_empty() {
+        return false;
+    }
+    let pipe = Arc::clone(members[good[0]].gen.pipeline());
+    let step = &pipe.bundle().step;
+    // A lone stream on the whole scheduler: the step may use the model's helper thread.
+    let alone = good.len() == 1 && live.load(Ordering::Relaxed) == 1;
+    let ran = catch_unwind(AssertUnwindSafe(|| {
+        if alone {
+            let j = members[good[0]].gen.job();
+            step.run_checked(j.state, j.tokens, j.pos, j.text_emb, false)
+        } else {
+            step.step_batch_checked(&mut Jobs { members, idx: good })
+        }
+    }));
+    let err = match ran {
+        Ok(Ok(())) => None,
+        Ok(Err(e)) => Some(e),
+        Err(p) => Some(Error::Panic(panic_message(&*p))),
+    };
+    for &i in good {
+        let m = &mut members[i];
+        if let Some(e) = &err {
+            m.fail(Error::Inference(format!("batched step: {e}")));
+            continue;
+        }
+        let from = m.out.len();
+        match catch_unwind(AssertUnwindSafe(|| m.gen.sampled(&mut m.out))) {
+            Ok(Ok(())) => m.produced(from),
+            Ok(Err(e)) => m.fail(e),
+            Err(p) => m.fail(Error::Panic(panic_message(&*p))),
+        }
+    }
+    true
+}
+
+/// The member's decode (or its end), its frames assembled and pushed.
+fn decode(m: &mut Member, live: &AtomicUsize) -> bool {
+    let team = live.load(Ordering::Relaxed) == 1;
+    let from = m.out.len();
+    let ran = catch_unwind(AssertUnwindSafe(|| match m.gen.need() {
+        Need::Decode => m.gen.decode(team, &mut m.out),
+        Need::Finish => {
+            m.gen.finish(&mut m.out);
+            Ok(())
+        }
+        _ => Ok(()),
+    }));
+    match ran {
+        Ok(Ok(())) => m.produced(from),
+        Ok(Err(e)) => m.fail(e),
+        Err(p) => m.fail(Error::Panic(panic_message(&*p))),
+    }
+    true
+}
+
+/// The members of a batched step as the step model's jobs.
+struct Jobs<'a> {
+    members: &'a mut [Member],
+    idx: &'a [usize],
+}
+
+impl StepJobs for Jobs<'_> {
+    fn count(&self) -> usize {
+        self.idx.len()
+    }
+
+    fn job(&mut self, i: usize) -> StepJob<'_> {
+        self.members[self.idx[i]].gen.job()
+    }
+}
