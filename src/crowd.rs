@@ -265,9 +265,9 @@ impl Round {
                 self.work.push(i);
             }
         }
-        // the ones without a frame yet first (stable: otherwise in join order)
+        // the ones without a frame yet first, otherwise in join order (unstable: no buffer)
         let members = &self.members;
-        self.work.sort_by_key(|&i| members[i].made > 0);
+        self.work.sort_unstable_by_key(|&i| (members[i].made > 0, i));
         for w in 0..self.work.len() {
             let i = self.work[w];
             progressed |= decode(&mut self.members[i], &self.live);

@@ -128,6 +128,10 @@ public:
     EngineConfig &decode_group(uint32_t tokens) { raw_.decode_group = tokens; return *this; }
     EngineConfig &overlap(uint32_t mode) { raw_.overlap = mode; return *this; }
     EngineConfig &max_isa(uint32_t isa) { raw_.max_isa = isa; return *this; }
+    /// How streams are driven: `CG_SCHEDULING_*` (default: the crowd scheduler), and its
+    /// threads (0 = cores minus one).
+    EngineConfig &scheduling(uint32_t mode) { raw_.scheduling = mode; return *this; }
+    EngineConfig &scheduler_threads(uint32_t n) { raw_.scheduler_threads = n; return *this; }
     /// Also publish every frame and stream event over shared memory under `name` (1..64
     /// ASCII letters, digits, '_', '-', '.'), for `Subscriber`s in any process.
     EngineConfig &publish_name(std::string name) {

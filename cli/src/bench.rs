@@ -121,6 +121,20 @@ pub struct Args {
     /// Print one JSON object instead of the report.
     #[arg(long)]
     json: bool,
+    /// Instead of the one-stream bench: crowds of N concurrent streams (comma-separated,
+    /// e.g. 1,8,64,256) on the crowd scheduler and on a thread per stream, in interleaved
+    /// rounds (cli/src/crowd_bench.rs); each stream runs --steps token steps (default 16).
+    #[arg(long, value_name = "N,...", value_delimiter = ',', value_parser = at_least_one)]
+    streams: Vec<usize>,
+    /// Rounds of the crowd bench.
+    #[arg(long, value_name = "N", default_value_t = 3, value_parser = at_least_one)]
+    rounds: usize,
+    /// Streams started among each crowd for the time to first frame.
+    #[arg(long, value_name = "N", default_value_t = 20)]
+    probes: usize,
+    /// Crowd scheduler threads (default: the engine's, cores minus one).
+    #[arg(long, value_name = "N", value_parser = at_least_one)]
+    scheduler_threads: Option<usize>,
 }
 
 /// A count that must be at least 1.
@@ -132,6 +146,24 @@ fn at_least_one(v: &str) -> Result<usize, String> {
 }
 
 pub fn run(opts: Args) -> Result<(), String> {
+    if !opts.streams.is_empty() {
+        let c = crate::crowd_bench::Crowd {
+            counts: opts.streams.clone(),
+            rounds: opts.rounds,
+            probes: opts.probes,
+            steps: opts.steps,
+            threads: opts.scheduler_threads,
+            bundle: opts.bundle.clone(),
+            runtime: runtime_options(&opts)?,
+        };
+        let report = crate::crowd_bench::run(&c, rss).map_err(|e| format!("bench --streams: {e}"))?;
+        if opts.json {
+            println!("{}", serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?);
+        } else {
+            crate::crowd_bench::print(&report);
+        }
+        return Ok(());
+    }
     let report = bench(&opts).map_err(|e| format!("bench: {e}"))?;
     if opts.json {
         println!("{}", serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?);

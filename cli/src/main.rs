@@ -7,6 +7,7 @@
 //! clap's code too; 1: the run failed), never a panic.
 mod bench;
 mod body_mesh;
+mod crowd_bench;
 mod generate;
 mod gltf;
 mod npz;
@@ -22,8 +23,9 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 /// comgrasp: text-driven whole-body grasp motion.
 ///
 /// The engine's runtime options come from the COMGRASP_STEP, COMGRASP_DECODER,
-/// COMGRASP_STEP_THREADS, COMGRASP_DECODER_THREADS, COMGRASP_DECODE_GROUP, COMGRASP_OVERLAP
-/// and COMGRASP_NATIVE_ISA environment variables (docs/performance.md).
+/// COMGRASP_STEP_THREADS, COMGRASP_DECODER_THREADS, COMGRASP_DECODE_GROUP, COMGRASP_OVERLAP,
+/// COMGRASP_NATIVE_ISA, COMGRASP_SCHEDULING and COMGRASP_SCHEDULER_THREADS environment
+/// variables (docs/performance.md).
 #[derive(Parser)]
 #[command(name = "comgrasp", arg_required_else_help = true)]
 struct Cli {

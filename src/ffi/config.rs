@@ -626,10 +626,10 @@ mod tests {
         struct FromC {
             struct_size: u32,
             coordinate_system: u32,
-            rest: [u64; 8],
+            rest: [u64; 9],
         }
         assert_eq!(size_of::<FromC>(), size_of::<cg_engine_config>());
-        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 8] };
+        let bad = FromC { struct_size: size_of::<FromC>() as u32, coordinate_system: 99, rest: [0; 9] };
         let r = unsafe { engine_config_from_c(&bad as *const FromC as *const cg_engine_config) };
         assert_eq!(r.unwrap_err().0, cg_status::CG_ERR_INVALID_ARGUMENT);
 
@@ -688,6 +688,15 @@ mod tests {
         let v2 = V2 { head, trailing_garbage: [7; 8] };
         let c = unsafe { engine_config_from_c(&v2 as *const V2 as *const cg_engine_config) }.unwrap();
         assert_eq!(c.runtime, RuntimeOptions::default());
+        // A 0.3 host (up to reserved2): garbage after its struct is not read either.
+        let v3 = cg_engine_config {
+            struct_size: std::mem::offset_of!(cg_engine_config, scheduling) as u32,
+            scheduling: 99,
+            scheduler_threads: 1000,
+            ..Default::default()
+        };
+        let c = unsafe { engine_config_from_c(&v3) }.unwrap();
+        assert_eq!((c.runtime.scheduling, c.runtime.scheduler_threads), (Scheduling::Auto, None));
 
         let set = cg_engine_config {
             step_backend: CG_BACKEND_TRACT,

@@ -76,6 +76,8 @@ int main(void) {
     OFF(cg_engine_config, overlap);
     OFF(cg_engine_config, max_isa);
     OFF(cg_engine_config, reserved2);
+    OFF(cg_engine_config, scheduling);
+    OFF(cg_engine_config, scheduler_threads);
 
     SIZE(cg_stream_config);
     OFF(cg_stream_config, struct_size);

@@ -49,6 +49,7 @@ __all__ = [
     "ABI_VERSION", "FRAME_SIZE", "MAX_TEXT_BYTES", "BODY_JOINTS", "HAND_JOINTS", "NUM_JOINTS",
     "MAX_PUBLISH_NAME_BYTES", "MAX_SUBSCRIBER_BUFFER", "EVENT_TEXT_BYTES", "EventKind",
     "BACKEND_AUTO", "BACKEND_NATIVE", "BACKEND_TRACT", "OVERLAP_AUTO", "OVERLAP_OFF", "OVERLAP_ON",
+    "SCHEDULING_AUTO", "SCHEDULING_CROWD", "SCHEDULING_PER_STREAM", "MAX_SCHEDULER_THREADS",
     "ISA_BEST", "ISA_PORTABLE", "ISA_AVX2", "ISA_AVX512", "MAX_DECODE_GROUP",
     "Status", "Coords", "CgFrame", "CgEngineConfig", "CgStreamConfig", "CgSubscriberConfig",
     "CgStreamEvent", "CgSubscriberStats", "CgPublisherStats", "ComgraspError",
@@ -190,6 +191,9 @@ class CgEngineConfig(ctypes.Structure):
         ("overlap", ctypes.c_uint32),  # CG_OVERLAP_AUTO / _OFF / _ON (0, 1, 2)
         ("max_isa", ctypes.c_uint32),  # CG_ISA_BEST / _PORTABLE / _AVX2 / _AVX512 (0..3), process-wide
         ("reserved2", ctypes.c_uint32),
+        # Library 0.4 (an older one's init sets struct_size 72).
+        ("scheduling", ctypes.c_uint32),  # CG_SCHEDULING_AUTO / _CROWD / _PER_STREAM (0, 1, 2)
+        ("scheduler_threads", ctypes.c_uint32),  # crowd scheduler threads, 1..64; 0: cores minus one
     ]
 
 
@@ -595,8 +599,10 @@ BACKEND_AUTO, BACKEND_NATIVE, BACKEND_TRACT = 0, 1, 2
 OVERLAP_AUTO, OVERLAP_OFF, OVERLAP_ON = 0, 1, 2
 ISA_BEST, ISA_PORTABLE, ISA_AVX2, ISA_AVX512 = 0, 1, 2, 3
 MAX_DECODE_GROUP = 8
+SCHEDULING_AUTO, SCHEDULING_CROWD, SCHEDULING_PER_STREAM = 0, 1, 2
+MAX_SCHEDULER_THREADS = 64
 _RUNTIME_FIELDS = ("step_backend", "decoder_backend", "step_threads", "decoder_threads", "decode_group",
-                   "overlap", "max_isa")
+                   "overlap", "max_isa", "scheduling", "scheduler_threads")
 
 
 class Engine(_Owned):
@@ -636,9 +642,9 @@ class Engine(_Owned):
             if field not in _RUNTIME_FIELDS:
                 raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
                                     f"unknown runtime option {field!r}; one of {_RUNTIME_FIELDS}")
-            if cfg.struct_size < ctypes.sizeof(CgEngineConfig):
+            if cfg.struct_size < getattr(CgEngineConfig, field).offset + 4:
                 raise ComgraspError("cg_engine_create", Status.ERR_INVALID_ARGUMENT,
-                                    "this library predates the runtime options (library 0.3)")
+                                    f"this library predates the runtime option {field!r}")
             setattr(cfg, field, value)
         h = ctypes.c_void_p()
         _check(self._lib, "cg_engine_create", self._lib.cg_engine_create(ctypes.byref(cfg), ctypes.byref(h)))

@@ -191,12 +191,14 @@ def test_runtime_options_change_how_not_what():
     with engine() as e, e.start(PROMPT, **opts) as s:
         auto = s.frames()
     runtime = dict(step_backend=cg.BACKEND_NATIVE, step_threads=1, decoder_threads=1, decode_group=1,
-                   overlap=cg.OVERLAP_OFF, max_isa=cg.ISA_BEST)
+                   overlap=cg.OVERLAP_OFF, max_isa=cg.ISA_BEST, scheduling=cg.SCHEDULING_PER_STREAM,
+                   scheduler_threads=1)
     with engine(runtime=runtime) as e, e.start(PROMPT, **opts) as s:
         manual = s.frames()
     assert len(auto) == len(manual) > 0
     assert all(bytes(x)[8:] == bytes(y)[8:] for x, y in zip(auto, manual))
-    for field, bad in (("step_threads", 3), ("decode_group", cg.MAX_DECODE_GROUP + 1), ("overlap", 3)):
+    for field, bad in (("step_threads", 3), ("decode_group", cg.MAX_DECODE_GROUP + 1), ("overlap", 3),
+                       ("scheduling", 3), ("scheduler_threads", cg.MAX_SCHEDULER_THREADS + 1)):
         err = raises(engine, runtime={field: bad})
         assert err.status == Status.ERR_INVALID_ARGUMENT and field in err.message, err
     err = raises(engine, runtime={"threads": 1})

@@ -229,6 +229,11 @@ namespace ComGrasp
         /// <summary>CG_ISA_BEST (0), CG_ISA_PORTABLE (1), CG_ISA_AVX2 (2) or CG_ISA_AVX512 (3); process-wide.</summary>
         public uint MaxIsa;
         public uint Reserved2;
+        // Library 0.4 (an older library's init leaves StructSize short of these).
+        /// <summary>CG_SCHEDULING_AUTO (0, the crowd scheduler), CG_SCHEDULING_CROWD (1) or CG_SCHEDULING_PER_STREAM (2).</summary>
+        public uint Scheduling;
+        /// <summary>Crowd scheduler threads: 0 automatic (cores minus one), 1..CG_MAX_SCHEDULER_THREADS.</summary>
+        public uint SchedulerThreads;
     }
 
     /// <summary>struct cg_stream_config. Fill with cg_stream_config_init; to override a field set
@@ -467,6 +472,10 @@ namespace ComGrasp
         public const uint OverlapAuto = 0, OverlapOff = 1, OverlapOn = 2;
         /// <summary>CG_ISA_*: cg_engine_config.max_isa.</summary>
         public const uint IsaBest = 0, IsaPortable = 1, IsaAvx2 = 2, IsaAvx512 = 3;
+        /// <summary>CG_SCHEDULING_*: cg_engine_config.scheduling.</summary>
+        public const uint SchedulingAuto = 0, SchedulingCrowd = 1, SchedulingPerStream = 2;
+        /// <summary>CG_MAX_SCHEDULER_THREADS: largest cg_engine_config.scheduler_threads.</summary>
+        public const uint MaxSchedulerThreads = 64;
         /// <summary>CG_MAX_DECODE_GROUP: largest cg_engine_config.decode_group.</summary>
         public const uint MaxDecodeGroup = 8;
 
@@ -649,6 +658,12 @@ namespace ComGrasp
         public uint? Overlap;
         /// <summary>Highest instruction set, process-wide: ComGraspNative.IsaPortable/IsaAvx2/IsaAvx512.</summary>
         public uint? MaxIsa;
+        /// <summary>Library 0.4: ComGraspNative.SchedulingCrowd (a few threads for every stream, token
+        /// steps batched; the default) or SchedulingPerStream (a thread per stream).</summary>
+        public uint? Scheduling;
+        /// <summary>Library 0.4: crowd scheduler threads, 1..ComGraspNative.MaxSchedulerThreads
+        /// (default: cores minus one, so the game keeps a core).</summary>
+        public uint? SchedulerThreads;
     }
 
     /// <summary>Sampling overrides of one stream; null fields keep the bundle's defaults.</summary>
@@ -719,9 +734,12 @@ namespace ComGrasp
             bool runtime = options.StepBackend.HasValue || options.DecoderBackend.HasValue || options.StepThreads.HasValue
                 || options.DecoderThreads.HasValue || options.DecodeGroup.HasValue || options.Overlap.HasValue
                 || options.MaxIsa.HasValue;
-            if (runtime && cfg.StructSize < sizeof(CgEngineConfig))
+            if (runtime && cfg.StructSize < (uint)Marshal.OffsetOf(typeof(CgEngineConfig), "Scheduling"))
                 throw new InvalidOperationException(
                     "comgrasp: the loaded library predates cg_engine_config's runtime options (library 0.3)");
+            if ((options.Scheduling.HasValue || options.SchedulerThreads.HasValue) && cfg.StructSize < sizeof(CgEngineConfig))
+                throw new InvalidOperationException(
+                    "comgrasp: the loaded library predates cg_engine_config.scheduling (library 0.4)");
             if (options.StepBackend.HasValue) cfg.StepBackend = options.StepBackend.Value;
             if (options.DecoderBackend.HasValue) cfg.DecoderBackend = options.DecoderBackend.Value;
             if (options.StepThreads.HasValue) cfg.StepThreads = options.StepThreads.Value;
@@ -729,6 +747,8 @@ namespace ComGrasp
             if (options.DecodeGroup.HasValue) cfg.DecodeGroup = options.DecodeGroup.Value;
             if (options.Overlap.HasValue) cfg.Overlap = options.Overlap.Value;
             if (options.MaxIsa.HasValue) cfg.MaxIsa = options.MaxIsa.Value;
+            if (options.Scheduling.HasValue) cfg.Scheduling = options.Scheduling.Value;
+            if (options.SchedulerThreads.HasValue) cfg.SchedulerThreads = options.SchedulerThreads.Value;
             byte[] path = options.BundlePath == null ? null : ComGraspNative.NulTerminated(options.BundlePath);
             byte[] publish = options.PublishName == null ? null : ComGraspNative.NulTerminated(options.PublishName);
             IntPtr h = IntPtr.Zero;

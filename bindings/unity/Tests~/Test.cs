@@ -569,6 +569,7 @@ static unsafe class ComGraspTest
         {
             BundlePath = bundle, StepBackend = ComGraspNative.BackendNative, StepThreads = 1, DecoderThreads = 1,
             DecodeGroup = 1, Overlap = ComGraspNative.OverlapOff, MaxIsa = ComGraspNative.IsaBest,
+            Scheduling = ComGraspNative.SchedulingPerStream, SchedulerThreads = 1,
         };
         List<CgFrame> manual;
         using (var engine = new ComGraspEngine(opts))
@@ -584,6 +585,8 @@ static unsafe class ComGraspTest
         }
         var e = Throws("step_threads 3", () => new ComGraspEngine(new ComGraspEngineOptions { BundlePath = bundle, StepThreads = 3 }));
         Eq(e.Status, CgStatus.ErrInvalidArgument, "step_threads 3");
+        var es = Throws("scheduling 3", () => new ComGraspEngine(new ComGraspEngineOptions { BundlePath = bundle, Scheduling = 3 }));
+        Check(es.NativeMessage.Contains("scheduling"), "message names the field: " + es.NativeMessage);
         Check(e.NativeMessage.Contains("step_threads"), "message names the field: " + e.NativeMessage);
         e = Throws("decode_group 9", () => new ComGraspEngine(new ComGraspEngineOptions
         {
