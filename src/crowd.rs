@@ -44,8 +44,8 @@ use ringbuf::HeapProd;
 
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::generator::{ChunkSource, Generator, Need};
-use crate::model::{StepJob, StepJobs};
+use crate::generator::{ChunkSource, Generator, Need, Pipeline};
+use crate::model::{StepJob, StepJobs, StepScratch};
 use crate::stream::{finish, panic_message, Outcome, Stream, StreamSet, StreamShared, StreamSink};
 
 /// Most streams in one batched step; the shard looks for new streams between batches.
@@ -96,7 +96,7 @@ struct Member {
 
 impl Scheduler {
     /// Starts `threads` scheduler threads (at least one) for up to `max_streams` streams.
-    pub fn new(threads: usize, max_streams: usize) -> Result<Scheduler> {
+    pub fn new(pipeline: &Pipeline, threads: usize, max_streams: usize) -> Result<Scheduler> {
         let live = Arc::new(AtomicUsize::new(0));
         let mut shards = Vec::new();
         for i in 0..threads.max(1) {
@@ -105,10 +105,9 @@ impl Scheduler {
                 load: AtomicUsize::new(0),
                 stop: AtomicBool::new(false),
             });
-            let (sh, lv) = (Arc::clone(&shared), Arc::clone(&live));
-            let spawned = thread::Builder::new()
-                .name(format!("comgrasp-crowd-{i}"))
-                .spawn(move || Round::new(sh, lv, max_streams).run());
+            let round = Round::new(Arc::clone(&shared), Arc::clone(&live), max_streams, pipeline);
+            let spawned =
+                thread::Builder::new().name(format!("comgrasp-crowd-{i}")).spawn(move || round.run());
             let mut shard = Shard { shared, thread: None };
             match spawned {
                 Ok(j) => shard.thread = Some(j),
@@ -198,10 +197,12 @@ struct Round {
     work: Vec<usize>,
     /// Members that joined during the round (indices), served at once.
     fresh: Vec<usize>,
+    /// The batched step's buffers.
+    scratch: StepScratch,
 }
 
 impl Round {
-    fn new(sh: Arc<ShardShared>, live: Arc<AtomicUsize>, max_streams: usize) -> Round {
+    fn new(sh: Arc<ShardShared>, live: Arc<AtomicUsize>, max_streams: usize, pipeline: &Pipeline) -> Round {
         Round {
             sh,
             live,
@@ -209,6 +210,7 @@ impl Round {
             batch: Vec::with_capacity(max_streams),
             work: Vec::with_capacity(max_streams),
             fresh: Vec::with_capacity(max_streams),
+            scratch: pipeline.bundle().step.batch_scratch(MAX_BATCH),
         }
     }
 
@@ -255,7 +257,7 @@ impl Round {
         let mut at = 0;
         while at < self.batch.len() {
             let end = (at + MAX_BATCH).min(self.batch.len());
-            progressed |= step(&mut self.members, &self.batch[at..end], &self.live);
+            progressed |= step(&mut self.members, &self.batch[at..end], &self.live, &mut self.scratch);
             at = end;
             self.serve_new();
         }
@@ -293,11 +295,11 @@ impl Round {
         let fresh = std::mem::take(&mut self.fresh);
         let stepping: usize = fresh.iter().filter(|&&i| self.members[i].gen.need() == Need::Step).count();
         if stepping == fresh.len() {
-            step(&mut self.members, &fresh, &self.live);
+            step(&mut self.members, &fresh[..fresh.len().min(MAX_BATCH)], &self.live, &mut self.scratch);
         } else {
             for &i in &fresh {
                 if self.members[i].gen.need() == Need::Step {
-                    step(&mut self.members, &[i], &self.live);
+                    step(&mut self.members, &[i], &self.live, &mut self.scratch);
                 }
             }
         }
@@ -395,7 +397,7 @@ impl Member {
 /// The batched token step of `batch` (indices into `members`, each needing a step), then
 /// each member samples its token. A member whose step cannot be prepared fails alone; a
 /// panic inside the batch fails the batch's members.
-fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize) -> bool {
+fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize, scratch: &mut StepScratch) -> bool {
     let mut ok = 0usize;
     // Prepare (text encoding, state, checks) one by one; keep the good ones up front of
     // a fixed-size index list (no allocation: at most MAX_BATCH per call).
@@ -424,7 +426,7 @@ fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize) -> bool {
             let j = members[good[0]].gen.job();
             step.run_checked(j.state, j.tokens, j.pos, j.text_emb, false)
         } else {
-            step.step_batch_checked(&mut Jobs { members, idx: good })
+            step.step_batch_checked(&mut Jobs { members, idx: good }, scratch)
         }
     }));
     let err = match ran {

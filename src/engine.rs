@@ -75,7 +75,7 @@ impl Engine {
         let r = &engine.config.runtime;
         if r.scheduling != Scheduling::PerStream {
             let threads = r.scheduler_threads.unwrap_or_else(crate::crowd::default_threads);
-            engine.crowd = Some((Scheduler::new(threads, engine.config.max_streams)?, pipeline));
+            engine.crowd = Some((Scheduler::new(&pipeline, threads, engine.config.max_streams)?, pipeline));
         }
         Ok(engine)
     }

@@ -15,7 +15,7 @@ pub mod text;
 pub use decoder::{DecoderBackend, DecoderModel, DecoderState, MAX_DECODE_GROUP};
 pub use loaded::Bundle;
 pub use step::{StepBackend, StepModel, StepState};
-pub(crate) use step::{StepJob, StepJobs};
+pub(crate) use step::{StepJob, StepJobs, StepScratch};
 
 /// Lowers the native kernels' instruction set, process-wide (`RuntimeOptions::max_isa`).
 pub fn cap_instruction_set(cap: crate::config::InstructionSet) {

@@ -27,7 +27,7 @@ use parking_lot::Mutex;
 use tract_onnx::prelude::Tensor;
 
 use super::graph::{self, Plan, PlanState};
-use super::native::step::{Member, Members, NativeStep, NativeStepState};
+use super::native::step::{BatchScratch, Member, Members, NativeStep, NativeStepState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::config::RuntimeOptions;
@@ -293,10 +293,12 @@ impl StepModel {
     /// logits and cache are the ones it gets alone), every job already passed
     /// [`check`](Self::check). Native: one batched step on the calling thread, each weight
     /// block read once for all jobs (`model::native::step::batch`); tract: one after the other.
-    pub(crate) fn step_batch_checked(&self, jobs: &mut dyn StepJobs) -> Result<()> {
-        match &self.imp {
-            Imp::Native(n) => n.step_batch(&mut NativeJobs(jobs)),
-            Imp::Tract(_) => {
+    /// `scratch`: from [`batch_scratch`](Self::batch_scratch), for at least `jobs.count()`.
+    pub(crate) fn step_batch_checked(&self, jobs: &mut dyn StepJobs, scratch: &mut StepScratch) -> Result<()> {
+        match (&self.imp, &mut scratch.0) {
+            (Imp::Native(n), Some(sc)) => n.step_batch(&mut NativeJobs(jobs), sc),
+            (Imp::Native(_), None) => return Err(Error::WrongState("step scratch of another model".into())),
+            (Imp::Tract(_), _) => {
                 for i in 0..jobs.count() {
                     let j = jobs.job(i);
                     self.run_checked(j.state, j.tokens, j.pos, j.text_emb, true)?;
@@ -309,6 +311,14 @@ impl StepModel {
             j.state.filled = j.pos + 1;
         }
         Ok(())
+    }
+
+    /// Scratch for batched steps of up to `cap` jobs (allocated here, once).
+    pub(crate) fn batch_scratch(&self, cap: usize) -> StepScratch {
+        StepScratch(match &self.imp {
+            Imp::Native(n) => Some(n.batch_scratch(cap)),
+            Imp::Tract(_) => None,
+        })
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -364,6 +374,9 @@ pub(crate) struct StepJob<'a> {
     pub(crate) pos: usize,
     pub(crate) text_emb: &'a [f32],
 }
+
+/// A batched step's buffers ([`StepModel::batch_scratch`]; none on tract).
+pub(crate) struct StepScratch(Option<BatchScratch>);
 
 /// The jobs of a batched step, by index (the caller keeps them in its own structures).
 pub(crate) trait StepJobs {

@@ -471,6 +471,85 @@ mod avx512 {
         }
     }
 
+    /// `gemv_many_f32` / `gemv_many_i8`: `y[j * rows + r] = row r . x_j` for the `n` inputs
+    /// of `x` (`cols` each), every value the bits `gemv_f32`/`gemv_i8` give for that input
+    /// alone (lanes over 32 columns into two accumulators, a 16-column step into the first,
+    /// `reduce_add(a + b) + head`, the scalar tail); each weight row is loaded and widened
+    /// once per group of up to 6 inputs.
+    macro_rules! gemv_many {
+        ($many:ident, $row:ident, $t:ty, $load:ident, $elem:expr) => {
+            #[inline]
+            #[target_feature(enable = "avx512f")]
+            unsafe fn $row<const K: usize>(p: *const $t, cols: usize, px: *const f32, out: *mut f32, stride: usize) {
+                const { assert!(super::HEAD == 0, "the batched GEMV assumes no head columns, as gemv_body") };
+                let mut a = [_mm512_setzero_ps(); K];
+                let mut b = [_mm512_setzero_ps(); K];
+                let mut c = 0;
+                while c + 32 <= cols {
+                    let (w0, w1) = ($load(p.add(c)), $load(p.add(c + 16)));
+                    for j in 0..K {
+                        let xj = px.add(j * cols + c);
+                        a[j] = _mm512_fmadd_ps(w0, _mm512_loadu_ps(xj), a[j]);
+                        b[j] = _mm512_fmadd_ps(w1, _mm512_loadu_ps(xj.add(16)), b[j]);
+                    }
+                    c += 32;
+                }
+                if c + 16 <= cols {
+                    let w0 = $load(p.add(c));
+                    for j in 0..K {
+                        a[j] = _mm512_fmadd_ps(w0, _mm512_loadu_ps(px.add(j * cols + c)), a[j]);
+                    }
+                    c += 16;
+                }
+                let head = 0.0f32;
+                for j in 0..K {
+                    let mut s = _mm512_reduce_add_ps(_mm512_add_ps(a[j], b[j])) + head;
+                    for t in c..cols {
+                        s += ($elem)(*p.add(t)) * *px.add(j * cols + t);
+                    }
+                    *out.add(j * stride) = s;
+                }
+            }
+
+            #[target_feature(enable = "avx512f")]
+            pub(super) unsafe fn $many(w: &[$t], cols: usize, x: &[f32], n: usize, y: &mut [f32]) {
+                let rows = y.len() / n;
+                let (px, py) = (x.as_ptr(), y.as_mut_ptr());
+                for r in 0..rows {
+                    let p = w.as_ptr().add(r * cols);
+                    let mut j = 0;
+                    while j < n {
+                        let (xj, out) = (px.add(j * cols), py.add(j * rows + r));
+                        let k = match n - j {
+                            1 => 1,
+                            2 => 2,
+                            3 => 3,
+                            4 | 5 => 4,
+                            _ => 6,
+                        };
+                        match k {
+                            1 => $row::<1>(p, cols, xj, out, rows),
+                            2 => $row::<2>(p, cols, xj, out, rows),
+                            3 => $row::<3>(p, cols, xj, out, rows),
+                            4 => $row::<4>(p, cols, xj, out, rows),
+                            _ => $row::<6>(p, cols, xj, out, rows),
+                        }
+                        j += k;
+                    }
+                }
+            }
+        };
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn load_f32(p: *const f32) -> __m512 {
+        _mm512_loadu_ps(p)
+    }
+
+    gemv_many!(gemv_many_f32, many_row_f32, f32, load_f32, |v: f32| v);
+    gemv_many!(gemv_many_i8, many_row_i8, i8, load_i8, f32::from);
+
     /// int8 rows are short streams (a 1024-wide row is 16 cache lines, too few for the
     /// hardware prefetcher to ramp up), so the next block of rows is prefetched.
     #[target_feature(enable = "avx512f")]
@@ -646,6 +725,48 @@ fn gemm_with(isa: Isa, m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>,
     }
 }
 
+/// `n` GEMVs with the same matrix, rows `rows` of them (`x`: n inputs of `M.cols()`; `y`:
+/// n outputs of `rows.len()`, `y[j * rows.len() + i] = (M x_j + bias)[rows.start + i]`),
+/// every value bit-identical to [`gemv_rows`] on that input alone: what the batched step
+/// of many generations needs. With AVX-512 each weight row is read and widened once per
+/// group of up to 6 inputs (the int8 -> f32 conversion, not the memory, bounds a GEMV from
+/// cache); otherwise it is `n` GEMVs.
+pub(crate) fn gemv_rows_many(m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+    let (cols, part, isa) = (m.cols(), rows.len(), isa());
+    assert!(
+        x.len() == n * cols && rows.end <= m.rows() && y.len() == n * part,
+        "gemv_many: {}x{cols} matrix, n {n}, x {}, rows {rows:?}, y {}",
+        m.rows(),
+        x.len(),
+        y.len()
+    );
+    if n == 0 || part == 0 {
+        return;
+    }
+    let (r0, r1) = (rows.start, rows.end);
+    #[cfg(target_arch = "x86_64")]
+    if isa == Isa::Avx512 {
+        match m {
+            // SAFETY: AVX-512F detected (isa() never exceeds it); part*cols weights, n*cols
+            // inputs, n*part outputs, as the slices hold.
+            MatRef::F32 { w, .. } => unsafe { avx512::gemv_many_f32(&w[r0 * cols..r1 * cols], cols, x, n, y) },
+            MatRef::I8 { q, .. } => unsafe { avx512::gemv_many_i8(&q[r0 * cols..r1 * cols], cols, x, n, y) },
+        }
+        for yj in y.chunks_exact_mut(part) {
+            if let MatRef::I8 { scale, .. } = m {
+                for (o, s) in yj.iter_mut().zip(&scale[r0..r1]) {
+                    *o *= s;
+                }
+            }
+            add_bias(yj, bias.map(|b| &b[r0..r1]));
+        }
+        return;
+    }
+    for (xj, yj) in x.chunks_exact(cols).zip(y.chunks_exact_mut(part)) {
+        gemv_with(isa, m, xj, bias, rows.clone(), yj);
+    }
+}
+
 /// `y += x` element-wise.
 pub(crate) fn add_assign(y: &mut [f32], x: &[f32]) {
     for (a, b) in y.iter_mut().zip(x) {
@@ -772,6 +893,35 @@ mod tests {
             let want: f32 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
             assert!((dot(&a, &b) - want).abs() < 1e-4 * (1.0 + want.abs()));
             assert!((portable::dot(&a, &b) - want).abs() < 1e-4 * (1.0 + want.abs()));
+        }
+    }
+
+    /// The batched GEMV gives each input the bits of a GEMV of it alone, for every group
+    /// size (1 to 13 inputs: the groups of 6, 4, 3, 2, 1), row part and column tail.
+    #[test]
+    fn many_inputs_get_the_bits_of_one() {
+        for (rows, cols) in [(5, 19), (13, 200), (8, 48), (31, 64), (2, 7), (9, 257), (4, 16)] {
+            let (_, ms) = matrices(rows, cols);
+            let bias: Vec<f32> = (0..rows).map(|r| r as f32 * 0.3 - 1.0).collect();
+            for m in &ms {
+                for n in 1..=13 {
+                    let xs: Vec<f32> = (0..n * cols).map(|c| (c as f32 * 0.11).cos() * 2.0).collect();
+                    for r in [0..rows, rows / 4 * 4..rows] {
+                        let mut ys = vec![0.0; n * r.len()];
+                        gemv_rows_many(m.into(), &xs, n, Some(&bias), r.clone(), &mut ys);
+                        for j in 0..n {
+                            let mut one = vec![0.0; r.len()];
+                            gemv_rows(m.into(), &xs[j * cols..(j + 1) * cols], Some(&bias), r.clone(), &mut one);
+                            let got = &ys[j * r.len()..(j + 1) * r.len()];
+                            assert_eq!(
+                                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                                one.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                                "{rows}x{cols}, n {n}, input {j}, rows {r:?}"
+                            );
+                        }
+                    }
+                }
+            }
         }
     }
 

@@ -52,7 +52,7 @@ use crate::config::two_threads;
 use crate::error::{Error, Result};
 
 mod batch;
-pub(crate) use batch::{Member, Members};
+pub(crate) use batch::{BatchScratch, Member, Members};
 
 const LN_EPS: f32 = 1e-5;
 

@@ -12,9 +12,11 @@
 //! tests/crowd.rs). One thread: the scheduler runs one batch per thread.
 use std::ops::Range;
 
+use super::super::arena::Wm;
+use super::super::kernels::{gemm_rows, gemv_rows_many};
 use super::{
-    add_assign, concat_others, gelu_erf, gemm_rows, gemv_rows, layer, row_part, Bufs, Coord, Linear, NativeStep,
-    NativeStepState, Norm, N_STREAMS,
+    add_assign, concat_others, gelu_erf, layer, row_part, Bufs, Coord, Linear, NativeStep, NativeStepState, Norm,
+    N_STREAMS,
 };
 
 /// One member of a batch: its state, the logits it gets, and its step's input (validated by
@@ -34,17 +36,43 @@ pub(crate) trait Members {
     fn member(&mut self, i: usize) -> Member<'_>;
 }
 
-/// The input and output buffers of a phase in a member's buffers.
-type Pair = for<'a> fn(&'a mut Bufs) -> (&'a [Vec<f32>], &'a mut [Vec<f32>]);
-/// A residual phase's input, scratch and residual stream.
-type Triple = for<'a> fn(&'a mut Bufs) -> (&'a [Vec<f32>], &'a mut [Vec<f32>], &'a mut [Vec<f32>]);
 /// A coordination MLP layer's four inputs and four outputs (rows one after the other).
 type Flat = for<'a> fn(&'a mut Bufs) -> (&'a [f32], &'a mut [f32]);
 
+/// What a product reads of a member for component stream `s` (`k` inputs one after the
+/// other: 1, or the coordination's 4 concatenations).
+type Input = for<'a> fn(&'a NativeStepState, usize) -> &'a [f32];
+
+/// The batch's own buffers, made once per scheduler thread ([`NativeStep::batch_scratch`]):
+/// the members' inputs of a product side by side, and one unit's outputs.
+pub(crate) struct BatchScratch {
+    x: Vec<f32>,
+    y: Vec<f32>,
+    /// Most members a batch may have.
+    cap: usize,
+}
+
 impl NativeStep {
-    /// One step for every member of `m` (see the module doc). No allocation.
-    pub(crate) fn step_batch(&self, m: &mut dyn Members) {
+    /// Scratch for batches of up to `cap` members.
+    pub(crate) fn batch_scratch(&self, cap: usize) -> BatchScratch {
+        let d = &self.d;
+        let cols = [d.d_text, (N_STREAMS - 1) * d.coord_width, d.coord_hidden, d.coord_width]
+            .into_iter()
+            .chain(d.widths)
+            .chain(d.hidden)
+            .max()
+            .unwrap_or(0);
+        // a unit is at most a block of rows of one matrix (coordination: of four outputs)
+        let rows = (0..N_STREAMS).map(|s| d.vocab[s].max(3 * d.widths[s]).max(d.hidden[s])).max().unwrap_or(0);
+        let rows = rows.max(d.coord_hidden).max(d.coord_width);
+        BatchScratch { x: vec![0.0; cap * N_STREAMS * cols], y: vec![0.0; cap * N_STREAMS * rows], cap }
+    }
+
+    /// One step for every member of `m` (see the module doc), at most `sc`'s capacity. No
+    /// allocation.
+    pub(crate) fn step_batch(&self, m: &mut dyn Members, sc: &mut BatchScratch) {
         let (d, n) = (&self.d, m.count());
+        assert!(n <= sc.cap, "a batch of {n} members, scratch for {}", sc.cap);
         for i in 0..n {
             let Member { st, tokens, pos, text_emb, .. } = m.member(i);
             self.check_state(st);
@@ -60,31 +88,72 @@ impl NativeStep {
         }
         for l in 0..d.n_layers {
             if l > 0 {
-                self.coordinate_batch(&self.coord[l - 1], m);
+                self.coordinate_batch(&self.coord[l - 1], m, sc);
             }
-            self.blocks_batch(l, m);
+            self.blocks_batch(l, m, sc);
         }
-        for i in 0..n {
-            let st = m.member(i).st;
-            for s in 0..N_STREAMS {
-                self.streams[s].ln_f.run(&st.bufs.h[s], &mut st.own[0].x[s]);
-            }
+        self.norm_each(m, |s| &self.streams[s].ln_f, |st, s| &st.bufs.h[s]);
+        for s in 0..N_STREAMS {
+            let head = &self.streams[s].head;
+            self.product(m, sc, s, (head, None, 1), |st, s| &st.own[0].x[s], |o, s, r, y| {
+                o.logits[s][r].copy_from_slice(y)
+            });
         }
-        let heads = self.blocks_of(|s| &self.streams[s].head);
-        each_unit(d.vocab, heads, |s, r| {
-            let w = self.arena.mat(&self.streams[s].head);
-            for i in 0..n {
+    }
+
+    /// `y_j = W x_j (+ bias)` for every member j, `x_j` = `input(member, s)` (`k` inputs of
+    /// W's columns each), in the units of the one-generation step: the inputs are gathered
+    /// side by side once, each unit's rows computed for all of them
+    /// ([`gemv_rows_many`](super::gemv_rows_many): each weight row read once per group of
+    /// inputs), then handed to `out(member, s, rows, its k outputs of those rows)`.
+    fn product(
+        &self,
+        m: &mut dyn Members,
+        sc: &mut BatchScratch,
+        s: usize,
+        (wm, bias, k): (&Wm, Option<&[f32]>, usize),
+        input: Input,
+        mut out: impl FnMut(&mut Outs<'_>, usize, Range<usize>, &[f32]),
+    ) {
+        let w = self.arena.mat(wm);
+        let (n, cols) = (m.count(), w.cols());
+        let x = &mut sc.x[..n * k * cols];
+        for (i, xi) in x.chunks_exact_mut(k * cols).enumerate() {
+            xi.copy_from_slice(input(m.member(i).st, s));
+        }
+        each_unit(w.rows(), self.block_of(wm), |r| {
+            let y = &mut sc.y[..n * k * r.len()];
+            gemv_rows_many(w, &sc.x[..n * k * cols], n * k, bias, r.clone(), y);
+            for (i, yi) in y.chunks_exact(k * r.len()).enumerate() {
                 let Member { st, logits, .. } = m.member(i);
-                gemv_rows(w, &st.own[0].x[s], None, r.clone(), &mut logits[s][r.clone()]);
+                out(&mut Outs { st, logits }, s, r.clone(), yi);
             }
         });
     }
 
+    /// `own.x[s] = norm(s)(input(member, s))` for every member and stream.
+    fn norm_each<'w>(&self, m: &mut dyn Members, norm: impl Fn(usize) -> &'w Norm, input: Input) {
+        for i in 0..m.count() {
+            let st = m.member(i).st;
+            for s in 0..N_STREAMS {
+                let mut x = std::mem::take(&mut st.own[0].x[s]);
+                norm(s).run(input(st, s), &mut x);
+                st.own[0].x[s] = x;
+            }
+        }
+    }
+
     /// Layer `l`'s blocks of every member.
-    fn blocks_batch(&self, l: usize, m: &mut dyn Members) {
+    fn blocks_batch<'w>(&'w self, l: usize, m: &mut dyn Members, sc: &mut BatchScratch) {
         let (d, n) = (&self.d, m.count());
         let block = |s: usize| &self.streams[s].blocks[l];
-        self.normed_batch(m, |s| (&block(s).ln1, &block(s).qkv), |b| (&b.h, &mut b.qkv), false);
+        let lin = |x: &'w Linear| (&x.w, x.b.as_deref(), 1);
+        self.norm_each(m, |s| &block(s).ln1, |st, s| &st.bufs.h[s]);
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&block(s).qkv), |st, s| &st.own[0].x[s], |o, s, r, y| {
+                o.st.bufs.qkv[s][r].copy_from_slice(y)
+            });
+        }
         for i in 0..n {
             let Member { st, pos, .. } = m.member(i);
             let (b, own) = (&mut st.bufs, &mut st.own[0]);
@@ -101,81 +170,50 @@ impl NativeStep {
                 }
             }
         }
-        self.residual_batch(m, |s| &block(s).proj, |b| (&b.att, &mut b.tmp, &mut b.h));
-        self.normed_batch(m, |s| (&block(s).ln2, &block(s).fc1), |b| (&b.h, &mut b.mlp), true);
-        self.residual_batch(m, |s| &block(s).fc2, |b| (&b.mlp, &mut b.tmp, &mut b.h));
-    }
-
-    /// `out_s = lin_s(norm_s(x_s))` (then GELU) for every member; `io` picks `x` and `out`.
-    fn normed_batch<'w>(
-        &'w self,
-        m: &mut dyn Members,
-        norm_lin: impl Fn(usize) -> (&'w Norm, &'w Linear),
-        io: Pair,
-        gelu: bool,
-    ) {
-        let n = m.count();
-        for i in 0..n {
-            let st = m.member(i).st;
-            let (x, _) = io(&mut st.bufs);
-            for s in 0..N_STREAMS {
-                norm_lin(s).0.run(&x[s], &mut st.own[0].x[s]);
-            }
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&block(s).proj), |st, s| &st.bufs.att[s], residual);
         }
-        let rows = std::array::from_fn(|s| norm_lin(s).1.w.rows);
-        each_unit(rows, self.blocks_of(|s| &norm_lin(s).1.w), |s, r| {
-            let lin = norm_lin(s).1;
-            for i in 0..n {
-                let st = m.member(i).st;
-                let (_, out) = io(&mut st.bufs);
-                let y = &mut out[s][r.clone()];
-                lin.rows(&self.arena, &st.own[0].x[s], r.clone(), y);
-                if gelu {
-                    gelu_erf(y);
-                }
-            }
-        });
-    }
-
-    /// `h_s += lin_s(x_s)` by way of `tmp` for every member; `io` picks `x`, `tmp`, `h`.
-    fn residual_batch<'w>(&'w self, m: &mut dyn Members, lin: impl Fn(usize) -> &'w Linear, io: Triple) {
-        let n = m.count();
-        each_unit(self.d.widths, self.blocks_of(|s| &lin(s).w), |s, r| {
-            for i in 0..n {
-                let (x, tmp, h) = io(&mut m.member(i).st.bufs);
-                let t = &mut tmp[s][r.clone()];
-                lin(s).rows(&self.arena, &x[s], r.clone(), t);
-                add_assign(&mut h[s][r.clone()], t);
-            }
-        });
+        self.norm_each(m, |s| &block(s).ln2, |st, s| &st.bufs.h[s]);
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&block(s).fc1), |st, s| &st.own[0].x[s], |o, s, r, y| {
+                let out = &mut o.st.bufs.mlp[s][r];
+                out.copy_from_slice(y);
+                gelu_erf(out);
+            });
+        }
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&block(s).fc2), |st, s| &st.bufs.mlp[s], residual);
+        }
     }
 
     /// The coordination before a layer, for every member.
-    fn coordinate_batch(&self, co: &Coord, m: &mut dyn Members) {
-        let (d, n, cw) = (&self.d, m.count(), self.d.coord_width);
-        each_unit([cw; N_STREAMS], self.blocks_of(|s| &co.inp[s].w), |s, r| {
-            for i in 0..n {
-                let b = &mut m.member(i).st.bufs;
-                co.inp[s].rows(&self.arena, &b.h[s], r.clone(), &mut b.cp[s * cw + r.start..s * cw + r.end]);
-            }
-        });
+    fn coordinate_batch<'w>(&'w self, co: &'w Coord, m: &mut dyn Members, sc: &mut BatchScratch) {
+        let (n, cw) = (m.count(), self.d.coord_width);
+        let lin = |x: &'w Linear, k: usize| (&x.w, x.b.as_deref(), k);
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&co.inp[s], 1), |st, s| &st.bufs.h[s], |o, s, r, y| {
+                o.st.bufs.cp[s * cw + r.start..s * cw + r.end].copy_from_slice(y)
+            });
+        }
         for i in 0..n {
             let b = &mut m.member(i).st.bufs;
             concat_others(&b.cp, &mut b.ccat, cw);
         }
+        // The shared MLP on each member's four concatenations: `gemm_rows` as the
+        // one-generation step runs it (its kernel, not the GEMV's, sums these rows).
         let layers: [(&Linear, Flat, bool); 3] = [
             (&co.mlp[0], |b| (&b.ccat, &mut b.ch1), true),
             (&co.mlp[1], |b| (&b.ch1, &mut b.ch2), true),
             (&co.mlp[2], |b| (&b.ch2, &mut b.cm), false),
         ];
-        for (lin, io, gelu) in layers {
-            let width = lin.w.rows;
-            each_unit([width, 0, 0, 0], [self.block_of(&lin.w), 1, 1, 1], |_, r| {
+        for (l, io, gelu) in layers {
+            let width = l.w.rows;
+            each_unit(width, self.block_of(&l.w), |r| {
                 for i in 0..n {
                     let st = m.member(i).st;
                     let part = &mut st.own[0].part[..N_STREAMS * r.len()];
                     let (x, out) = io(&mut st.bufs);
-                    gemm_rows(self.arena.mat(&lin.w), x, N_STREAMS, lin.b.as_deref(), r.clone(), part);
+                    gemm_rows(self.arena.mat(&l.w), x, N_STREAMS, l.b.as_deref(), r.clone(), part);
                     for (j, pj) in part.chunks_exact(r.len()).enumerate() {
                         let dst = &mut out[j * width + r.start..j * width + r.end];
                         dst.copy_from_slice(pj);
@@ -186,14 +224,14 @@ impl NativeStep {
                 }
             });
         }
-        each_unit(d.widths, self.blocks_of(|s| &co.out[s].w), |s, r| {
-            for i in 0..n {
-                let b = &mut m.member(i).st.bufs;
+        for s in 0..N_STREAMS {
+            self.product(m, sc, s, lin(&co.out[s], 1), |st, s| st.bufs.cm.chunks_exact(st.bufs.cm.len() / N_STREAMS).nth(s).unwrap_or_default(), |o, s, r, y| {
+                let b = &mut o.st.bufs;
                 let t = &mut b.tmp[s][r.clone()];
-                co.out[s].rows(&self.arena, &b.cm[s * cw..(s + 1) * cw], r.clone(), t);
-                add_assign(t, &b.h[s][r.clone()]);
-            }
-        });
+                t.copy_from_slice(y);
+                add_assign(t, &b.h[s][r]);
+            });
+        }
         for i in 0..n {
             let b = &mut m.member(i).st.bufs;
             for s in 0..N_STREAMS {
@@ -203,17 +241,29 @@ impl NativeStep {
     }
 }
 
-/// Calls `f(s, rows)` for the blocks of `block[s]` rows of `rows[s]`, stream after stream:
-/// the units of the one-generation step, so every row block starts where it starts there.
-fn each_unit(rows: [usize; N_STREAMS], block: [usize; N_STREAMS], mut f: impl FnMut(usize, Range<usize>)) {
-    for s in 0..N_STREAMS {
-        let b = block[s].max(1);
-        let mut r0 = 0;
-        while r0 < rows[s] {
-            let r1 = (r0 + b).min(rows[s]);
-            f(s, r0..r1);
-            r0 = r1;
-        }
+/// Where a product's outputs go: a member's state and logits.
+struct Outs<'a> {
+    st: &'a mut NativeStepState,
+    logits: &'a mut [Vec<f32>; N_STREAMS],
+}
+
+/// A block's residual product: `tmp = y; h += tmp` (the one-generation step's order).
+fn residual(o: &mut Outs<'_>, s: usize, r: Range<usize>, y: &[f32]) {
+    let b = &mut o.st.bufs;
+    let t = &mut b.tmp[s][r.clone()];
+    t.copy_from_slice(y);
+    add_assign(&mut b.h[s][r], t);
+}
+
+/// Calls `f(rows)` for the blocks of `block` rows of `rows`: the units of the
+/// one-generation step, so every row block starts where it starts there (a multiple of 4).
+fn each_unit(rows: usize, block: usize, mut f: impl FnMut(Range<usize>)) {
+    let b = block.max(1);
+    let mut r0 = 0;
+    while r0 < rows {
+        let r1 = (r0 + b).min(rows);
+        f(r0..r1);
+        r0 = r1;
     }
 }
 
@@ -279,11 +329,12 @@ mod tests {
             let mut states: Vec<_> = (0..n).map(|_| m.new_state()).collect();
             let mut logits: Vec<_> = (0..n).map(|_| fresh()).collect();
             let mut seen = vec![Vec::new(); n];
+            let mut sc = m.batch_scratch(n);
             for t in 0..d.slots + n {
                 let ids: Vec<usize> = (0..n).filter(|&i| t >= i && t - i < steps(i)).collect();
                 let pos: Vec<usize> = ids.iter().map(|&i| t - i).collect();
                 let (states, logits, emb, vocab) = (&mut states[..], &mut logits[..], &emb[..], d.vocab);
-                m.step_batch(&mut Batch { states, logits, ids: &ids, pos: &pos, emb, vocab });
+                m.step_batch(&mut Batch { states, logits, ids: &ids, pos: &pos, emb, vocab }, &mut sc);
                 for &i in &ids {
                     seen[i].push(bits(&logits[i]));
                 }
