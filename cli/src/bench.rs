@@ -132,6 +132,9 @@ pub struct Args {
     /// Streams started among each crowd for the time to first frame.
     #[arg(long, value_name = "N", default_value_t = 20)]
     probes: usize,
+    /// The crowd bench without the per-stream side (no ratio): profiling the scheduler.
+    #[arg(long)]
+    crowd_only: bool,
     /// Crowd scheduler threads (default: the engine's, cores minus one).
     #[arg(long, value_name = "N", value_parser = at_least_one)]
     scheduler_threads: Option<usize>,
@@ -153,6 +156,7 @@ pub fn run(opts: Args) -> Result<(), String> {
             probes: opts.probes,
             steps: opts.steps,
             threads: opts.scheduler_threads,
+            crowd_only: opts.crowd_only,
             bundle: opts.bundle.clone(),
             runtime: runtime_options(&opts)?,
         };

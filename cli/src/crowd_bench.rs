@@ -45,6 +45,7 @@ pub struct Crowd {
     pub probes: usize,
     pub steps: Option<usize>,
     pub threads: Option<usize>,
+    pub crowd_only: bool,
     pub bundle: Option<std::path::PathBuf>,
     pub runtime: RuntimeOptions,
 }
@@ -69,7 +70,7 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
     let mut runs: Vec<[Vec<Run>; 2]> = c.counts.iter().map(|_| [Vec::new(), Vec::new()]).collect();
     for round in 0..c.rounds {
         for (i, &n) in c.counts.iter().enumerate() {
-            for (k, e) in [&crowd, &per_stream].into_iter().enumerate() {
+            for (k, e) in [&crowd, &per_stream].into_iter().enumerate().take(if c.crowd_only { 1 } else { 2 }) {
                 let r = crowd_run(e, n, steps, c.probes, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
                 runs[i][k].push(r);
             }
