@@ -26,9 +26,6 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
-// Most crowd scheduler threads (`RuntimeOptions::scheduler_threads`).
-#define MAX_SCHEDULER_THREADS 64
-
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -92,6 +89,12 @@
 
 // One worker thread per stream (each step and decode may use two threads).
 #define CG_SCHEDULING_PER_STREAM 2
+
+// Most crowd scheduler threads (`cg_engine_config.scheduler_threads`).
+#define CG_MAX_SCHEDULER_THREADS 64
+
+// Most tokens in one decode (`cg_engine_config.decode_group`).
+#define CG_MAX_DECODE_GROUP 8
 
 // Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
 #define CG_USE_DEFAULT_SEED (1 << 0)

@@ -102,7 +102,8 @@ impl Scheduling {
     }
 }
 
-/// Most crowd scheduler threads (`RuntimeOptions::scheduler_threads`).
+/// Most crowd scheduler threads (`RuntimeOptions::scheduler_threads`). (C: `CG_MAX_SCHEDULER_THREADS`.)
+/// cbindgen:ignore
 pub const MAX_SCHEDULER_THREADS: usize = 64;
 
 /// Most tokens one grouped decode takes (`RuntimeOptions::decode_group`).

@@ -106,8 +106,7 @@ impl Scheduler {
                 stop: AtomicBool::new(false),
             });
             let round = Round::new(Arc::clone(&shared), Arc::clone(&live), max_streams, pipeline);
-            let spawned =
-                thread::Builder::new().name(format!("comgrasp-crowd-{i}")).spawn(move || round.run());
+            let spawned = thread::Builder::new().name(format!("comgrasp-crowd-{i}")).spawn(move || round.run());
             let mut shard = Shard { shared, thread: None };
             match spawned {
                 Ok(j) => shard.thread = Some(j),
@@ -142,9 +141,11 @@ impl Scheduler {
             .iter()
             .min_by_key(|s| s.shared.load.load(Ordering::Relaxed))
             .ok_or_else(|| Error::WrongState("the scheduler has no thread".into()))?;
-        let thread = shard.thread.as_ref().map(|j| j.thread().clone()).ok_or_else(|| {
-            Error::WrongState("the scheduler's thread is gone".into())
-        })?;
+        let thread = shard
+            .thread
+            .as_ref()
+            .map(|j| j.thread().clone())
+            .ok_or_else(|| Error::WrongState("the scheduler's thread is gone".into()))?;
         let mut inbox = shard.shared.inbox.lock();
         if inbox.len() >= self.max_streams {
             return Err(Error::LimitReached("the scheduler's inbox is full".into()));
@@ -358,6 +359,8 @@ impl Member {
         if self.sent == self.out.len() {
             self.out.clear();
             self.sent = 0;
+            // no more wake-ups needed from the host's polls
+            self.shared.room_taken();
         }
         n > 0
     }

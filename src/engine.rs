@@ -1,5 +1,8 @@
 //! The [`Engine`]: a loaded model bundle plus configuration, from which any number of
-//! [`Stream`]s are started (each with its own worker thread and ring buffer).
+//! [`Stream`]s are started, each with its own ring buffer; their generations run on the
+//! engine's crowd scheduler ([`crate::crowd`], the default) or on a worker thread each
+//! (`RuntimeOptions::scheduling`; an engine of [`Engine::with_source_factory`] always uses
+//! worker threads). Below, "worker" is either.
 //!
 //! Ownership and lifetime (why it is safe to drop an engine with live streams):
 //! * The engine owns the *source factory* (for the real pipeline: an `Arc` of the loaded

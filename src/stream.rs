@@ -160,6 +160,11 @@ impl StreamShared {
         fence(Ordering::SeqCst);
     }
 
+    /// The producer that asked for room no longer waits for it.
+    pub(crate) fn room_taken(&self) {
+        self.producer_parked.store(false, Ordering::SeqCst);
+    }
+
     /// Called by the worker after every push: cheap unless a consumer is blocked in `wait`.
     pub(crate) fn wake_consumer_if_waiting(&self) {
         fence(Ordering::SeqCst);

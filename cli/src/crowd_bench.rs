@@ -122,7 +122,11 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
 pub fn print(r: &Value) {
     println!(
         "crowd: {} frames per stream at {} fps, {} rounds, crowd scheduler threads {}, peak RSS {:.0} MiB",
-        r["frames_per_stream"], r["fps"], r["rounds"], r["scheduler_threads"], r["rss_peak_mib"].as_f64().unwrap_or(0.0)
+        r["frames_per_stream"],
+        r["fps"],
+        r["rounds"],
+        r["scheduler_threads"],
+        r["rss_peak_mib"].as_f64().unwrap_or(0.0)
     );
     println!(
         "{:>7} | {:>22} | {:>22} | {:>22} | {:>10} | {:>10}",
@@ -143,12 +147,7 @@ pub fn print(r: &Value) {
             f(&c["rss_live_mib"]),
             f(&row["crowd_over_per_stream"]),
         );
-        println!(
-            "{:>7} | per-stream TTFF p50/p99 {:.1} / {:.1} ms",
-            "",
-            f(&p["ttff_p50_ms"]),
-            f(&p["ttff_p99_ms"])
-        );
+        println!("{:>7} | per-stream TTFF p50/p99 {:.1} / {:.1} ms", "", f(&p["ttff_p50_ms"]), f(&p["ttff_p99_ms"]));
     }
 }
 

@@ -118,9 +118,12 @@ pub const CG_SCHEDULING_CROWD: u32 = 1;
 /// One worker thread per stream (each step and decode may use two threads).
 pub const CG_SCHEDULING_PER_STREAM: u32 = 2;
 /// Most crowd scheduler threads (`cg_engine_config.scheduler_threads`).
-pub const CG_MAX_SCHEDULER_THREADS: u32 = crate::config::MAX_SCHEDULER_THREADS as u32;
+pub const CG_MAX_SCHEDULER_THREADS: u32 = 64;
+const _: () = assert!(CG_MAX_SCHEDULER_THREADS as usize == crate::config::MAX_SCHEDULER_THREADS);
 /// Most tokens in one decode (`cg_engine_config.decode_group`).
-pub const CG_MAX_DECODE_GROUP: u32 = crate::config::MAX_DECODE_GROUP as u32;
+pub const CG_MAX_DECODE_GROUP: u32 = 8;
+// (a literal, so cbindgen writes it into the header)
+const _: () = assert!(CG_MAX_DECODE_GROUP as usize == crate::config::MAX_DECODE_GROUP);
 
 /// Set in `cg_stream_config.use_defaults`: ignore `seed`, use the bundle's default seed.
 pub const CG_USE_DEFAULT_SEED: u32 = 1 << 0;
@@ -340,11 +343,13 @@ pub(crate) unsafe fn engine_config_from_c(cfg: *const cg_engine_config) -> Resul
         ]
     })?;
     // Appended in 0.4 (a shorter host struct left our defaults in the copy). SAFETY: plain integers.
-    let (scheduling, scheduler_threads) = unsafe {
-        (std::ptr::addr_of!((*p).scheduling).read(), std::ptr::addr_of!((*p).scheduler_threads).read())
-    };
+    let (scheduling, scheduler_threads) =
+        unsafe { (std::ptr::addr_of!((*p).scheduling).read(), std::ptr::addr_of!((*p).scheduler_threads).read()) };
     let invalid_field = |field: &str, v: u32, want: &str| {
-        Failure::new(cg_status::CG_ERR_INVALID_ARGUMENT, format_args!("cg_engine_config.{field} is {v}, expected {want}"))
+        Failure::new(
+            cg_status::CG_ERR_INVALID_ARGUMENT,
+            format_args!("cg_engine_config.{field} is {v}, expected {want}"),
+        )
     };
     let runtime = RuntimeOptions {
         scheduling: match scheduling {

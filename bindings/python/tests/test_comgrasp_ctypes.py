@@ -47,7 +47,8 @@ def test_layout_matches_c():
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
     assert ctypes.sizeof(cg.CgStreamConfig) == 112
-    assert ctypes.sizeof(cg.CgEngineConfig) == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
+    assert ctypes.sizeof(cg.CgEngineConfig) == (80 if ctypes.sizeof(ctypes.c_void_p) == 8 else 72)
+    assert cg.CgEngineConfig.scheduling.offset == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
     assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)
     assert cg.CgEngineConfig.step_backend.offset == (40 if ctypes.sizeof(ctypes.c_void_p) == 8 else 32)
     assert ctypes.sizeof(cg.CgSubscriberConfig) == 16 and ctypes.sizeof(CgStreamEvent) == 280

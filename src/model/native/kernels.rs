@@ -731,7 +731,14 @@ fn gemm_with(isa: Isa, m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>,
 /// of many generations needs. With AVX-512 each weight row is read and widened once per
 /// group of up to 6 inputs (the int8 -> f32 conversion, not the memory, bounds a GEMV from
 /// cache); otherwise it is `n` GEMVs.
-pub(crate) fn gemv_rows_many(m: MatRef<'_>, x: &[f32], n: usize, bias: Option<&[f32]>, rows: Range<usize>, y: &mut [f32]) {
+pub(crate) fn gemv_rows_many(
+    m: MatRef<'_>,
+    x: &[f32],
+    n: usize,
+    bias: Option<&[f32]>,
+    rows: Range<usize>,
+    y: &mut [f32],
+) {
     let (cols, part, isa) = (m.cols(), rows.len(), isa());
     assert!(
         x.len() == n * cols && rows.end <= m.rows() && y.len() == n * part,

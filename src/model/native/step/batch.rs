@@ -76,8 +76,8 @@ impl NativeStep {
         for i in 0..n {
             let Member { st, tokens, pos, text_emb, .. } = m.member(i);
             self.check_state(st);
-            for s in 0..N_STREAMS {
-                let (sw, w, h) = (&self.streams[s], d.widths[s], &mut st.bufs.h[s]);
+            for (s, (sw, h)) in self.streams.iter().zip(&mut st.bufs.h).enumerate() {
+                let w = d.widths[s];
                 if pos == 0 {
                     sw.cond.rows(&self.arena, text_emb, 0..w, h);
                 } else {
@@ -95,9 +95,14 @@ impl NativeStep {
         self.norm_each(m, |s| &self.streams[s].ln_f, |st, s| &st.bufs.h[s]);
         for s in 0..N_STREAMS {
             let head = &self.streams[s].head;
-            self.product(m, sc, s, (head, None, 1), |st, s| &st.own[0].x[s], |o, s, r, y| {
-                o.logits[s][r].copy_from_slice(y)
-            });
+            self.product(
+                m,
+                sc,
+                s,
+                (head, None, 1),
+                |st, s| &st.own[0].x[s],
+                |o, s, r, y| o.logits[s][r].copy_from_slice(y),
+            );
         }
     }
 
@@ -150,9 +155,14 @@ impl NativeStep {
         let lin = |x: &'w Linear| (&x.w, x.b.as_deref(), 1);
         self.norm_each(m, |s| &block(s).ln1, |st, s| &st.bufs.h[s]);
         for s in 0..N_STREAMS {
-            self.product(m, sc, s, lin(&block(s).qkv), |st, s| &st.own[0].x[s], |o, s, r, y| {
-                o.st.bufs.qkv[s][r].copy_from_slice(y)
-            });
+            self.product(
+                m,
+                sc,
+                s,
+                lin(&block(s).qkv),
+                |st, s| &st.own[0].x[s],
+                |o, s, r, y| o.st.bufs.qkv[s][r].copy_from_slice(y),
+            );
         }
         for i in 0..n {
             let Member { st, pos, .. } = m.member(i);
@@ -162,7 +172,8 @@ impl NativeStep {
                 let (q, kv) = b.qkv[s].split_at(w);
                 let (k, v) = kv.split_at(w);
                 let (ck, cv) = (layer(&mut b.k[s], l, d.n_layers), layer(&mut b.v[s], l, d.n_layers));
-                let parts = ck.chunks_exact_mut(region).zip(cv.chunks_exact_mut(region)).zip(b.att[s].chunks_exact_mut(hd));
+                let parts =
+                    ck.chunks_exact_mut(region).zip(cv.chunks_exact_mut(region)).zip(b.att[s].chunks_exact_mut(hd));
                 for (head, ((ck, cv), out)) in parts.enumerate() {
                     let hs = head * hd..(head + 1) * hd;
                     let qkv = [&q[hs.clone()], &k[hs.clone()], &v[hs]];
@@ -175,11 +186,18 @@ impl NativeStep {
         }
         self.norm_each(m, |s| &block(s).ln2, |st, s| &st.bufs.h[s]);
         for s in 0..N_STREAMS {
-            self.product(m, sc, s, lin(&block(s).fc1), |st, s| &st.own[0].x[s], |o, s, r, y| {
-                let out = &mut o.st.bufs.mlp[s][r];
-                out.copy_from_slice(y);
-                gelu_erf(out);
-            });
+            self.product(
+                m,
+                sc,
+                s,
+                lin(&block(s).fc1),
+                |st, s| &st.own[0].x[s],
+                |o, s, r, y| {
+                    let out = &mut o.st.bufs.mlp[s][r];
+                    out.copy_from_slice(y);
+                    gelu_erf(out);
+                },
+            );
         }
         for s in 0..N_STREAMS {
             self.product(m, sc, s, lin(&block(s).fc2), |st, s| &st.bufs.mlp[s], residual);
@@ -191,9 +209,14 @@ impl NativeStep {
         let (n, cw) = (m.count(), self.d.coord_width);
         let lin = |x: &'w Linear, k: usize| (&x.w, x.b.as_deref(), k);
         for s in 0..N_STREAMS {
-            self.product(m, sc, s, lin(&co.inp[s], 1), |st, s| &st.bufs.h[s], |o, s, r, y| {
-                o.st.bufs.cp[s * cw + r.start..s * cw + r.end].copy_from_slice(y)
-            });
+            self.product(
+                m,
+                sc,
+                s,
+                lin(&co.inp[s], 1),
+                |st, s| &st.bufs.h[s],
+                |o, s, r, y| o.st.bufs.cp[s * cw + r.start..s * cw + r.end].copy_from_slice(y),
+            );
         }
         for i in 0..n {
             let b = &mut m.member(i).st.bufs;
@@ -225,12 +248,19 @@ impl NativeStep {
             });
         }
         for s in 0..N_STREAMS {
-            self.product(m, sc, s, lin(&co.out[s], 1), |st, s| st.bufs.cm.chunks_exact(st.bufs.cm.len() / N_STREAMS).nth(s).unwrap_or_default(), |o, s, r, y| {
-                let b = &mut o.st.bufs;
-                let t = &mut b.tmp[s][r.clone()];
-                t.copy_from_slice(y);
-                add_assign(t, &b.h[s][r]);
-            });
+            self.product(
+                m,
+                sc,
+                s,
+                lin(&co.out[s], 1),
+                |st, s| st.bufs.cm.chunks_exact(st.bufs.cm.len() / N_STREAMS).nth(s).unwrap_or_default(),
+                |o, s, r, y| {
+                    let b = &mut o.st.bufs;
+                    let t = &mut b.tmp[s][r.clone()];
+                    t.copy_from_slice(y);
+                    add_assign(t, &b.h[s][r]);
+                },
+            );
         }
         for i in 0..n {
             let b = &mut m.member(i).st.bufs;
@@ -317,11 +347,11 @@ mod tests {
             let bits = |v: &[Vec<f32>]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
             let steps = |i: usize| d.slots - i;
             let mut alone = Vec::new();
-            for i in 0..n {
+            for (i, e) in emb.iter().enumerate() {
                 let (mut st, mut lg) = (m.new_state(), fresh());
                 let mut seen = Vec::new();
                 for k in 0..steps(i) {
-                    m.step_solo(&mut st, tokens(k, i, &d.vocab), k, &emb[i], &mut lg);
+                    m.step_solo(&mut st, tokens(k, i, &d.vocab), k, e, &mut lg);
                     seen.push(bits(&lg));
                 }
                 alone.push((seen, bits(&st.bufs.k), bits(&st.bufs.v)));
