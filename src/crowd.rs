@@ -27,8 +27,11 @@
 //! a host's poll that frees room, a cancel and a new stream unpark it.
 //!
 //! **Threads.** `RuntimeOptions::scheduler_threads` (default: the machine's cores minus
-//! one, at least one, so a game keeps a core). A lone stream on the whole scheduler runs
-//! its step and decode with the models' helper threads too, as on its own worker thread.
+//! one, at least one, so a game keeps a core). A lone stream on the whole scheduler runs as
+//! on its own worker thread (`ChunkSource::next_chunk`: its step and decode with the
+//! models' helper threads too, its next steps overlapped with its decode), one call per
+//! round; the generation's state is the same either way, so it joins batches again when a
+//! second stream arrives.
 //!
 //! **Memory.** A stream's model state (KV cache, decoder context, decode buffer) is
 //! allocated once, at its first step; the shard's lists are allocated at engine creation
@@ -249,6 +252,12 @@ impl Round {
         for m in &mut self.members {
             progressed |= m.flush();
         }
+        if let [m] = &mut self.members[..] {
+            if self.live.load(Ordering::Relaxed) == 1 {
+                m.check_done();
+                return progressed | alone(m);
+            }
+        }
         self.batch.clear();
         for (i, m) in self.members.iter().enumerate() {
             if m.runnable() && m.gen.need() == Need::Step {
@@ -449,6 +458,22 @@ fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize, scratch: &m
             Ok(Err(e)) => m.fail(e),
             Err(p) => m.fail(Error::Panic(panic_message(&*p))),
         }
+    }
+    true
+}
+
+/// The only stream on the whole scheduler: one call of the worker thread's loop
+/// (`ChunkSource::next_chunk`: its steps and decode on the models' helper threads too, the
+/// next steps overlapped with the decode), the same bits as a round's step and decode.
+fn alone(m: &mut Member) -> bool {
+    if !m.runnable() || m.gen.need() == Need::Done {
+        return false;
+    }
+    let from = m.out.len();
+    match catch_unwind(AssertUnwindSafe(|| m.gen.next_chunk(&mut m.out))) {
+        Ok(Ok(_)) => m.produced(from),
+        Ok(Err(e)) => m.fail(e),
+        Err(p) => m.fail(Error::Panic(panic_message(&*p))),
     }
     true
 }

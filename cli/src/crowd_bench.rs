@@ -7,7 +7,8 @@
 //! * **total RTF**: frames of all N streams ÷ the wall time from the first start to the
 //!   last frame ÷ fps (the host drains every ring as fast as it can);
 //! * **slowest RTF**: the smallest of each stream's frames ÷ (its last frame - its start) ÷ fps;
-//! * **TTFF** p50/p99: probe streams started one after the other while the crowd runs
+//! * **TTFF** p50/p99 (a second run of the same crowd, so the probes' work does not count
+//!   against the throughput): probe streams started one after the other while the crowd runs
 //!   (from the moment every crowd stream has produced a frame), start -> first frame
 //!   (the host sleeps 0.2 ms when a sweep over the rings found nothing, as a game would
 //!   rather than spin);
@@ -64,14 +65,20 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
         .map_err(err)
     };
     let crowd = engine(Scheduling::Crowd)?;
-    let per_stream = engine(Scheduling::PerStream)?;
+    let per_stream = if c.crowd_only { None } else { Some(engine(Scheduling::PerStream)?) };
     let m = &crowd.bundle().ok_or("no bundle")?.manifest;
     let (fps, steps) = (m.fps, c.steps.unwrap_or(16).min(m.l_max));
     let mut runs: Vec<[Vec<Run>; 2]> = c.counts.iter().map(|_| [Vec::new(), Vec::new()]).collect();
     for round in 0..c.rounds {
         for (i, &n) in c.counts.iter().enumerate() {
-            for (k, e) in [&crowd, &per_stream].into_iter().enumerate().take(if c.crowd_only { 1 } else { 2 }) {
-                let r = crowd_run(e, n, steps, c.probes, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
+            for (k, e) in std::iter::once(&crowd).chain(&per_stream).enumerate() {
+                // throughput alone, then the time to first frame of probes among the crowd
+                // (the probes' own work would otherwise count against small crowds)
+                let mut r = crowd_run(e, n, steps, 0, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
+                if c.probes > 0 {
+                    let p = crowd_run(e, n, steps, c.probes, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
+                    r.ttff_ms = p.ttff_ms;
+                }
                 runs[i][k].push(r);
             }
         }
