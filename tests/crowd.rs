@@ -168,3 +168,29 @@ fn dropping_the_engine_cancels_the_crowd() {
         assert!(matches!(r, PollResult::Cancelled | PollResult::End), "{r:?}");
     }
 }
+
+/// A prompt many streams share is encoded once: the pipeline keeps the embeddings of its
+/// last `KEEP_EMBEDDINGS` prompts (the same values the encoder gives), least recently used
+/// forgotten first.
+#[test]
+fn repeated_prompts_are_encoded_once() {
+    use comgrasp::generator::{Pipeline, KEEP_EMBEDDINGS};
+    use std::sync::Arc;
+    let config = EngineConfig::default();
+    let bundle = comgrasp::Bundle::select(None, &config.runtime).unwrap();
+    let pipe = Pipeline::new(Arc::clone(&bundle), &config).unwrap();
+    let a = pipe.embedding(PROMPTS[0]).unwrap();
+    assert_eq!(&a[..], &bundle.text.embed(PROMPTS[0]).unwrap()[..]);
+    assert!(Arc::ptr_eq(&a, &pipe.embedding(PROMPTS[0]).unwrap()), "kept");
+    let b = pipe.embedding(PROMPTS[1]).unwrap();
+    assert_ne!(&a[..], &b[..]);
+    // PROMPTS[0] used again (now the newest), then enough others to forget PROMPTS[1] only
+    pipe.embedding(PROMPTS[0]).unwrap();
+    for i in 0..KEEP_EMBEDDINGS - 1 {
+        pipe.embedding(&format!("Someone picks up the mug, take {i}.")).unwrap();
+    }
+    assert!(Arc::ptr_eq(&a, &pipe.embedding(PROMPTS[0]).unwrap()), "the most recently used stays");
+    let b2 = pipe.embedding(PROMPTS[1]).unwrap();
+    assert!(!Arc::ptr_eq(&b, &b2), "the least recently used was forgotten");
+    assert_eq!(&b[..], &b2[..]);
+}
