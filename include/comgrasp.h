@@ -26,9 +26,6 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
-// Prompts whose embeddings a pipeline keeps.
-#define KEEP_EMBEDDINGS 64
-
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 

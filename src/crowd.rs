@@ -229,7 +229,18 @@ impl Round {
                 self.retire();
                 return;
             }
-            let progressed = self.round();
+            // Generation errors and panics are caught per stream inside the round; this
+            // catches the rest, so no stream is left waiting for a thread that died.
+            let progressed = match catch_unwind(AssertUnwindSafe(|| self.round())) {
+                Ok(p) => p,
+                Err(p) => {
+                    let msg = panic_message(&*p);
+                    for m in &mut self.members {
+                        m.fail(Error::Panic(format!("crowd scheduler: {msg}")));
+                    }
+                    true
+                }
+            };
             self.retire();
             if !progressed && self.sh.inbox.lock().is_empty() {
                 // Unparked by a poll that frees room, a cancel, a new stream or the stop.
