@@ -309,27 +309,20 @@ impl Round {
         }
         let first = self.take_new();
         self.fresh.clear();
-        self.fresh.extend(first..self.members.len());
-        for &i in &self.fresh {
-            self.members[i].flush();
-        }
-        let fresh = std::mem::take(&mut self.fresh);
-        let stepping: usize = fresh.iter().filter(|&&i| self.members[i].gen.need() == Need::Step).count();
-        if stepping == fresh.len() {
-            step(&mut self.members, &fresh[..fresh.len().min(MAX_BATCH)], &self.live, &mut self.scratch);
-        } else {
-            for &i in &fresh {
-                if self.members[i].gen.need() == Need::Step {
-                    step(&mut self.members, &[i], &self.live, &mut self.scratch);
-                }
+        for (i, m) in self.members.iter_mut().enumerate().skip(first) {
+            m.flush();
+            if m.runnable() && m.gen.need() == Need::Step {
+                self.fresh.push(i);
             }
         }
-        for &i in &fresh {
-            if self.members[i].runnable() && matches!(self.members[i].gen.need(), Need::Decode | Need::Finish) {
-                decode(&mut self.members[i], &self.live);
+        for part in self.fresh.chunks(MAX_BATCH) {
+            step(&mut self.members, part, &self.live, &mut self.scratch);
+        }
+        for m in &mut self.members[first..] {
+            if m.runnable() && matches!(m.gen.need(), Need::Decode | Need::Finish) {
+                decode(m, &self.live);
             }
         }
-        self.fresh = fresh;
     }
 
     /// Members that were cancelled, failed or are done (every frame in the ring) leave:

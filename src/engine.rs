@@ -174,22 +174,19 @@ impl Engine {
             Box::new(StreamPublication::new(Arc::clone(p), id, text, fps))
         });
         let (ring, set) = (self.config.ring_capacity, Arc::clone(&self.streams));
-        let stream = match &self.crowd {
+        let (mut stream, object) = match &self.crowd {
             Some((scheduler, pipeline)) => {
                 let gen = Generator::new(Arc::clone(pipeline), &request)?;
                 let object = gen.object();
-                let mut stream = scheduler.start(gen, shared, ring, set, sink)?;
-                stream.set_object(object);
-                stream
+                (scheduler.start(gen, shared, ring, set, sink)?, object)
             }
             None => {
                 let source = (self.factory)(&request)?;
                 let object = source.object();
-                let mut stream = Stream::spawn(shared, source, ring, set, sink)?;
-                stream.set_object(object);
-                stream
+                (Stream::spawn(shared, source, ring, set, sink)?, object)
             }
         };
+        stream.set_object(object);
         // From here on the stream removes itself from the set when it is dropped.
         reservation.keep();
         Ok(stream)

@@ -415,13 +415,19 @@ impl Generator {
         })
     }
 
-    /// Runs step `k` on the codes of step `k - 1` and samples its codes; `None` when the
-    /// sequence ends at `k`.
-    fn sample(&mut self, k: usize, prev: [i64; N_STREAMS]) -> Result<Option<[i64; N_STREAMS]>> {
-        let b = &self.pipe.bundle;
+    /// The prompt's embedding, on the first step (from the pipeline's kept prompts).
+    fn encode_text(&mut self) -> Result<()> {
         if self.text_emb.is_none() {
             self.text_emb = Some(self.pipe.embedding(&self.text)?);
         }
+        Ok(())
+    }
+
+    /// Runs step `k` on the codes of step `k - 1` and samples its codes; `None` when the
+    /// sequence ends at `k`.
+    fn sample(&mut self, k: usize, prev: [i64; N_STREAMS]) -> Result<Option<[i64; N_STREAMS]>> {
+        self.encode_text()?;
+        let b = &self.pipe.bundle;
         let emb = self.text_emb.as_deref().unwrap_or_default();
         let state = self.state.get_or_insert_with(|| State::new(b));
         let logits = b.step.step(&mut state.step, prev, k, emb)?;
@@ -707,10 +713,8 @@ impl Generator {
     /// The token step this generation needs ([`Need::Step`]), checked: the first one
     /// encodes the text and makes the model state.
     pub(crate) fn step_job(&mut self) -> Result<StepJob<'_>> {
+        self.encode_text()?;
         let pipe = Arc::clone(&self.pipe);
-        if self.text_emb.is_none() {
-            self.text_emb = Some(pipe.embedding(&self.text)?);
-        }
         let j = self.job();
         pipe.bundle.step.check(j.state, j.tokens, j.pos, j.text_emb)?;
         Ok(j)

@@ -296,19 +296,22 @@ impl StepModel {
     /// `scratch`: from [`batch_scratch`](Self::batch_scratch), for at least `jobs.count()`.
     pub(crate) fn step_batch_checked(&self, jobs: &mut dyn StepJobs, scratch: &mut StepScratch) -> Result<()> {
         match (&self.imp, &mut scratch.0) {
-            (Imp::Native(n), Some(sc)) => n.step_batch(&mut NativeJobs(jobs), sc),
+            (Imp::Native(n), Some(sc)) => {
+                n.step_batch(&mut NativeJobs(jobs), sc);
+                for i in 0..jobs.count() {
+                    let j = jobs.job(i);
+                    // Rows after `pos` (from an earlier, longer run) are stale now.
+                    j.state.filled = j.pos + 1;
+                }
+            }
             (Imp::Native(_), None) => return Err(Error::WrongState("step scratch of another model".into())),
+            // (run_checked sets `filled` itself)
             (Imp::Tract(_), _) => {
                 for i in 0..jobs.count() {
                     let j = jobs.job(i);
                     self.run_checked(j.state, j.tokens, j.pos, j.text_emb, true)?;
                 }
             }
-        }
-        for i in 0..jobs.count() {
-            let j = jobs.job(i);
-            // Rows after `pos` (from an earlier, longer run) are stale now.
-            j.state.filled = j.pos + 1;
         }
         Ok(())
     }

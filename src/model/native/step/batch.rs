@@ -148,22 +148,42 @@ impl NativeStep {
         }
     }
 
+    /// `out_s = lin_s(norm_s(h_s))` (then GELU) for every member: the one-generation
+    /// step's `normed`.
+    fn normed_batch<'w>(
+        &'w self,
+        m: &mut dyn Members,
+        sc: &mut BatchScratch,
+        norm_lin: impl Fn(usize) -> (&'w Norm, &'w Linear),
+        out: for<'a> fn(&'a mut Bufs, usize) -> &'a mut [f32],
+        gelu: bool,
+    ) {
+        self.norm_each(m, |s| norm_lin(s).0, |st, s| &st.bufs.h[s]);
+        for s in 0..N_STREAMS {
+            let lin = norm_lin(s).1;
+            self.product(
+                m,
+                sc,
+                s,
+                (&lin.w, lin.b.as_deref(), 1),
+                |st, s| &st.own[0].x[s],
+                |o, s, r, y| {
+                    let dst = &mut out(&mut o.st.bufs, s)[r];
+                    dst.copy_from_slice(y);
+                    if gelu {
+                        gelu_erf(dst);
+                    }
+                },
+            );
+        }
+    }
+
     /// Layer `l`'s blocks of every member.
     fn blocks_batch<'w>(&'w self, l: usize, m: &mut dyn Members, sc: &mut BatchScratch) {
         let (d, n) = (&self.d, m.count());
         let block = |s: usize| &self.streams[s].blocks[l];
         let lin = |x: &'w Linear| (&x.w, x.b.as_deref(), 1);
-        self.norm_each(m, |s| &block(s).ln1, |st, s| &st.bufs.h[s]);
-        for s in 0..N_STREAMS {
-            self.product(
-                m,
-                sc,
-                s,
-                lin(&block(s).qkv),
-                |st, s| &st.own[0].x[s],
-                |o, s, r, y| o.st.bufs.qkv[s][r].copy_from_slice(y),
-            );
-        }
+        self.normed_batch(m, sc, |s| (&block(s).ln1, &block(s).qkv), |b, s| &mut b.qkv[s], false);
         for i in 0..n {
             let Member { st, pos, .. } = m.member(i);
             let (b, own) = (&mut st.bufs, &mut st.own[0]);
@@ -184,21 +204,7 @@ impl NativeStep {
         for s in 0..N_STREAMS {
             self.product(m, sc, s, lin(&block(s).proj), |st, s| &st.bufs.att[s], residual);
         }
-        self.norm_each(m, |s| &block(s).ln2, |st, s| &st.bufs.h[s]);
-        for s in 0..N_STREAMS {
-            self.product(
-                m,
-                sc,
-                s,
-                lin(&block(s).fc1),
-                |st, s| &st.own[0].x[s],
-                |o, s, r, y| {
-                    let out = &mut o.st.bufs.mlp[s][r];
-                    out.copy_from_slice(y);
-                    gelu_erf(out);
-                },
-            );
-        }
+        self.normed_batch(m, sc, |s| (&block(s).ln2, &block(s).fc1), |b, s| &mut b.mlp[s], true);
         for s in 0..N_STREAMS {
             self.product(m, sc, s, lin(&block(s).fc2), |st, s| &st.bufs.mlp[s], residual);
         }
