@@ -59,7 +59,9 @@ const REACH_MISS: f64 = 0.02;
 /// A grasp puts the hand's nearest joint this far off the object's surface (its box when
 /// the surface is unknown), m.
 pub const GRIP_GAP: f64 = 0.005;
-/// Bisection steps of the grip distance (within ~4 µm of the longest grip).
+/// Steps of the grip distance's scan from outside in, then of its bisection (within
+/// ~0.3 µm of the first touch).
+const GRIP_SCAN_STEPS: u32 = 24;
 const GRIP_SEARCH_STEPS: u32 = 16;
 /// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
 pub const GRIP_MARGIN: f64 = 0.12;
@@ -70,6 +72,8 @@ pub const MAX_BOW: f64 = 0.6;
 const BOW_REACH: f64 = 0.94;
 /// Speed at which the bow fades once a reach is over, rad/s.
 const BOW_FADE: f64 = 0.5;
+/// Fastest the bow changes during a reach, rad/s (its target moves with the object).
+const BOW_SPEED: f64 = 1.5;
 /// Spine joints that share the bow (SMPL-X spine1..3).
 const SPINE: [usize; 3] = [3, 6, 9];
 /// The support the object starts on (its bottom's height at the first frame) is taken to
@@ -91,11 +95,36 @@ pub const SUPPORT_DEPTH: f64 = 0.1;
 /// Height of the ground in the native world (z up), m.
 pub const GROUND_Z: f64 = 0.0;
 const GRAVITY: f64 = 9.81;
+/// The fastest a hand joint (wrist or finger) of the model's pose, or the object a hand
+/// holds, may move, and the fastest an unheld object falls, m/s. SynthGrasp's ground truth
+/// peaks at 2.75 m/s (wrists and fingers; 99 % of its sequences stay under 2.2); the model
+/// jumps up to 10 m/s at some token seams. Below the truth's peak, so that the corrections
+/// the stage adds on top (reach, bow, press-up) stay under it.
+pub const MAX_SPEED: f64 = 2.0;
+/// An unheld object whose bottom is this close above its support rests on it, m.
+const LANDED: f64 = 1e-9;
+/// Blend steps the speed limit tries before it keeps the previous pose.
+const LIMIT_TRIES: u32 = 4;
+/// Speed at which a two-handed hold's wrist turn fades once one hand lets go, rad/s.
+const TURN_FADE: f64 = 1.0;
+/// Speed at which an object let go tilted tips onto the box face nearest below it, rad/s.
+pub const TIP_SPEED: f64 = 3.0;
 
 /// Collar, shoulder, elbow and wrist joints of the left and right arm (SMPL-X).
 const ARMS: [[usize; 4]; 2] = [[13, 16, 18, 20], [14, 17, 19, 21]];
 /// First of each hand's 15 finger joints (SMPL-X).
 const HAND_FIRST: [usize; 2] = [25, 40];
+/// The joints the speed limit watches: both wrists and the 30 finger joints.
+const LIMITED: [usize; 32] = {
+    let mut j = [ARMS[0][3]; 32];
+    j[1] = ARMS[1][3];
+    let mut k = 0;
+    while k < 30 {
+        j[2 + k] = HAND_FIRST[0] + k;
+        k += 1;
+    }
+    j
+};
 
 /// The object's box in its own frame (what the stage needs to rest it on a support) and,
 /// when known, points on its surface (where a hand touches it).
@@ -159,8 +188,11 @@ impl ObjectSurface {
         out
     }
 
-    /// Signed distance of `p` (object frame) from the plane of the nearest sample: > 0
-    /// outside; `None` without samples.
+    /// Signed distance of `p` (object frame) from the nearest sample's patch: > 0 outside.
+    /// Over the patch (within [`SURFACE_SPACING`] of the sample along its plane) the
+    /// distance from its plane; farther out the distance from the patch's rim, since a
+    /// plane reaches across a hole (a torus's) that the surface does not. `None` without
+    /// samples.
     pub fn distance(&self, p: &Vec3) -> Option<f64> {
         let mut best = (f64::INFINITY, 0usize);
         for (k, s) in self.points.iter().enumerate() {
@@ -170,7 +202,15 @@ impl ObjectSurface {
                 best = (q, k);
             }
         }
-        (best.0.is_finite()).then(|| dot(&sub(p, &self.points[best.1]), &self.normals[best.1]))
+        (best.0.is_finite()).then(|| {
+            let along = dot(&sub(p, &self.points[best.1]), &self.normals[best.1]);
+            let beyond = ((best.0 - along * along).max(0.0).sqrt() - SURFACE_SPACING).max(0.0);
+            if beyond > 0.0 {
+                along.signum() * (along * along + beyond * beyond).sqrt()
+            } else {
+                along
+            }
+        })
     }
 }
 
@@ -335,6 +375,9 @@ struct Hand {
     /// The object's pose in the wrist frame while holding.
     rel_rot: Mat3,
     rel_pos: Vec3,
+    /// World rotation added to the model's wrist: a two-handed hold turns each hand onto its
+    /// grasp of the shared object; it fades at [`TURN_FADE`] afterwards.
+    turn: Mat3,
 }
 
 const FREE_HAND: Hand = Hand {
@@ -345,7 +388,18 @@ const FREE_HAND: Hand = Hand {
     latched: false,
     rel_rot: IDENTITY,
     rel_pos: [0.0; 3],
+    turn: IDENTITY,
 };
+
+/// The model's pose after the speed limit, as the next frame's limit starts from.
+#[derive(Clone, Debug)]
+struct Limited {
+    local: [Mat3; CG_NUM_JOINTS],
+    pelvis: Vec3,
+    joints: [Vec3; 32],
+    /// Global rotation and position of the wrists.
+    wrists: [(Mat3, Vec3); 2],
+}
 
 /// One stream's contact state. Feed it every frame in order ([`ContactStage::apply`]).
 #[derive(Clone, Debug)]
@@ -368,6 +422,10 @@ pub struct ContactStage {
     /// The spine's current bow (radians) and its horizontal axis.
     bow: f64,
     bow_axis: Vec3,
+    /// The previous frame's speed-limited model pose (none before the first frame).
+    limited: Option<Limited>,
+    /// A hand has let the object go: from then on it tips onto a face when it lands tilted.
+    released: bool,
 }
 
 impl ContactStage {
@@ -386,6 +444,8 @@ impl ContactStage {
             hands: [FREE_HAND; 2],
             bow: 0.0,
             bow_axis: [1.0, 0.0, 0.0],
+            limited: None,
+            released: false,
         }
     }
 
@@ -402,8 +462,11 @@ impl ContactStage {
         next.table = self.table.moved(r, t);
         next.start_object = None;
         next.bow = 0.0;
+        // The new stream blends its body from this one's last pose itself.
+        next.limited = None;
         for hand in &mut next.hands {
             hand.correction = [0.0; 3];
+            hand.turn = IDENTITY;
             if matches!(hand.phase, Phase::Reaching { .. }) {
                 hand.phase = Phase::Free;
             }
@@ -432,6 +495,7 @@ impl ContactStage {
             (self.rot, self.pos) = self.start_object.unwrap_or((pose.object_rotation, pose.object_translation));
             self.table = Table::new(&pose.pelvis, &pose.local[0], &self.rot, &self.pos, &self.shape);
         }
+        self.limit_speed(skeleton, pose, &mut global, &mut joints);
 
         // Debounced intent: start grasps, abandon reaches whose flag went off.
         for h in 0..2 {
@@ -488,7 +552,10 @@ impl ContactStage {
             }
         }
         match bow {
-            Some((angle, axis)) => (self.bow, self.bow_axis) = (angle, axis),
+            Some((angle, axis)) => {
+                let most = BOW_SPEED * self.dt;
+                (self.bow, self.bow_axis) = (angle.clamp(self.bow - most, self.bow + most), axis)
+            }
             None => self.bow = (self.bow - BOW_FADE * self.dt).max(0.0),
         }
         if self.bow > 0.0 {
@@ -504,9 +571,16 @@ impl ContactStage {
         // this frame (the grip on the object as it was before the other hand moves it).
         let mut moved = false;
         let mut aimed: [Option<Vec3>; 2] = [None; 2];
+        let both = self.hands.iter().all(|h| h.phase == Phase::Holding);
+        // The model's wrists (bowed): a turn is from these, never from a turned wrist, so
+        // rounding does not build up in it.
+        let model_wrist = ARMS.map(|arm| global[arm[3]]);
         for h in 0..2 {
             let wrist = joints[ARMS[h][3]];
             let hand = &mut self.hands[h];
+            if !both {
+                hand.turn = fade_rotation(&hand.turn, TURN_FADE * self.dt);
+            }
             match &mut hand.phase {
                 Phase::Reaching { frame, frames, from, grip, .. } => {
                     let s = smoothstep(*frame as f64 / *frames as f64);
@@ -525,6 +599,13 @@ impl ContactStage {
                 arm_ik(&mut pose.local, &global, &joints, h, &add(&wrist, &hand.correction));
                 moved = true;
             }
+            if hand.turn != IDENTITY {
+                // The wrist's global rotation becomes turn · the model's (IK keeps it).
+                let w = ARMS[h][3];
+                let g = &global[w];
+                pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(g), &mat_mul(&hand.turn, g)));
+                moved = true;
+            }
         }
         if moved {
             skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
@@ -536,7 +617,9 @@ impl ContactStage {
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
-                let depth = self.table.height - self.shape.bottom_at(&rot, &pos);
+                // At most half MAX_SPEED (the hand moves too): a hand that turns the object into the table at a token seam
+                // lets it sink for a frame or two rather than throwing the arm up.
+                let depth = (self.table.height - self.shape.bottom_at(&rot, &pos)).min(0.5 * MAX_SPEED * self.dt);
                 if !self.lifted && depth > 0.0 && self.table.over(&self.shape.centre_at(&rot, &pos)) {
                     for h in 0..2 {
                         if self.hands[h].phase == Phase::Holding {
@@ -555,13 +638,23 @@ impl ContactStage {
                 // Two hands: the object takes the mean of their carried poses, so neither
                 // hand holds it where it grasped it; each is brought (IK) to its own grip on
                 // that pose, the offset joining its correction, which fades once it lets go.
-                if self.hands.iter().all(|h| h.phase == Phase::Holding) {
+                // Each hand also turns onto its grasp of that pose (the turn joins its turn and
+                // fades once one lets go), so its fingers stay where they closed on the object.
+                if both {
                     for h in 0..2 {
                         let hand = &mut self.hands[h];
                         let grip = mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0));
                         let target = add(&self.pos, &mat_vec(&self.rot, &grip));
                         hand.correction = add(&hand.correction, &sub(&target, &joints[ARMS[h][3]]));
                         arm_ik(&mut pose.local, &global, &joints, h, &target);
+                    }
+                    skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+                    for h in 0..2 {
+                        let hand = &mut self.hands[h];
+                        let w = ARMS[h][3];
+                        let grasp = mat_mul(&self.rot, &transpose(&hand.rel_rot));
+                        hand.turn = mat_mul(&grasp, &transpose(&model_wrist[h]));
+                        pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(&global[w]), &grasp));
                     }
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
                 }
@@ -575,6 +668,7 @@ impl ContactStage {
             let hand = self.hands[h];
             if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES {
                 self.hands[h].phase = Phase::Free;
+                self.released = true;
                 let other = 1 - h;
                 if self.hands[other].phase == Phase::Holding {
                     self.capture(other, &global, &joints);
@@ -605,8 +699,9 @@ impl ContactStage {
         if self.hands.iter().any(|h| h.phase == Phase::Holding) {
             return;
         }
+        let tipped = self.tip(f64::INFINITY);
         let (bottom, floor) = self.floor();
-        if bottom != floor {
+        if bottom != floor || tipped {
             self.pos[2] += floor - bottom;
             self.fall = 0.0;
             let mut global = [IDENTITY; CG_NUM_JOINTS];
@@ -614,6 +709,72 @@ impl ContactStage {
             skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
             self.write(pose, &joints);
         }
+    }
+
+    /// The speed limit on the model's pose, before any correction: where a hand joint would
+    /// move faster than [`MAX_SPEED`] since the previous frame (a token seam), the whole
+    /// pose (every rotation and the pelvis) is blended from the previous limited pose
+    /// toward this one only as far as keeps every hand joint within it; the previous pose
+    /// itself when [`LIMIT_TRIES`] blends do not. `global` / `joints`: the pose's FK, kept so.
+    fn limit_speed(
+        &mut self,
+        skeleton: &Skeleton,
+        pose: &mut Pose,
+        global: &mut [Mat3; CG_NUM_JOINTS],
+        joints: &mut [Vec3; CG_NUM_JOINTS],
+    ) {
+        if let Some(prev) = &self.limited {
+            let step = MAX_SPEED * self.dt;
+            let moved = |global: &[Mat3; CG_NUM_JOINTS], joints: &[Vec3; CG_NUM_JOINTS]| {
+                let hands = LIMITED.iter().zip(&prev.joints).map(|(&j, p)| norm(&sub(&joints[j], p)));
+                // A held object's centre, as its hand carries it, moves with the hand's turn.
+                let held = (0..2).filter(|&h| self.hands[h].phase == Phase::Holding).map(|h| {
+                    let w = ARMS[h][3];
+                    let (now, before) = (
+                        self.held_centre(h, &global[w], &joints[w]),
+                        self.held_centre(h, &prev.wrists[h].0, &prev.wrists[h].1),
+                    );
+                    norm(&sub(&now, &before))
+                });
+                hands.chain(held).fold(0.0, f64::max)
+            };
+            let (local, pelvis) = (pose.local, pose.pelvis);
+            let mut alpha = 1.0;
+            let mut far = moved(global, joints);
+            let mut tries = 0;
+            while far > step {
+                if tries == LIMIT_TRIES {
+                    (pose.local, pose.pelvis) = (prev.local, prev.pelvis);
+                    skeleton.forward(&pose.local, pose.pelvis, global, joints);
+                    break;
+                }
+                tries += 1;
+                alpha *= 0.98 * step / far;
+                for j in 0..CG_NUM_JOINTS {
+                    pose.local[j] = nlerp(&prev.local[j], &local[j], alpha);
+                }
+                pose.pelvis = std::array::from_fn(|i| prev.pelvis[i] + (pelvis[i] - prev.pelvis[i]) * alpha);
+                skeleton.forward(&pose.local, pose.pelvis, global, joints);
+                far = moved(global, joints);
+            }
+        }
+        let limited = self.limited.get_or_insert(Limited {
+            local: pose.local,
+            pelvis: pose.pelvis,
+            joints: [[0.0; 3]; 32],
+            wrists: [(IDENTITY, [0.0; 3]); 2],
+        });
+        (limited.local, limited.pelvis) = (pose.local, pose.pelvis);
+        for (k, &j) in LIMITED.iter().enumerate() {
+            limited.joints[k] = joints[j];
+        }
+        limited.wrists = ARMS.map(|arm| (global[arm[3]], joints[arm[3]]));
+    }
+
+    /// The object's centre as hand `h` carries it with its wrist at `rot`, `pos`.
+    fn held_centre(&self, h: usize, rot: &Mat3, pos: &Vec3) -> Vec3 {
+        let hand = &self.hands[h];
+        add(pos, &mat_vec(rot, &add(&hand.rel_pos, &mat_vec(&hand.rel_rot, &self.shape.centre))))
     }
 
     /// Every object field of `pose` from the stage's state and the final FK.
@@ -667,6 +828,7 @@ impl ContactStage {
         }
         self.pos[2] += self.table.height - bottom;
         self.lifted = false;
+        self.released = true;
         for hand in &mut self.hands {
             if hand.phase == Phase::Holding {
                 hand.phase = Phase::Free;
@@ -680,13 +842,45 @@ impl ContactStage {
     /// (set down into the table) rises onto it at [`FADE_SPEED`].
     fn settle(&mut self) {
         let (bottom, floor) = self.floor();
-        if bottom > floor {
-            self.fall += GRAVITY * self.dt;
+        // Above by more than rounding (a set-down leaves its bottom within ~1e-16 of the top).
+        if bottom > floor + LANDED {
+            self.fall = (self.fall + GRAVITY * self.dt).min(MAX_SPEED);
             self.pos[2] -= (self.fall * self.dt).min(bottom - floor);
         } else {
             self.fall = 0.0;
             self.pos[2] += (FADE_SPEED * self.dt).min(floor - bottom);
+            self.tip(TIP_SPEED * self.dt);
         }
+    }
+
+    /// An object let go tilted, once it rests, turns by at most `step` radians toward
+    /// resting on the face of its box nearest below it (upright when it leans less than
+    /// 45°), about the vertical through its origin, its lowest point kept at its height.
+    /// Whether it turned.
+    fn tip(&mut self, step: f64) -> bool {
+        if !self.released {
+            return false;
+        }
+        let r = &self.rot;
+        let k = (0..3).fold(0, |k, i| if r[2][i].abs() > r[2][k].abs() { i } else { k });
+        // The box axis pointing most downward, in the world.
+        let sign = if r[2][k] > 0.0 { -1.0 } else { 1.0 };
+        let axis_down = [sign * r[0][k], sign * r[1][k], sign * r[2][k]];
+        let tilt = (-axis_down[2]).clamp(-1.0, 1.0).acos();
+        if tilt <= 1e-6 {
+            return false;
+        }
+        // The most downward of three orthogonal axes leans at most ~55°: the cross is not 0.
+        let axis = cross(&axis_down, &[0.0, 0.0, -1.0]);
+        let n = norm(&axis);
+        if n <= 1e-12 {
+            return false;
+        }
+        let bottom = self.shape.bottom_at(&self.rot, &self.pos);
+        let turn = axis_angle(&scale(&axis, 1.0 / n), tilt.min(step));
+        self.rot = mat_mul(&turn, &self.rot);
+        self.pos[2] += bottom - self.shape.bottom_at(&self.rot, &self.pos);
+        true
     }
 
     /// The unheld object's lowest point and the height it comes to rest at: the table top
@@ -697,6 +891,36 @@ impl ContactStage {
         let on_table =
             self.table.over(&self.shape.centre_at(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
         (bottom, if on_table { self.table.height } else { GROUND_Z })
+    }
+}
+
+/// `r` turned back toward the identity by at most `step` radians.
+fn fade_rotation(r: &Mat3, step: f64) -> Mat3 {
+    use crate::skeleton::matrix_to_quaternion;
+    if *r == IDENTITY {
+        return IDENTITY;
+    }
+    let q = matrix_to_quaternion(r);
+    let v = norm(&[q[0], q[1], q[2]]);
+    let angle = 2.0 * v.atan2(q[3].abs());
+    if angle <= step || v <= 1e-12 {
+        return IDENTITY;
+    }
+    let sign = if q[3] < 0.0 { -1.0 } else { 1.0 };
+    axis_angle(&[sign * q[0] / v, sign * q[1] / v, sign * q[2] / v], angle - step)
+}
+
+/// Normalized quaternion interpolation from `a` (t = 0) to `b` (t = 1), the shorter way.
+fn nlerp(a: &Mat3, b: &Mat3, t: f64) -> Mat3 {
+    use crate::skeleton::{matrix_to_quaternion, quaternion_to_matrix};
+    let (qa, qb) = (matrix_to_quaternion(a), matrix_to_quaternion(b));
+    let sign = if (0..4).map(|i| qa[i] * qb[i]).sum::<f64>() < 0.0 { -1.0 } else { 1.0 };
+    let q: [f64; 4] = std::array::from_fn(|i| qa[i] * (1.0 - t) + sign * qb[i] * t);
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if n > 1e-12 {
+        quaternion_to_matrix(&q.map(|v| v / n))
+    } else {
+        *a
     }
 }
 
@@ -793,7 +1017,17 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
     };
     let hi = norm(&shape.half_extents) + GRIP_MARGIN;
     let (mut lo, mut up) = (0.0, hi);
+    // From outside in: the first touch, then bisection. A hand can lie clear of an object
+    // again farther in (in a torus's hole), so bisection alone may end there.
     if gap(hi) >= GRIP_GAP {
+        for k in (0..GRIP_SCAN_STEPS).rev() {
+            let len = hi * k as f64 / GRIP_SCAN_STEPS as f64;
+            if gap(len) < GRIP_GAP {
+                lo = len;
+                break;
+            }
+            up = len;
+        }
         for _ in 0..GRIP_SEARCH_STEPS {
             let mid = 0.5 * (lo + up);
             if gap(mid) >= GRIP_GAP {

@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use comgrasp::contact::FADE_SPEED;
+use comgrasp::contact::{FADE_SPEED, TIP_SPEED};
 use comgrasp::skeleton::{mat_vec, quaternion_to_matrix};
 use comgrasp::{Engine, EngineConfig, Frame, PollResult, StreamConfig};
 
@@ -37,6 +37,22 @@ fn collect(e: &Engine, text: &str, cfg: StreamConfig) -> Vec<Frame> {
             r => panic!("{text:?}: {r:?} {:?}", s.error()),
         }
     }
+}
+
+/// SynthGrasp's fastest wrist and object, m/s (issue 17's speed bar; training data of the
+/// default model, measured from its features).
+const GROUND_TRUTH_PEAK: f64 = 2.75;
+
+/// How far the object's most downward box axis leans from straight down, radians.
+fn tilt(q: &[f32; 4]) -> f64 {
+    let r = quaternion_to_matrix(&q.map(f64::from));
+    (0..3).map(|k| r[2][k].abs()).fold(0.0, f64::max).min(1.0).acos()
+}
+
+/// The angle between two rotations (x, y, z, w quaternions), radians.
+fn angle(a: &[f32; 4], b: &[f32; 4]) -> f64 {
+    let d: f64 = (0..4).map(|i| f64::from(a[i]) * f64::from(b[i])).sum();
+    2.0 * d.abs().min(1.0).acos()
 }
 
 fn dist(a: &[f32; 3], b: &[f32; 3]) -> f64 {
@@ -89,7 +105,13 @@ fn frames_agree_and_the_object_obeys_the_hands() {
                     // Unheld: no drift; only falling, or rising onto the support at FADE_SPEED.
                     let (pa, pb) = (a.object_translation, b.object_translation);
                     assert_eq!((pa[0], pa[1]), (pb[0], pb[1]), "{at}: an unheld object drifts");
-                    assert_eq!(a.object_rotation, b.object_rotation, "{at}: an unheld object turns");
+                    // It turns only to tip onto a face of its box, toward upright, at TIP_SPEED.
+                    if a.object_rotation != b.object_rotation {
+                        let (ta, tb) = (tilt(&a.object_rotation), tilt(&b.object_rotation));
+                        assert!(tb < ta, "{at}: an unheld object turns away from a face ({ta} -> {tb} rad)");
+                        let turn = angle(&a.object_rotation, &b.object_rotation);
+                        assert!(turn <= TIP_SPEED / fps + 1e-4, "{at}: it tips {turn} rad in a frame");
+                    }
                     // (The last frame lands an object still falling: ContactStage::finish.)
                     if t + 2 < fr.len() {
                         // A falling object reaches ~2.5 m/s over a table's height.
@@ -106,6 +128,18 @@ fn frames_agree_and_the_object_obeys_the_hands() {
                         );
                         assert!((da - db).abs() < 1e-3, "{at}: hand {h} slips {da} -> {db}");
                     }
+                }
+            }
+            // Issue 17's bar: no wrist or object faster than the ground truth's peak (SynthGrasp:
+            // 2.75 m/s), the model's token seams included; the last frame lands an object still
+            // falling at once.
+            for (t, w) in fr.windows(2).enumerate() {
+                let speed = |p: fn(&Frame) -> [f32; 3]| dist(&p(&w[0]), &p(&w[1])) * fps;
+                let wrist = speed(|f| f.joint_positions[20]).max(speed(|f| f.joint_positions[21]));
+                assert!(wrist <= GROUND_TRUTH_PEAK, "{text:?} seed {seed} frame {t}: a wrist at {wrist} m/s");
+                if t + 2 < fr.len() {
+                    let object = speed(|f| f.object_translation);
+                    assert!(object <= GROUND_TRUTH_PEAK, "{text:?} seed {seed} frame {t}: the object at {object} m/s");
                 }
             }
             grasps += fr.windows(2).filter(|w| w[0].contact == [0, 0] && w[1].contact != [0, 0]).count();
@@ -140,12 +174,18 @@ fn raw_output_is_the_models_own() {
             assert_eq!(f.contact[h], u8::from(f.contact_probability[h] > 0.5));
         }
     }
-    // Same tokens, so the same legs and root; the stage moves the object, arms and spine.
-    for (a, b) in raw.iter().zip(&consistent) {
-        assert_eq!(a.root_translation, b.root_translation);
-        assert_eq!(a.body_rotations[0], b.body_rotations[0]); // left hip
-        assert_eq!(a.left_hand_rotations, b.left_hand_rotations); // fingers
-    }
+    // Same tokens, so the same legs and root; the stage moves the object, arms and spine,
+    // and holds the whole pose back only where a hand would outrun its speed limit (a seam).
+    let same = raw
+        .iter()
+        .zip(&consistent)
+        .filter(|(a, b)| {
+            a.root_translation == b.root_translation
+                && a.body_rotations[0] == b.body_rotations[0] // left hip
+                && a.left_hand_rotations == b.left_hand_rotations // fingers
+        })
+        .count();
+    assert!(same * 4 >= raw.len() * 3, "{same} of {} frames keep the model's root, legs and fingers", raw.len());
     assert!(raw.iter().zip(&consistent).any(|(a, b)| a.object_translation != b.object_translation));
 }
 

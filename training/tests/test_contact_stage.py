@@ -10,12 +10,14 @@ hand-made ones.
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from comgrasp_train import contact_stage as cs
 from comgrasp_train.contact_stage import (
     ContactStage,
     ObjectShape,
@@ -76,19 +78,28 @@ def test_staged_frames_keep_their_promises(fixture):
         for t in range(len(y) - 1):
             a, b = poses[t], poses[t + 1]
             if not held[t].any() and not held[t + 1].any():
-                # unheld: no drift or turn; only falling or rising onto its support
+                # unheld: no drift; only falling or rising onto its support, or tipping toward
+                # a face of its box (upright) at TIP_SPEED
                 assert np.array_equal(a.object_translation[:2], b.object_translation[:2]), (case["prompt"], t)
-                assert np.array_equal(a.object_rotation, b.object_rotation), (case["prompt"], t)
+                if not np.array_equal(a.object_rotation, b.object_rotation):
+                    def tilt(r):
+                        return math.acos(min(np.abs(r[2]).max(), 1.0))
+                    assert tilt(b.object_rotation) < tilt(a.object_rotation), (case["prompt"], t)
+                    turn = math.acos(min(max((np.trace(a.object_rotation.T @ b.object_rotation) - 1) / 2, -1), 1))
+                    assert turn <= cs.TIP_SPEED / fps + 1e-6, (case["prompt"], t)
             for h, w in ((0, 20), (1, 21)):
                 if held[t, h] and held[t + 1, h] and not held[t:t + 2, 1 - h].any():
                     # one hand holds: the object is rigid in its frame
                     da = np.linalg.norm(joints[t, w] - a.object_centre)
                     db = np.linalg.norm(joints[t + 1, w] - b.object_centre)
                     assert abs(da - db) < 1e-4, (case["prompt"], t)
-        # the stage never moves what it does not own: the pelvis and the legs
+        # the stage moves the pelvis and the legs only where its speed limit holds the whole
+        # pose back (a token seam), so on most frames they are the model's
         legs = [ROT6D_JOINT_COLUMNS[j] for j in (1, 2, 4, 5, 7, 8, 10, 11)]
+        same = np.ones(len(y), bool)
         for col in legs + [FIELD["root_transl"].start]:
-            np.testing.assert_array_equal(y[:, col:col + 3], x[:, col:col + 3])
+            same &= (y[:, col:col + 3] == x[:, col:col + 3]).all(axis=1)
+        assert same.mean() >= 0.75, (case["prompt"], same.mean())
         assert len(y) == len(x) and fps > 0
 
 

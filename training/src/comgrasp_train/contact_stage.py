@@ -36,12 +36,14 @@ FADE_SPEED = 0.3
 REACH_LIMIT = 0.98
 REACH_MISS = 0.02
 GRIP_GAP = 0.005
+GRIP_SCAN_STEPS = 24
 GRIP_SEARCH_STEPS = 16
 SURFACE_SPACING = 0.01
 GRIP_MARGIN = 0.12
 MAX_BOW = 0.6
 BOW_REACH = 0.94
 BOW_FADE = 0.5
+BOW_SPEED = 1.5
 SPINE = (3, 6, 9)
 TABLE_NEAR = 0.15
 TABLE_FAR = 1.1
@@ -52,11 +54,17 @@ LIFT_CLEAR = 0.03
 SUPPORT_DEPTH = 0.1
 GROUND_Z = 0.0
 GRAVITY = 9.81
+MAX_SPEED = 2.0
+LIMIT_TRIES = 4
+LANDED = 1e-9
+TURN_FADE = 1.0
+TIP_SPEED = 3.0
 CONTACT_THRESHOLD = 0.5
 NORM_EPS = 1e-12
 
 ARMS = ((13, 16, 18, 20), (14, 17, 19, 21))
 HAND_FIRST = (25, 40)
+LIMITED = (ARMS[0][3], ARMS[1][3], *range(HAND_FIRST[0], HAND_FIRST[0] + 30))
 IDENTITY = np.eye(3)
 
 
@@ -298,8 +306,14 @@ class ObjectShape:
             return d
         points, normals = self.surface
         q = np.asarray(p) + self.centre
-        nearest = np.argmin(((q[..., None, :] - points) ** 2).sum(-1), axis=-1)
-        return np.maximum(d, ((q - points[nearest]) * normals[nearest]).sum(-1))
+        d2 = ((q[..., None, :] - points) ** 2).sum(-1)
+        nearest = np.argmin(d2, axis=-1)
+        along = ((q - points[nearest]) * normals[nearest]).sum(-1)
+        # beyond the nearest sample's patch: the distance from its rim (a torus's hole)
+        beyond = np.maximum(np.sqrt(np.maximum(np.take_along_axis(d2, nearest[..., None], -1)[..., 0] - along * along,
+                                                0.0)) - SURFACE_SPACING, 0.0)
+        surface = np.where(beyond > 0.0, np.sign(along) * np.sqrt(along * along + beyond * beyond), along)
+        return np.maximum(d, surface)
 
     def centre_at(self, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
         return pos + rot @ self.centre
@@ -374,6 +388,15 @@ class _Hand:
     latched: bool = False
     rel_rot: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
     rel_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    turn: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
+
+
+@dataclass
+class _Limited:
+    local: np.ndarray
+    pelvis: np.ndarray
+    joints: np.ndarray  # the LIMITED joints
+    wrists: list  # (global rotation, position) per wrist
 
 
 class ContactStage:
@@ -392,6 +415,8 @@ class ContactStage:
         self.hands = [_Hand(), _Hand()]
         self.bow = 0.0
         self.bow_axis = np.array([1.0, 0.0, 0.0])
+        self.limited: _Limited | None = None
+        self.released = False
         # How often each rule fired (the reference only: tests check what a fixture covers).
         self.events: Counter[str] = Counter()
 
@@ -404,6 +429,7 @@ class ContactStage:
             self.started = True
             self.rot, self.pos = pose.object_rotation.copy(), pose.object_translation.copy()
             self.table = Table.new(pose.pelvis, pose.local[0], self.rot, self.pos, self.shape)
+        glob, joints = self._limit_speed(skel, pose, glob, joints)
 
         for h in range(2):
             wrist = joints[ARMS[h][3]]
@@ -444,7 +470,8 @@ class ContactStage:
             if bow is None or angle > bow[0]:
                 bow = (angle, axis)
         if bow is not None:
-            self.bow, self.bow_axis = bow
+            most = BOW_SPEED * self.dt
+            self.bow, self.bow_axis = min(max(bow[0], self.bow - most), self.bow + most), bow[1]
         else:
             self.bow = max(self.bow - BOW_FADE * self.dt, 0.0)
         if self.bow > 0.0:
@@ -457,9 +484,13 @@ class ContactStage:
 
         moved = False
         aimed = [None, None]  # where each reach puts the wrist (before the other hand moves the object)
+        both = all(h.phase == "holding" for h in self.hands)
+        model_wrist = [glob[arm[3]].copy() for arm in ARMS]  # turns are from these (no build-up)
         for h in range(2):
             wrist = joints[ARMS[h][3]]
             hand = self.hands[h]
+            if not both:
+                hand.turn = fade_rotation(hand.turn, TURN_FADE * self.dt)
             if hand.phase == "reaching":
                 r = hand.reach
                 s = smoothstep(r.frame / r.frames)
@@ -473,13 +504,17 @@ class ContactStage:
             if hand.correction.any():
                 arm_ik(pose.local, glob, joints, h, wrist + hand.correction)
                 moved = True
+            if not np.array_equal(hand.turn, IDENTITY):
+                g = glob[ARMS[h][3]]
+                pose.local[ARMS[h][3]] = pose.local[ARMS[h][3]] @ (g.T @ (hand.turn @ g))
+                moved = True
         if moved:
             glob, joints = skel.forward(pose.local, pose.pelvis)
 
         carried = self._carried(glob, joints)
         if carried is not None:
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
-            depth = self.table.height - self.shape.bottom_at(*carried)
+            depth = min(self.table.height - self.shape.bottom_at(*carried), 0.5 * MAX_SPEED * self.dt)
             if not self.lifted and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
                 self.events["press_up"] += 1
                 for h in range(2):
@@ -490,13 +525,20 @@ class ContactStage:
                 again = self._carried(glob, joints)
                 if again is not None:
                     self.rot, self.pos = again
-            if all(h.phase == "holding" for h in self.hands):
+            if both:
                 # two hands: each to its own grip on the mean pose (the offset joins its correction)
                 for h in range(2):
                     hand = self.hands[h]
                     target = self.pos + self.rot @ (hand.rel_rot.T @ -hand.rel_pos)
                     hand.correction = hand.correction + (target - joints[ARMS[h][3]])
                     arm_ik(pose.local, glob, joints, h, target)
+                glob, joints = skel.forward(pose.local, pose.pelvis)
+                # ... and turned onto its grasp of it
+                for h in range(2):
+                    hand, w = self.hands[h], ARMS[h][3]
+                    grasp = self.rot @ hand.rel_rot.T
+                    hand.turn = grasp @ model_wrist[h].T
+                    pose.local[w] = pose.local[w] @ (glob[w].T @ grasp)
                 glob, joints = skel.forward(pose.local, pose.pelvis)
             self._set_down_on_table()
         else:
@@ -505,6 +547,7 @@ class ContactStage:
         for h in range(2):
             if self.hands[h].phase == "holding" and self.hands[h].off >= OFF_FRAMES:
                 self.hands[h].phase = "free"
+                self.released = True
                 self.events["release"] += 1
                 if self.hands[1 - h].phase == "holding":
                     self._capture(1 - h, glob, joints)
@@ -524,8 +567,9 @@ class ContactStage:
     def finish(self, skel: Skeleton, pose: Pose) -> None:
         if any(h.phase == "holding" for h in self.hands):
             return
+        tipped = self._tip(math.inf)
         bottom, floor = self._floor()
-        if bottom != floor:
+        if bottom != floor or tipped:
             self.pos = self.pos + np.array([0.0, 0.0, floor - bottom])
             self.fall = 0.0
             self.events["landed_at_finish"] += 1
@@ -564,6 +608,7 @@ class ContactStage:
             return
         self.pos = self.pos + np.array([0.0, 0.0, self.table.height - bottom])
         self.lifted = False
+        self.released = True
         self.events["set_down"] += 1
         for hand in self.hands:
             if hand.phase == "holding":
@@ -572,16 +617,82 @@ class ContactStage:
     def _settle(self) -> None:
         bottom, floor = self._floor()
         p = self.pos.copy()
-        if bottom > floor:
+        if bottom > floor + LANDED:
             self.events["fall_frames"] += 1
-            self.fall += GRAVITY * self.dt
+            self.fall = min(self.fall + GRAVITY * self.dt, MAX_SPEED)
             p[2] -= min(self.fall * self.dt, bottom - floor)
+            self.pos = p
         else:
             self.fall = 0.0
             if bottom < floor:
                 self.events["rise_frames"] += 1
             p[2] += min(FADE_SPEED * self.dt, floor - bottom)
+            self.pos = p
+            self._tip(TIP_SPEED * self.dt)
+
+    def _tip(self, step: float) -> bool:
+        """``ContactStage::tip``: a released object, once resting, turns toward its box face below."""
+        if not self.released:
+            return False
+        r = self.rot
+        k = 0
+        for i in range(1, 3):
+            if abs(r[2, i]) > abs(r[2, k]):
+                k = i
+        sign = -1.0 if r[2, k] > 0.0 else 1.0
+        axis_down = sign * r[:, k]
+        tilt = math.acos(min(max(-axis_down[2], -1.0), 1.0))
+        if tilt <= 1e-6:
+            return False
+        axis = np.cross(axis_down, np.array([0.0, 0.0, -1.0]))
+        n = _norm(axis)
+        if n <= 1e-12:
+            return False
+        bottom = self.shape.bottom_at(self.rot, self.pos)
+        self.rot = axis_angle(axis / n, min(tilt, step)) @ self.rot
+        p = self.pos.copy()
+        p[2] += bottom - self.shape.bottom_at(self.rot, self.pos)
         self.pos = p
+        self.events["tip_frames"] += 1
+        return True
+
+    def _limit_speed(self, skel: Skeleton, pose: Pose, glob: np.ndarray, joints: np.ndarray):
+        """``ContactStage::limit_speed``; returns the (new) FK."""
+        prev = self.limited
+        if prev is not None:
+            step = MAX_SPEED * self.dt
+
+            def moved(glob, joints) -> float:
+                far = max(_norm(joints[j] - p) for j, p in zip(LIMITED, prev.joints))
+                for h in range(2):
+                    if self.hands[h].phase == "holding":
+                        w = ARMS[h][3]
+                        far = max(far, _norm(self._held_centre(h, glob[w], joints[w])
+                                             - self._held_centre(h, *prev.wrists[h])))
+                return far
+
+            local, pelvis = pose.local.copy(), pose.pelvis.copy()
+            alpha, far, tries = 1.0, moved(glob, joints), 0
+            while far > step:
+                if tries == LIMIT_TRIES:
+                    pose.local, pose.pelvis = prev.local.copy(), prev.pelvis.copy()
+                    glob, joints = skel.forward(pose.local, pose.pelvis)
+                    break
+                tries += 1
+                alpha *= 0.98 * step / far
+                pose.local = np.stack([nlerp(prev.local[j], local[j], alpha) for j in range(len(local))])
+                pose.pelvis = prev.pelvis + (pelvis - prev.pelvis) * alpha
+                glob, joints = skel.forward(pose.local, pose.pelvis)
+                far = moved(glob, joints)
+            if tries:
+                self.events["speed_limited"] += 1
+        self.limited = _Limited(pose.local.copy(), pose.pelvis.copy(), joints[list(LIMITED)].copy(),
+                                [(glob[arm[3]].copy(), joints[arm[3]].copy()) for arm in ARMS])
+        return glob, joints
+
+    def _held_centre(self, h: int, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        hand = self.hands[h]
+        return pos + rot @ (hand.rel_pos + hand.rel_rot @ self.shape.centre)
 
     def _floor(self) -> tuple[float, float]:
         bottom = self.shape.bottom_at(self.rot, self.pos)
@@ -651,6 +762,12 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
     hi = _norm(shape.half_extents) + GRIP_MARGIN
     lo, up = 0.0, hi
     if gap(hi) >= GRIP_GAP:
+        for k in reversed(range(GRIP_SCAN_STEPS)):  # from outside in: the first touch
+            length = hi * k / GRIP_SCAN_STEPS
+            if gap(length) < GRIP_GAP:
+                lo = length
+                break
+            up = length
         for _ in range(GRIP_SEARCH_STEPS):
             mid = 0.5 * (lo + up)
             if gap(mid) >= GRIP_GAP:
@@ -658,6 +775,26 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
             else:
                 lo = mid
     return rt @ (direction * up)
+
+
+def fade_rotation(r: np.ndarray, step: float) -> np.ndarray:
+    """``r`` turned back toward the identity by at most ``step`` radians."""
+    if np.array_equal(r, IDENTITY):
+        return IDENTITY.copy()
+    q = matrix_to_quaternion(r)
+    v = _norm(q[:3])
+    angle = 2.0 * math.atan2(v, abs(q[3]))
+    if angle <= step or v <= 1e-12:
+        return IDENTITY.copy()
+    sign = -1.0 if q[3] < 0.0 else 1.0
+    return axis_angle(sign * q[:3] / v, angle - step)
+
+
+def nlerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    qa, qb = matrix_to_quaternion(a), matrix_to_quaternion(b)
+    q = qa * (1.0 - t) + (-1.0 if float(qa @ qb) < 0.0 else 1.0) * qb * t
+    n = _norm(q)
+    return quaternion_to_matrix(q / n) if n > 1e-12 else a
 
 
 def blend_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
