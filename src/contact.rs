@@ -107,6 +107,12 @@ const LANDED: f64 = 1e-9;
 const LIMIT_TRIES: u32 = 4;
 /// Speed at which a two-handed hold's wrist turn fades once one hand lets go, rad/s.
 const TURN_FADE: f64 = 1.0;
+/// Fastest the arm holding an object up off the table rises, m/s (the hand moves too).
+const PRESS_UP_SPEED: f64 = 0.6;
+/// Within this height above its support a held object is levelled onto a face, m.
+pub const LEVEL_HEIGHT: f64 = 0.1;
+/// Fastest a held object is levelled, rad/s.
+const LEVEL_SPEED: f64 = 6.0;
 /// Speed at which an object let go tilted tips onto the box face nearest below it, rad/s.
 pub const TIP_SPEED: f64 = 3.0;
 
@@ -426,6 +432,8 @@ pub struct ContactStage {
     limited: Option<Limited>,
     /// A hand has let the object go: from then on it tips onto a face when it lands tilted.
     released: bool,
+    /// The object-frame box axis pointing most downward at the start: the face it stands on.
+    base: Vec3,
 }
 
 impl ContactStage {
@@ -446,6 +454,7 @@ impl ContactStage {
             bow_axis: [1.0, 0.0, 0.0],
             limited: None,
             released: false,
+            base: [0.0, 0.0, -1.0],
         }
     }
 
@@ -494,6 +503,7 @@ impl ContactStage {
             self.started = true;
             (self.rot, self.pos) = self.start_object.unwrap_or((pose.object_rotation, pose.object_translation));
             self.table = Table::new(&pose.pelvis, &pose.local[0], &self.rot, &self.pos, &self.shape);
+            self.base = lowest_axis(&self.rot);
         }
         self.limit_speed(skeleton, pose, &mut global, &mut joints);
 
@@ -617,9 +627,9 @@ impl ContactStage {
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
-                // At most half MAX_SPEED (the hand moves too): a hand that turns the object into the table at a token seam
-                // lets it sink for a frame or two rather than throwing the arm up.
-                let depth = (self.table.height - self.shape.bottom_at(&rot, &pos)).min(0.5 * MAX_SPEED * self.dt);
+                // At most PRESS_UP_SPEED: a hand that turns the object deep into the table (a
+                // token seam) lets it sink for a few frames rather than throwing the arm up.
+                let depth = (self.table.height - self.shape.bottom_at(&rot, &pos)).min(PRESS_UP_SPEED * self.dt);
                 if !self.lifted && depth > 0.0 && self.table.over(&self.shape.centre_at(&rot, &pos)) {
                     for h in 0..2 {
                         if self.hands[h].phase == Phase::Holding {
@@ -635,11 +645,21 @@ impl ContactStage {
                         (self.rot, self.pos) = (rot, pos);
                     }
                 }
+                if self.level_near_support(both) && !both {
+                    // One hand: it turns with the object it levels (its turn fades once it lets go).
+                    let h = usize::from(self.hands[1].phase == Phase::Holding);
+                    let w = ARMS[h][3];
+                    let hand = &self.hands[h];
+                    let grasp = mat_mul(&self.rot, &transpose(&hand.rel_rot));
+                    self.hands[h].turn = mat_mul(&grasp, &transpose(&model_wrist[h]));
+                    pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(&global[w]), &grasp));
+                    skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+                }
                 // Two hands: the object takes the mean of their carried poses, so neither
                 // hand holds it where it grasped it; each is brought (IK) to its own grip on
                 // that pose, the offset joining its correction, which fades once it lets go.
-                // Each hand also turns onto its grasp of that pose (the turn joins its turn and
-                // fades once one lets go), so its fingers stay where they closed on the object.
+                // Each hand also turns onto its grasp of that pose (from the model's wrist; the
+                // turn fades once one lets go), so its fingers stay where they closed on it.
                 if both {
                     for h in 0..2 {
                         let hand = &mut self.hands[h];
@@ -750,9 +770,7 @@ impl ContactStage {
                 }
                 tries += 1;
                 alpha *= 0.98 * step / far;
-                for j in 0..CG_NUM_JOINTS {
-                    pose.local[j] = nlerp(&prev.local[j], &local[j], alpha);
-                }
+                pose.local = std::array::from_fn(|j| nlerp(&prev.local[j], &local[j], alpha));
                 pose.pelvis = std::array::from_fn(|i| prev.pelvis[i] + (pelvis[i] - prev.pelvis[i]) * alpha);
                 skeleton.forward(&pose.local, pose.pelvis, global, joints);
                 far = moved(global, joints);
@@ -858,29 +876,46 @@ impl ContactStage {
     /// 45°), about the vertical through its origin, its lowest point kept at its height.
     /// Whether it turned.
     fn tip(&mut self, step: f64) -> bool {
-        if !self.released {
+        let Some((axis, tilt)) = self.released.then(|| face_down(&self.rot)).flatten() else {
             return false;
-        }
-        let r = &self.rot;
-        let k = (0..3).fold(0, |k, i| if r[2][i].abs() > r[2][k].abs() { i } else { k });
-        // The box axis pointing most downward, in the world.
-        let sign = if r[2][k] > 0.0 { -1.0 } else { 1.0 };
-        let axis_down = [sign * r[0][k], sign * r[1][k], sign * r[2][k]];
-        let tilt = (-axis_down[2]).clamp(-1.0, 1.0).acos();
-        if tilt <= 1e-6 {
-            return false;
-        }
-        // The most downward of three orthogonal axes leans at most ~55°: the cross is not 0.
-        let axis = cross(&axis_down, &[0.0, 0.0, -1.0]);
-        let n = norm(&axis);
-        if n <= 1e-12 {
-            return false;
-        }
+        };
         let bottom = self.shape.bottom_at(&self.rot, &self.pos);
-        let turn = axis_angle(&scale(&axis, 1.0 / n), tilt.min(step));
-        self.rot = mat_mul(&turn, &self.rot);
+        self.rot = mat_mul(&axis_angle(&axis, tilt.min(step)), &self.rot);
         self.pos[2] += bottom - self.shape.bottom_at(&self.rot, &self.pos);
         true
+    }
+
+    /// A held object brought within [`LEVEL_HEIGHT`] of its support leans at most 90° ×
+    /// its height / [`LEVEL_HEIGHT`] from a face of its box (the one it stood on at the start
+    /// while that points down at all, else the one nearest below), so it reaches the support
+    /// on that face and is let go resting, not on an edge: it turns about the holding wrist
+    /// (the two wrists' midpoint) by what it leans beyond that, at most [`LEVEL_SPEED`].
+    /// Whether it turned; the caller turns the hands with it.
+    fn level_near_support(&mut self, both: bool) -> bool {
+        let (bottom, floor) = self.floor();
+        // A hand sets an object down on the face it stood on (its base) while that points
+        // down at all; otherwise on the face nearest below.
+        let base = if mat_vec(&self.rot, &self.base)[2] < 0.0 { self.base } else { lowest_axis(&self.rot) };
+        let Some((axis, tilt)) = face_toward(&self.rot, &base) else { return false };
+        let allowed = std::f64::consts::FRAC_PI_2 * (bottom - floor).max(0.0) / LEVEL_HEIGHT;
+        if !(tilt > allowed) {
+            return false;
+        }
+        let pivot = match (both, self.hands[0].phase == Phase::Holding) {
+            (true, _) => scale(&add(&self.wrist_of(0), &self.wrist_of(1)), 0.5),
+            (false, true) => self.wrist_of(0),
+            (false, false) => self.wrist_of(1),
+        };
+        let q = axis_angle(&axis, (tilt - allowed).min(LEVEL_SPEED * self.dt));
+        self.rot = mat_mul(&q, &self.rot);
+        self.pos = add(&pivot, &mat_vec(&q, &sub(&self.pos, &pivot)));
+        true
+    }
+
+    /// Where holding hand `h`'s wrist is, from the object's pose and its grasp.
+    fn wrist_of(&self, h: usize) -> Vec3 {
+        let hand = &self.hands[h];
+        add(&self.pos, &mat_vec(&self.rot, &mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0))))
     }
 
     /// The unheld object's lowest point and the height it comes to rest at: the table top
@@ -892,6 +927,31 @@ impl ContactStage {
             self.table.over(&self.shape.centre_at(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
         (bottom, if on_table { self.table.height } else { GROUND_Z })
     }
+}
+
+/// For an object turned by `r`: the unit horizontal axis about which its box axis pointing
+/// most downward turns onto straight down, and the angle; `None` when it points down.
+fn face_down(r: &Mat3) -> Option<(Vec3, f64)> {
+    face_toward(r, &lowest_axis(r))
+}
+
+/// The object-frame box axis (±x, ±y or ±z) that `r` points most downward.
+fn lowest_axis(r: &Mat3) -> Vec3 {
+    let k = (0..3).fold(0, |k, i| if r[2][i].abs() > r[2][k].abs() { i } else { k });
+    let mut a = [0.0; 3];
+    a[k] = if r[2][k] > 0.0 { -1.0 } else { 1.0 };
+    a
+}
+
+/// The unit horizontal axis about which the object-frame axis `local`, turned by `r`,
+/// turns onto straight down, and the angle; `None` when it points (nearly) straight down
+/// or up.
+fn face_toward(r: &Mat3, local: &Vec3) -> Option<(Vec3, f64)> {
+    let down = mat_vec(r, local);
+    let tilt = (-down[2]).clamp(-1.0, 1.0).acos();
+    let axis = cross(&down, &[0.0, 0.0, -1.0]);
+    let n = norm(&axis);
+    (tilt > 1e-6 && n > 1e-9).then(|| (scale(&axis, 1.0 / n), tilt))
 }
 
 /// `r` turned back toward the identity by at most `step` radians.
@@ -1209,6 +1269,15 @@ mod tests {
     }
 
     fn run(script: &Script, left_wrist: Option<&dyn Fn(usize) -> Vec3>) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
+        run_twisted(script, left_wrist, &|_| 0.0)
+    }
+
+    /// [`run`], the raw left hand turned by `twist(t)` radians about its forearm's axis.
+    fn run_twisted(
+        script: &Script,
+        left_wrist: Option<&dyn Fn(usize) -> Vec3>,
+        twist: &dyn Fn(usize) -> f64,
+    ) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
         let s = skeleton();
         let mut stage = ContactStage::new(
             ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05], surface: None },
@@ -1224,6 +1293,7 @@ mod tests {
                 let (g, p) = fk(&s, &pose);
                 arm_ik(&mut pose.local, &g, &p, 0, &lw(t));
             }
+            pose.local[20] = mat_mul(&pose.local[20], &axis_angle(&[1.0, 0.0, 0.0], twist(t)));
             pose.object_translation = (script.object)(t);
             pose.object_centre = add(&pose.object_translation, &[0.0, 0.0, 0.01]);
             pose.wrist_to_object = [[0.08, -0.02, 0.02], [0.0, -0.08, 0.02]];
@@ -1388,6 +1458,108 @@ mod tests {
         // The left hand carries it up: held 25+ cm above the table at the end.
         let end = frames.last().unwrap().0;
         assert!(end.object_translation[2] > OBJECT[2] + 0.2, "{:?}", end.object_translation);
+    }
+
+    #[test]
+    fn two_hands_keep_their_grasps_of_the_shared_object() {
+        // The hand-over's two-handed hold, the model's left hand twisting 0.02 rad a frame
+        // while both hold: each hand turns onto its grasp, so its rotation relative to the
+        // object stays what it was (its fingers stay where they closed); after the hold the
+        // turn fades, and nothing jumps.
+        const OBJECT: Vec3 = [0.0, 0.4, 0.84];
+        let s = Script {
+            frames: 130,
+            wrist: Box::new(|t| {
+                let k = ((t as f64 - 85.0) / 15.0).clamp(0.0, 1.0);
+                add(&scale(&[-0.05, 0.35, 0.92], 1.0 - k), &scale(&[-0.3, 0.2, 0.92], k))
+            }),
+            contact: Box::new(|t| [t >= 40, (5..80).contains(&t)]),
+            object: Box::new(|_| OBJECT),
+        };
+        let left = |_: usize| -> Vec3 { [0.08, 0.37, 0.92] };
+        let twist = |t: usize| 0.02 * (t.clamp(40, 80) - 40) as f64;
+        let frames = run_twisted(&s, Some(&left), &twist);
+        let sk = skeleton();
+        let grasp = |f: &Pose, w: usize| mat_mul(&transpose(&fk(&sk, f).0[w]), &f.object_rotation);
+        let both: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact == [true, true]).collect();
+        assert!(both.len() > 25, "{} two-handed frames", both.len());
+        for pair in both.windows(2).filter(|p| p[1] == p[0] + 1) {
+            for w in [20, 21] {
+                let (a, b) = (grasp(&frames[pair[0]].0, w), grasp(&frames[pair[1]].0, w));
+                let d = (0..3).flat_map(|i| (0..3).map(move |k| (i, k))).map(|(i, k)| (a[i][k] - b[i][k]).abs());
+                assert!(d.fold(0.0, f64::max) < 1e-6, "frame {}: joint {w} turns on the object", pair[1]);
+            }
+        }
+        for w in frames.windows(2) {
+            for j in LIMITED {
+                let v = dist(&w[1].1[j], &w[0].1[j]) * 30.0;
+                assert!(v < 1.5, "joint {j} at {v} m/s");
+            }
+        }
+    }
+
+    #[test]
+    fn a_seam_jump_is_held_to_the_speed_limit_and_caught_up() {
+        // The model's right wrist jumps 30 cm at frame 20 (a token seam) and stays there.
+        let s = Script {
+            frames: 60,
+            wrist: Box::new(|t| if t < 20 { [-0.3, 0.27, 0.9] } else { [-0.3, 0.27, 1.2] }),
+            contact: Box::new(|_| [false, false]),
+            object: Box::new(|_| TABLE_OBJECT),
+        };
+        let frames = run(&s, None);
+        let most = MAX_SPEED / 30.0;
+        for (t, w) in frames.windows(2).enumerate() {
+            let far = LIMITED.iter().map(|&j| dist(&w[1].1[j], &w[0].1[j])).fold(0.0, f64::max);
+            assert!(far <= most + 1e-9, "frame {t}: a hand joint moves {far} m");
+        }
+        // Held back for the frames the jump needs at the limit, then the model's again.
+        let sk = skeleton();
+        let mut raw = Pose { pelvis: [0.0, 0.0, 0.6], ..Pose::default() };
+        let (g, p) = fk(&sk, &raw);
+        arm_ik(&mut raw.local, &g, &p, 1, &[-0.3, 0.27, 1.2]);
+        let raw = fk(&sk, &raw).1;
+        assert!(dist(&frames[20].1[21], &raw[21]) > 0.1, "{:?}", frames[20].1[21]);
+        for f in &frames[40..] {
+            assert!(dist(&f.1[21], &raw[21]) < 1e-9, "{:?} vs {:?}", f.1[21], raw[21]);
+        }
+    }
+
+    #[test]
+    fn an_object_let_go_tilted_tips_onto_a_face() {
+        let shape = ObjectShape { centre: [0.0, 0.0, 0.05], half_extents: [0.03, 0.04, 0.05], surface: None };
+        let table = Table { height: 0.8, start: [0.0, 0.4], origin: [0.0, 0.0], forward: [0.0, 1.0] };
+        for (lean, upright) in [(0.5f64, true), (1.2, false)] {
+            let mut stage = ContactStage::new(shape.clone(), 30.0);
+            stage.table = table;
+            stage.rot = axis_angle(&[1.0, 0.0, 0.0], lean);
+            stage.pos = [0.0, 0.4, 0.0];
+            stage.pos[2] = 0.8 - shape.bottom_at(&stage.rot, &stage.pos) + stage.pos[2];
+            // Not let go yet (a start pose): it rests as it is.
+            stage.settle();
+            assert_eq!(stage.rot, axis_angle(&[1.0, 0.0, 0.0], lean));
+            stage.released = true;
+            let mut before = stage.rot;
+            for _ in 0..30 {
+                stage.settle();
+                let d: f64 = (0..3)
+                    .map(|i| {
+                        dot(
+                            &[stage.rot[0][i], stage.rot[1][i], stage.rot[2][i]],
+                            &[before[0][i], before[1][i], before[2][i]],
+                        )
+                    })
+                    .sum();
+                let turn = ((d - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+                assert!(turn <= TIP_SPEED / 30.0 + 1e-9, "turns {turn} rad in a frame");
+                assert!((shape.bottom_at(&stage.rot, &stage.pos) - 0.8).abs() < 1e-9, "leaves the table");
+                assert_eq!((stage.pos[0], stage.pos[1]), (0.0, 0.4), "slides");
+                before = stage.rot;
+            }
+            // On a face: upright (z axis down) when it leaned less than 45°, else on its side.
+            let down = if upright { stage.rot[2][2] } else { stage.rot[2][1] };
+            assert!(down.abs() > 1.0 - 1e-12, "lean {lean}: {:?}", stage.rot);
+        }
     }
 
     #[test]

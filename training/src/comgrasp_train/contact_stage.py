@@ -59,6 +59,9 @@ LIMIT_TRIES = 4
 LANDED = 1e-9
 TURN_FADE = 1.0
 TIP_SPEED = 3.0
+PRESS_UP_SPEED = 0.6
+LEVEL_HEIGHT = 0.1
+LEVEL_SPEED = 6.0
 CONTACT_THRESHOLD = 0.5
 NORM_EPS = 1e-12
 
@@ -417,6 +420,7 @@ class ContactStage:
         self.bow_axis = np.array([1.0, 0.0, 0.0])
         self.limited: _Limited | None = None
         self.released = False
+        self.base = np.array([0.0, 0.0, -1.0])
         # How often each rule fired (the reference only: tests check what a fixture covers).
         self.events: Counter[str] = Counter()
 
@@ -429,6 +433,7 @@ class ContactStage:
             self.started = True
             self.rot, self.pos = pose.object_rotation.copy(), pose.object_translation.copy()
             self.table = Table.new(pose.pelvis, pose.local[0], self.rot, self.pos, self.shape)
+            self.base = lowest_axis(self.rot)
         glob, joints = self._limit_speed(skel, pose, glob, joints)
 
         for h in range(2):
@@ -514,7 +519,7 @@ class ContactStage:
         carried = self._carried(glob, joints)
         if carried is not None:
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
-            depth = min(self.table.height - self.shape.bottom_at(*carried), 0.5 * MAX_SPEED * self.dt)
+            depth = min(self.table.height - self.shape.bottom_at(*carried), PRESS_UP_SPEED * self.dt)
             if not self.lifted and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
                 self.events["press_up"] += 1
                 for h in range(2):
@@ -525,6 +530,13 @@ class ContactStage:
                 again = self._carried(glob, joints)
                 if again is not None:
                     self.rot, self.pos = again
+            if self._level_near_support(both) and not both:
+                h = 1 if self.hands[1].phase == "holding" else 0
+                w = ARMS[h][3]
+                grasp = self.rot @ self.hands[h].rel_rot.T
+                self.hands[h].turn = grasp @ model_wrist[h].T
+                pose.local[w] = pose.local[w] @ (glob[w].T @ grasp)
+                glob, joints = skel.forward(pose.local, pose.pelvis)
             if both:
                 # two hands: each to its own grip on the mean pose (the offset joins its correction)
                 for h in range(2):
@@ -632,29 +644,42 @@ class ContactStage:
 
     def _tip(self, step: float) -> bool:
         """``ContactStage::tip``: a released object, once resting, turns toward its box face below."""
-        if not self.released:
+        face = face_toward(self.rot, lowest_axis(self.rot)) if self.released else None
+        if face is None:
             return False
-        r = self.rot
-        k = 0
-        for i in range(1, 3):
-            if abs(r[2, i]) > abs(r[2, k]):
-                k = i
-        sign = -1.0 if r[2, k] > 0.0 else 1.0
-        axis_down = sign * r[:, k]
-        tilt = math.acos(min(max(-axis_down[2], -1.0), 1.0))
-        if tilt <= 1e-6:
-            return False
-        axis = np.cross(axis_down, np.array([0.0, 0.0, -1.0]))
-        n = _norm(axis)
-        if n <= 1e-12:
-            return False
+        axis, tilt = face
         bottom = self.shape.bottom_at(self.rot, self.pos)
-        self.rot = axis_angle(axis / n, min(tilt, step)) @ self.rot
+        self.rot = axis_angle(axis, min(tilt, step)) @ self.rot
         p = self.pos.copy()
         p[2] += bottom - self.shape.bottom_at(self.rot, self.pos)
         self.pos = p
         self.events["tip_frames"] += 1
         return True
+
+    def _level_near_support(self, both: bool) -> bool:
+        """``ContactStage::level_near_support``."""
+        bottom, floor = self._floor()
+        base = self.base if (self.rot @ self.base)[2] < 0.0 else lowest_axis(self.rot)
+        face = face_toward(self.rot, base)
+        if face is None:
+            return False
+        axis, tilt = face
+        allowed = math.pi / 2 * max(bottom - floor, 0.0) / LEVEL_HEIGHT
+        if not tilt > allowed:
+            return False
+        if both:
+            pivot = (self._wrist_of(0) + self._wrist_of(1)) * 0.5
+        else:
+            pivot = self._wrist_of(0 if self.hands[0].phase == "holding" else 1)
+        q = axis_angle(axis, min(tilt - allowed, LEVEL_SPEED * self.dt))
+        self.rot = q @ self.rot
+        self.pos = pivot + q @ (self.pos - pivot)
+        self.events["level_frames"] += 1
+        return True
+
+    def _wrist_of(self, h: int) -> np.ndarray:
+        hand = self.hands[h]
+        return self.pos + self.rot @ (hand.rel_rot.T @ -hand.rel_pos)
 
     def _limit_speed(self, skel: Skeleton, pose: Pose, glob: np.ndarray, joints: np.ndarray):
         """``ContactStage::limit_speed``; returns the (new) FK."""
@@ -775,6 +800,26 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
             else:
                 lo = mid
     return rt @ (direction * up)
+
+
+def lowest_axis(r: np.ndarray) -> np.ndarray:
+    """The object-frame box axis that ``r`` points most downward."""
+    k = 0
+    for i in range(1, 3):
+        if abs(r[2, i]) > abs(r[2, k]):
+            k = i
+    a = np.zeros(3)
+    a[k] = -1.0 if r[2, k] > 0.0 else 1.0
+    return a
+
+
+def face_toward(r: np.ndarray, local: np.ndarray):
+    """(horizontal unit axis, angle) turning ``r @ local`` onto straight down; None near down/up."""
+    down = r @ local
+    tilt = math.acos(min(max(-down[2], -1.0), 1.0))
+    axis = np.cross(down, np.array([0.0, 0.0, -1.0]))
+    n = _norm(axis)
+    return (axis / n, tilt) if tilt > 1e-6 and n > 1e-9 else None
 
 
 def fade_rotation(r: np.ndarray, step: float) -> np.ndarray:
