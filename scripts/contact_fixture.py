@@ -32,13 +32,14 @@ OUT = ROOT / "tests" / "fixtures" / "contact_stage"
 BUNDLE = ROOT / "models" / "default"
 CASES = (  # prompt, seed: together they make every rule in RULES fire
     ("The woman picks up the banana", 3),
+    ("The man is passing the small cylinder from his right hand to his left.", 2),
     ("The man pours from the bowl", 4),
     ("The man is passing the medium sphere from his left hand to his right.", 1),
     ("A woman inspects the small cylinder", 5),
     ("Someone lifts the large sphere with both hands", 6),
 )
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
-         "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames")
+         "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim")
 
 
 def main() -> int:

@@ -56,6 +56,9 @@ pub const FADE_SPEED: f64 = 0.3;
 pub const REACH_LIMIT: f64 = 0.98;
 /// A reach that ends this far from its target (the body moved away) is abandoned, m.
 const REACH_MISS: f64 = 0.02;
+/// A reach that ends with the hand's nearest joint this much farther off the object than
+/// [`GRIP_GAP`] (the model's hand turned or opened meanwhile) is aimed once more, m.
+const REGRIP: f64 = 0.01;
 /// A grasp puts the hand's nearest joint this far off the object's surface (its box when
 /// the surface is unknown), m.
 pub const GRIP_GAP: f64 = 0.005;
@@ -364,6 +367,9 @@ enum Phase {
         bow_from: f64,
         /// Wrist minus object centre, in the object frame.
         grip: Vec3,
+        /// A re-aim: a reach that ended with the hand too far off the object starts once
+        /// more from there, at most once.
+        again: bool,
     },
     Holding,
 }
@@ -525,18 +531,9 @@ impl ContactStage {
             match phase {
                 Phase::Reaching { .. } if off >= OFF_FRAMES => phase = Phase::Free,
                 Phase::Free if on >= ON_FRAMES && !latched => {
-                    let hand_joints: [Vec3; 16] = std::array::from_fn(|k| {
-                        let j = if k == 0 { ARMS[h][3] } else { HAND_FIRST[h] + k - 1 };
-                        sub(&joints[j], &wrist)
-                    });
-                    let grip =
-                        grip_offset(&pose.wrist_to_object[h], &self.shape, &self.rot, &wrist, &self.pos, &hand_joints);
-                    let target = self.shape.point_at(&self.rot, &self.pos, &grip);
-                    if needed_bow(&joints, h, &target, REACH_LIMIT * arm).is_some() {
-                        let gap = norm(&sub(&target, &add(&wrist, &hand.correction)));
-                        let frames =
-                            ((gap / (REACH_SPEED * self.dt)).ceil() as u32).clamp(MIN_REACH_FRAMES, MAX_REACH_FRAMES);
-                        phase = Phase::Reaching { frame: 0, frames, from: hand.correction, bow_from: self.bow, grip };
+                    let from = add(&wrist, &hand.correction);
+                    if let Some(reach) = self.reach(h, &pose.wrist_to_object[h], &joints, &wrist, &from, arm, false) {
+                        phase = reach;
                     }
                 }
                 _ => {}
@@ -698,12 +695,27 @@ impl ContactStage {
         // A reach is judged against where it aimed: an object the other hand carries has
         // moved on by now (a hand-over), and the grasp captures it where it is.
         for h in 0..2 {
-            if let (Phase::Reaching { frame, frames, .. }, Some(target)) = (self.hands[h].phase, aimed[h]) {
+            if let (Phase::Reaching { frame, frames, again, .. }, Some(target)) = (self.hands[h].phase, aimed[h]) {
                 if frame >= frames {
-                    if norm(&sub(&joints[ARMS[h][3]], &target)) <= REACH_MISS {
-                        self.capture(h, &global, &joints);
-                    } else {
+                    let wrist = joints[ARMS[h][3]];
+                    if norm(&sub(&wrist, &target)) > REACH_MISS {
                         self.hands[h].phase = Phase::Free;
+                        continue;
+                    }
+                    // The model's hand may have turned or opened since the reach was aimed.
+                    let centre = self.shape.centre_at(&self.rot, &self.pos);
+                    let off =
+                        hand_gap(&self.shape, &transpose(&self.rot), &sub(&wrist, &centre), &hand_offsets(&joints, h));
+                    let model_wrist = sub(&wrist, &self.hands[h].correction);
+                    let reach = (!again && off > GRIP_GAP + REGRIP)
+                        .then(|| {
+                            let arm = arm_length(skeleton, h);
+                            self.reach(h, &pose.wrist_to_object[h], &joints, &model_wrist, &wrist, arm, true)
+                        })
+                        .flatten();
+                    match reach {
+                        Some(reach) => self.hands[h].phase = reach,
+                        None => self.capture(h, &global, &joints),
                     }
                 }
             }
@@ -821,6 +833,30 @@ impl ContactStage {
             [Some(a), None] | [None, Some(a)] => Some(a),
             [None, None] => None,
         }
+    }
+
+    /// A reach of hand `h` toward a grip along the model's wrist-to-object vector `model`,
+    /// for the hand as posed in `joints` (its wrist at `wrist` without correction, now at
+    /// `from`); `None` when the target is out of reach.
+    #[allow(clippy::too_many_arguments)]
+    fn reach(
+        &self,
+        h: usize,
+        model: &Vec3,
+        joints: &[Vec3; CG_NUM_JOINTS],
+        wrist: &Vec3,
+        from: &Vec3,
+        arm: f64,
+        again: bool,
+    ) -> Option<Phase> {
+        let here = joints[ARMS[h][3]];
+        let grip = grip_offset(model, &self.shape, &self.rot, &here, &self.pos, &hand_offsets(joints, h));
+        let target = self.shape.point_at(&self.rot, &self.pos, &grip);
+        needed_bow(joints, h, &target, REACH_LIMIT * arm)?;
+        let gap = norm(&sub(&target, from));
+        let frames = ((gap / (REACH_SPEED * self.dt)).ceil() as u32).clamp(MIN_REACH_FRAMES, MAX_REACH_FRAMES);
+        let correction = sub(from, wrist);
+        Some(Phase::Reaching { frame: 0, frames, from: correction, bow_from: self.bow, grip, again })
     }
 
     /// Hand `h` grasps: the object's current pose in its wrist frame.
@@ -1061,20 +1097,7 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
     let n = norm(&v);
     let dir = if n > 1e-6 { scale(&v, 1.0 / n) } else { [0.0, 0.0, 1.0] };
     let rt = transpose(rot);
-    // Nearest hand joint's distance to the object with the wrist at `len` along `dir`. The
-    // box distance bounds a joint's distance from below, so a joint whose box distance is
-    // no nearer than the nearest so far skips the surface search (same result, ~16× less).
-    let gap = |len: f64| {
-        let w = scale(&dir, len);
-        let mut best = f64::INFINITY;
-        for o in hand {
-            let p = mat_vec(&rt, &add(&w, o));
-            if box_distance(&p, &shape.half_extents) < best {
-                best = best.min(shape.distance(&p));
-            }
-        }
-        best
-    };
+    let gap = |len: f64| hand_gap(shape, &rt, &scale(&dir, len), hand);
     let hi = norm(&shape.half_extents) + GRIP_MARGIN;
     let (mut lo, mut up) = (0.0, hi);
     // From outside in: the first touch, then bisection. A hand can lie clear of an object
@@ -1098,6 +1121,31 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
         }
     }
     mat_vec(&rt, &scale(&dir, up))
+}
+
+/// The wrist's and the 15 finger joints' offsets from the wrist of hand `h` (world).
+fn hand_offsets(joints: &[Vec3; CG_NUM_JOINTS], h: usize) -> [Vec3; 16] {
+    let wrist = joints[ARMS[h][3]];
+    std::array::from_fn(|k| {
+        let j = if k == 0 { ARMS[h][3] } else { HAND_FIRST[h] + k - 1 };
+        sub(&joints[j], &wrist)
+    })
+}
+
+/// The nearest hand joint's distance to the object (`rt`: its rotation transposed) with the
+/// wrist at `wrist` from the box centre (world axes), `hand` the joints' offsets from the
+/// wrist. The box distance bounds a joint's distance from below, so a joint whose box
+/// distance is no nearer than the nearest so far skips the surface search (same result,
+/// ~16× less).
+fn hand_gap(shape: &ObjectShape, rt: &Mat3, wrist: &Vec3, hand: &[Vec3; 16]) -> f64 {
+    let mut best = f64::INFINITY;
+    for o in hand {
+        let p = mat_vec(rt, &add(wrist, o));
+        if box_distance(&p, &shape.half_extents) < best {
+            best = best.min(shape.distance(&p));
+        }
+    }
+    best
 }
 
 /// Signed distance from `p` (relative to the box centre, in the box frame) to a box.

@@ -35,6 +35,7 @@ MAX_REACH_FRAMES = 30
 FADE_SPEED = 0.3
 REACH_LIMIT = 0.98
 REACH_MISS = 0.02
+REGRIP = 0.01
 GRIP_GAP = 0.005
 GRIP_SCAN_STEPS = 24
 GRIP_SEARCH_STEPS = 16
@@ -379,6 +380,7 @@ class _Reach:
     start: np.ndarray  # the correction when the reach started
     bow_from: float
     grip: np.ndarray  # wrist minus object centre, object frame
+    again: bool = False  # a re-aim (at most one per grasp)
 
 
 @dataclass
@@ -449,14 +451,9 @@ class ContactStage:
                 hand.phase, hand.reach = "free", None
                 self.events["reach_abandoned"] += 1
             elif hand.phase == "free" and hand.on >= ON_FRAMES and not hand.latched:
-                offsets = np.stack([joints[ARMS[h][3] if k == 0 else HAND_FIRST[h] + k - 1] - wrist for k in range(16)])
-                grip = grip_offset(pose.wrist_to_object[h], self.shape, self.rot, wrist, self.pos, offsets)
-                target = self.shape.point_at(self.rot, self.pos, grip)
-                if needed_bow(joints, h, target, REACH_LIMIT * arm) is not None:
-                    gap = _norm(target - (wrist + hand.correction))
-                    frames = min(max(math.ceil(gap / (REACH_SPEED * self.dt)), MIN_REACH_FRAMES), MAX_REACH_FRAMES)
-                    hand.phase = "reaching"
-                    hand.reach = _Reach(0, frames, hand.correction.copy(), self.bow, grip)
+                reach = self._reach(h, pose.wrist_to_object[h], joints, wrist, wrist + hand.correction, arm, False)
+                if reach is not None:
+                    hand.phase, hand.reach = "reaching", reach
                     self.events["reach"] += 1
                 else:
                     self.events["out_of_reach"] += 1
@@ -567,8 +564,19 @@ class ContactStage:
         for h in range(2):
             hand = self.hands[h]
             if hand.phase == "reaching" and hand.reach.frame >= hand.reach.frames:
-                if _norm(joints[ARMS[h][3]] - aimed[h]) <= REACH_MISS:
-                    self._capture(h, glob, joints)
+                wrist = joints[ARMS[h][3]]
+                if _norm(wrist - aimed[h]) <= REACH_MISS:
+                    centre = self.shape.centre_at(self.rot, self.pos)
+                    off = hand_gap(self.shape, self.rot.T, wrist - centre, hand_offsets(joints, h))
+                    reach = None
+                    if not hand.reach.again and off > GRIP_GAP + REGRIP:
+                        reach = self._reach(h, pose.wrist_to_object[h], joints, wrist - hand.correction, wrist,
+                                            skel.arm_length(h), True)
+                    if reach is not None:
+                        hand.reach = reach
+                        self.events["reaim"] += 1
+                    else:
+                        self._capture(h, glob, joints)
                 else:
                     hand.phase = "free"
                     self.events["reach_missed"] += 1
@@ -655,6 +663,18 @@ class ContactStage:
         self.pos = p
         self.events["tip_frames"] += 1
         return True
+
+    def _reach(self, h: int, model: np.ndarray, joints: np.ndarray, wrist: np.ndarray, start: np.ndarray,
+               arm: float, again: bool) -> _Reach | None:
+        """``ContactStage::reach``."""
+        here = joints[ARMS[h][3]]
+        grip = grip_offset(model, self.shape, self.rot, here, self.pos, hand_offsets(joints, h))
+        target = self.shape.point_at(self.rot, self.pos, grip)
+        if needed_bow(joints, h, target, REACH_LIMIT * arm) is None:
+            return None
+        gap = _norm(target - start)
+        frames = min(max(math.ceil(gap / (REACH_SPEED * self.dt)), MIN_REACH_FRAMES), MAX_REACH_FRAMES)
+        return _Reach(0, frames, start - wrist, self.bow, grip, again)
 
     def _level_near_support(self, both: bool) -> bool:
         """``ContactStage::level_near_support``."""
@@ -770,6 +790,17 @@ def _catalogue_shape(name: str) -> ObjectShape:
                           surface_from_mesh(*read_obj(object_mesh_obj(name, OBJECT_MAX_EDGE))))
 
 
+def hand_offsets(joints: np.ndarray, h: int) -> np.ndarray:
+    """The wrist's and the 15 finger joints' offsets from hand ``h``'s wrist (world)."""
+    w = ARMS[h][3]
+    return np.stack([joints[w if k == 0 else HAND_FIRST[h] + k - 1] - joints[w] for k in range(16)])
+
+
+def hand_gap(shape: ObjectShape, rt: np.ndarray, wrist: np.ndarray, hand: np.ndarray) -> float:
+    """``contact::hand_gap``: the nearest hand joint's distance to the object."""
+    return float(shape.distance((wrist + hand) @ rt.T).min())
+
+
 def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: np.ndarray, pos: np.ndarray,
                 hand: np.ndarray) -> np.ndarray:
     centre = shape.centre_at(rot, pos)
@@ -782,7 +813,7 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
     rt = rot.T
 
     def gap(length: float) -> float:
-        return float(shape.distance((direction * length + hand) @ rt.T).min())
+        return hand_gap(shape, rt, direction * length, hand)
 
     hi = _norm(shape.half_extents) + GRIP_MARGIN
     lo, up = 0.0, hi
