@@ -934,7 +934,7 @@ impl ContactStage {
         let base = if mat_vec(&self.rot, &self.base)[2] < 0.0 { self.base } else { lowest_axis(&self.rot) };
         let Some((axis, tilt)) = face_toward(&self.rot, &base) else { return false };
         let allowed = std::f64::consts::FRAC_PI_2 * (bottom - floor).max(0.0) / LEVEL_HEIGHT;
-        if !(tilt > allowed) {
+        if tilt <= allowed || allowed.is_nan() {
             return false;
         }
         let pivot = match (both, self.hands[0].phase == Phase::Holding) {
@@ -1582,7 +1582,7 @@ mod tests {
             stage.table = table;
             stage.rot = axis_angle(&[1.0, 0.0, 0.0], lean);
             stage.pos = [0.0, 0.4, 0.0];
-            stage.pos[2] = 0.8 - shape.bottom_at(&stage.rot, &stage.pos) + stage.pos[2];
+            stage.pos[2] += 0.8 - shape.bottom_at(&stage.rot, &stage.pos);
             // Not let go yet (a start pose): it rests as it is.
             stage.settle();
             assert_eq!(stage.rot, axis_angle(&[1.0, 0.0, 0.0], lean));
