@@ -63,9 +63,9 @@ const REGRIP: f64 = 0.01;
 /// the surface is unknown), m.
 pub const GRIP_GAP: f64 = 0.005;
 /// Steps of the grip distance's scan from outside in, then of its bisection (within
-/// ~0.3 µm of the first touch).
-const GRIP_SCAN_STEPS: u32 = 24;
-const GRIP_SEARCH_STEPS: u32 = 16;
+/// ~0.1 mm of the first touch).
+const GRIP_SCAN_STEPS: u32 = 12;
+const GRIP_SEARCH_STEPS: u32 = 8;
 /// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
 pub const GRIP_MARGIN: f64 = 0.12;
 /// Largest forward bow of the spine the reach may add, radians (split over the three
@@ -155,6 +155,9 @@ pub struct ObjectShape {
 pub struct ObjectSurface {
     pub points: Vec<Vec3>,
     pub normals: Vec<Vec3>,
+    /// Sample indices by x (then index): the nearest-sample search sweeps out from a point's
+    /// x and stops where x alone is farther than the nearest so far.
+    by_x: Vec<u32>,
 }
 
 /// Largest spacing of [`ObjectSurface`] samples along a triangle's edges, m.
@@ -167,7 +170,7 @@ impl ObjectSurface {
     /// A long sliver gets a row of samples, not a square grid of them. Zero-area triangles
     /// have no normal and are skipped.
     pub fn from_mesh(mesh: &Mesh) -> ObjectSurface {
-        let mut out = ObjectSurface { points: Vec::new(), normals: Vec::new() };
+        let mut out = (Vec::new(), Vec::new());
         let p = |i: u32| mesh.positions[i as usize].map(f64::from);
         for t in &mesh.triangles {
             let c = [p(t[0]), p(t[1]), p(t[2])];
@@ -189,12 +192,54 @@ impl ObjectSurface {
                 let u = (i as f64 + 0.5) / n1 as f64;
                 for j in 0..n2 {
                     let v = (1.0 - u) * (j as f64 + 0.5) / n2 as f64;
-                    out.points.push(add(&a, &add(&scale(&ab, u), &scale(&ac, v))));
-                    out.normals.push(normal);
+                    out.0.push(add(&a, &add(&scale(&ab, u), &scale(&ac, v))));
+                    out.1.push(normal);
                 }
             }
         }
-        out
+        ObjectSurface::new(out.0, out.1)
+    }
+
+    /// Samples and their unit normals (same length).
+    pub fn new(points: Vec<Vec3>, normals: Vec<Vec3>) -> ObjectSurface {
+        let mut by_x: Vec<u32> = (0..points.len() as u32).collect();
+        by_x.sort_by(|&a, &b| points[a as usize][0].total_cmp(&points[b as usize][0]).then(a.cmp(&b)));
+        ObjectSurface { points, normals, by_x }
+    }
+
+    /// The nearest sample to `p` (squared distance, index; the lowest index among equals,
+    /// as a scan in order finds it): a sweep out from `p`'s x in both directions.
+    fn nearest(&self, p: &Vec3) -> Option<(f64, usize)> {
+        let x = |k: u32| self.points[k as usize][0];
+        let start = self.by_x.partition_point(|&k| x(k) < p[0]);
+        let mut best = (f64::INFINITY, usize::MAX);
+        let (mut up, mut down) = (start, start);
+        loop {
+            let within = |dx: f64| dx * dx <= best.0;
+            let dx_up = self.by_x.get(up).map(|&k| x(k) - p[0]).filter(|&dx| within(dx));
+            let dx_down = down.checked_sub(1).map(|i| p[0] - x(self.by_x[i])).filter(|&dx| within(dx));
+            let k = match (dx_up, dx_down) {
+                (None, None) => break,
+                (Some(a), Some(b)) if b < a => {
+                    down -= 1;
+                    self.by_x[down]
+                }
+                (Some(_), _) => {
+                    up += 1;
+                    self.by_x[up - 1]
+                }
+                (None, Some(_)) => {
+                    down -= 1;
+                    self.by_x[down]
+                }
+            };
+            let d = sub(p, &self.points[k as usize]);
+            let q = dot(&d, &d);
+            if q < best.0 || (q == best.0 && (k as usize) < best.1) {
+                best = (q, k as usize);
+            }
+        }
+        best.0.is_finite().then_some(best)
     }
 
     /// Signed distance of `p` (object frame) from the nearest sample's patch: > 0 outside.
@@ -203,15 +248,7 @@ impl ObjectSurface {
     /// plane reaches across a hole (a torus's) that the surface does not. `None` without
     /// samples.
     pub fn distance(&self, p: &Vec3) -> Option<f64> {
-        let mut best = (f64::INFINITY, 0usize);
-        for (k, s) in self.points.iter().enumerate() {
-            let d = sub(p, s);
-            let q = dot(&d, &d);
-            if q < best.0 {
-                best = (q, k);
-            }
-        }
-        (best.0.is_finite()).then(|| {
+        self.nearest(p).map(|best| {
             let along = dot(&sub(p, &self.points[best.1]), &self.normals[best.1]);
             let beyond = ((best.0 - along * along).max(0.0).sqrt() - SURFACE_SPACING).max(0.0);
             if beyond > 0.0 {
@@ -704,10 +741,10 @@ impl ContactStage {
                     }
                     // The model's hand may have turned or opened since the reach was aimed.
                     let centre = self.shape.centre_at(&self.rot, &self.pos);
-                    let off =
-                        hand_gap(&self.shape, &transpose(&self.rot), &sub(&wrist, &centre), &hand_offsets(&joints, h));
+                    let (rt, hand) = (transpose(&self.rot), hand_offsets(&joints, h));
+                    let off = hand_clear(&self.shape, &rt, &sub(&wrist, &centre), &hand, GRIP_GAP + REGRIP);
                     let model_wrist = sub(&wrist, &self.hands[h].correction);
-                    let reach = (!again && off > GRIP_GAP + REGRIP)
+                    let reach = (!again && off)
                         .then(|| {
                             let arm = arm_length(skeleton, h);
                             self.reach(h, &pose.wrist_to_object[h], &joints, &model_wrist, &wrist, arm, true)
@@ -1097,15 +1134,15 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
     let n = norm(&v);
     let dir = if n > 1e-6 { scale(&v, 1.0 / n) } else { [0.0, 0.0, 1.0] };
     let rt = transpose(rot);
-    let gap = |len: f64| hand_gap(shape, &rt, &scale(&dir, len), hand);
+    let clear = |len: f64| hand_clear(shape, &rt, &scale(&dir, len), hand, GRIP_GAP);
     let hi = norm(&shape.half_extents) + GRIP_MARGIN;
     let (mut lo, mut up) = (0.0, hi);
     // From outside in: the first touch, then bisection. A hand can lie clear of an object
     // again farther in (in a torus's hole), so bisection alone may end there.
-    if gap(hi) >= GRIP_GAP {
+    if clear(hi) {
         for k in (0..GRIP_SCAN_STEPS).rev() {
             let len = hi * k as f64 / GRIP_SCAN_STEPS as f64;
-            if gap(len) < GRIP_GAP {
+            if !clear(len) {
                 lo = len;
                 break;
             }
@@ -1113,7 +1150,7 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
         }
         for _ in 0..GRIP_SEARCH_STEPS {
             let mid = 0.5 * (lo + up);
-            if gap(mid) >= GRIP_GAP {
+            if clear(mid) {
                 up = mid;
             } else {
                 lo = mid;
@@ -1132,20 +1169,19 @@ fn hand_offsets(joints: &[Vec3; CG_NUM_JOINTS], h: usize) -> [Vec3; 16] {
     })
 }
 
-/// The nearest hand joint's distance to the object (`rt`: its rotation transposed) with the
-/// wrist at `wrist` from the box centre (world axes), `hand` the joints' offsets from the
-/// wrist. The box distance bounds a joint's distance from below, so a joint whose box
-/// distance is no nearer than the nearest so far skips the surface search (same result,
-/// ~16× less).
-fn hand_gap(shape: &ObjectShape, rt: &Mat3, wrist: &Vec3, hand: &[Vec3; 16]) -> f64 {
-    let mut best = f64::INFINITY;
-    for o in hand {
-        let p = mat_vec(rt, &add(wrist, o));
-        if box_distance(&p, &shape.half_extents) < best {
-            best = best.min(shape.distance(&p));
-        }
-    }
-    best
+/// Whether every hand joint is at least `gap` off the object (`rt`: its rotation
+/// transposed), with the wrist at `wrist` from the box centre (world axes) and `hand` the
+/// joints' offsets from the wrist. A joint's box distance bounds its distance from below,
+/// so the joints are tried nearest box first and the surface is searched only for those
+/// whose box is nearer than `gap` (the answer of measuring all of them, at a fraction of
+/// the cost).
+fn hand_clear(shape: &ObjectShape, rt: &Mat3, wrist: &Vec3, hand: &[Vec3; 16], gap: f64) -> bool {
+    let mut joints: [(f64, Vec3); 16] = std::array::from_fn(|k| {
+        let p = mat_vec(rt, &add(wrist, &hand[k]));
+        (box_distance(&p, &shape.half_extents), p)
+    });
+    joints.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+    joints.iter().take_while(|(boxed, _)| *boxed < gap).all(|(_, p)| shape.distance(p) >= gap)
 }
 
 /// Signed distance from `p` (relative to the box centre, in the box frame) to a box.
@@ -1628,10 +1664,35 @@ mod tests {
         assert!((d([0.0, 0.0, 0.13]) - 0.05).abs() < 1e-6, "above the top");
         assert!((d([0.07, 0.01, 0.04]) - 0.03).abs() < 1e-6, "beside a side");
         assert!((d([0.0, 0.0, 0.05]) + 0.03).abs() < 1e-6, "inside, under the top");
-        assert_eq!(ObjectSurface { points: vec![], normals: vec![] }.distance(&[0.0; 3]), None);
+        assert_eq!(ObjectSurface::new(vec![], vec![]).distance(&[0.0; 3]), None);
         // The shape: the box distance where the surface has none, the larger of the two.
         let shape = ObjectShape { centre: [0.0, 0.0, 0.04], half_extents: [0.04; 3], surface: Some(Arc::new(surface)) };
         assert!((shape.distance(&[0.0, 0.0, 0.09]) - 0.05).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_nearest_sample_is_the_one_a_scan_finds() {
+        // The x-sorted sweep against a scan in order (lowest index among equal distances),
+        // on a cube's samples (many ties in x) and on points inside, on and far off it.
+        let text = "v -.04 -.04 0\nv .04 -.04 0\nv .04 .04 0\nv -.04 .04 0\n\
+                    v -.04 -.04 .08\nv .04 -.04 .08\nv .04 .04 .08\nv -.04 .04 .08\n\
+                    f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n\
+                    f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
+        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(text).unwrap());
+        let mut rng = crate::sampler::SplitMix64::new(7);
+        for k in 0..2000 {
+            let spread = [0.05, 0.3, 2.0][k % 3];
+            let p: Vec3 = std::array::from_fn(|_| (rng.next_uniform() - 0.5) * spread);
+            let p = if k % 7 == 0 { surface.points[k % surface.points.len()] } else { p };
+            let mut scan = (f64::INFINITY, 0);
+            for (i, s) in surface.points.iter().enumerate() {
+                let d = sub(&p, s);
+                if dot(&d, &d) < scan.0 {
+                    scan = (dot(&d, &d), i);
+                }
+            }
+            assert_eq!(surface.nearest(&p), Some(scan), "{p:?}");
+        }
     }
 
     #[test]

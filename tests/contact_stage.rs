@@ -321,10 +321,10 @@ fn the_python_reference_stage_gives_the_same_frames() {
         // The surface the Python stage used (float32 samples of the bundle's mesh); the
         // engine samples the same mesh into the same points and normals.
         let samples = read(&case["surface"]);
-        let surface = ObjectSurface {
-            points: samples.chunks_exact(6).map(|c| [c[0], c[1], c[2]].map(f64::from)).collect(),
-            normals: samples.chunks_exact(6).map(|c| [c[3], c[4], c[5]].map(f64::from)).collect(),
-        };
+        let surface = ObjectSurface::new(
+            samples.chunks_exact(6).map(|c| [c[0], c[1], c[2]].map(f64::from)).collect(),
+            samples.chunks_exact(6).map(|c| [c[3], c[4], c[5]].map(f64::from)).collect(),
+        );
         let mesh_path =
             Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default").join(case["mesh"].as_str().unwrap());
         let engine_surface =

@@ -37,8 +37,8 @@ REACH_LIMIT = 0.98
 REACH_MISS = 0.02
 REGRIP = 0.01
 GRIP_GAP = 0.005
-GRIP_SCAN_STEPS = 24
-GRIP_SEARCH_STEPS = 16
+GRIP_SCAN_STEPS = 12
+GRIP_SEARCH_STEPS = 8
 SURFACE_SPACING = 0.01
 GRIP_MARGIN = 0.12
 MAX_BOW = 0.6
@@ -569,7 +569,7 @@ class ContactStage:
                     centre = self.shape.centre_at(self.rot, self.pos)
                     off = hand_gap(self.shape, self.rot.T, wrist - centre, hand_offsets(joints, h))
                     reach = None
-                    if not hand.reach.again and off > GRIP_GAP + REGRIP:
+                    if not hand.reach.again and off >= GRIP_GAP + REGRIP:
                         reach = self._reach(h, pose.wrist_to_object[h], joints, wrist - hand.correction, wrist,
                                             skel.arm_length(h), True)
                     if reach is not None:
