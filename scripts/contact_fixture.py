@@ -39,7 +39,7 @@ CASES = (  # prompt, seed: together they make every rule in RULES fire
     ("Someone lifts the large sphere with both hands", 6),
 )
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
-         "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim")
+         "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim", "place_frames")
 
 
 def main() -> int:

@@ -110,6 +110,8 @@ const LANDED: f64 = 1e-9;
 const LIMIT_TRIES: u32 = 4;
 /// Speed at which a two-handed hold's wrist turn fades once one hand lets go, rad/s.
 const TURN_FADE: f64 = 1.0;
+/// A held object let go at most this far above its support is put down on it, m.
+pub const PLACE_HEIGHT: f64 = 0.08;
 /// Fastest the arm holding an object up off the table rises, m/s (the hand moves too).
 const PRESS_UP_SPEED: f64 = 0.6;
 /// Within this height above its support a held object is levelled onto a face, m.
@@ -679,7 +681,11 @@ impl ContactStage {
                         (self.rot, self.pos) = (rot, pos);
                     }
                 }
-                if self.level_near_support(both) && !both {
+                // The last frame held before the hands let go (every holding hand's flag off for
+                // OFF_FRAMES - 1 frames) just above the support: levelled all the way, then put
+                // down on it below, so the object rests there when they let go.
+                let letting_go = self.hands.iter().all(|h| h.phase != Phase::Holding || h.off + 1 >= OFF_FRAMES);
+                if self.level_near_support(both, letting_go) && !both {
                     // One hand: it turns with the object it levels (its turn fades once it lets go).
                     let h = usize::from(self.hands[1].phase == Phase::Holding);
                     let w = ARMS[h][3];
@@ -688,6 +694,34 @@ impl ContactStage {
                     self.hands[h].turn = mat_mul(&grasp, &transpose(&model_wrist[h]));
                     pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(&global[w]), &grasp));
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+                }
+                // Letting go just above the support: the hands put the object down on it by the
+                // last frame they hold it (their flags have been off since), not drop it there.
+                let holding = || self.hands.iter().filter(|h| h.phase == Phase::Holding);
+                if holding().all(|h| h.off > 0) {
+                    let (bottom, floor) = self.floor();
+                    let above = bottom - floor;
+                    if above > 0.0 && above <= PLACE_HEIGHT {
+                        let off = holding().map(|h| h.off).max().unwrap_or(OFF_FRAMES).min(OFF_FRAMES);
+                        let down = above / f64::from((OFF_FRAMES - off).max(1));
+                        for h in 0..2 {
+                            if self.hands[h].phase == Phase::Holding {
+                                self.hands[h].correction[2] -= down;
+                                let target = sub(&joints[ARMS[h][3]], &[0.0, 0.0, down]);
+                                arm_ik(&mut pose.local, &global, &joints, h, &target);
+                            }
+                        }
+                        skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+                        if let Some((rot, pos)) = self.carried(&global, &joints) {
+                            (self.rot, self.pos) = (rot, pos);
+                        }
+                        // What an arm at its reach could not lower, the object slips onto the
+                        // support as the hands let go (at most half MAX_SPEED; any rest falls).
+                        if letting_go {
+                            let (bottom, floor) = self.floor();
+                            self.pos[2] -= (bottom - floor).clamp(0.0, 0.5 * MAX_SPEED * self.dt);
+                        }
+                    }
                 }
                 // Two hands: the object takes the mean of their carried poses, so neither
                 // hand holds it where it grasped it; each is brought (IK) to its own grip on
@@ -962,15 +996,18 @@ impl ContactStage {
     /// its height / [`LEVEL_HEIGHT`] from a face of its box (the one it stood on at the start
     /// while that points down at all, else the one nearest below), so it reaches the support
     /// on that face and is let go resting, not on an edge: it turns about the holding wrist
-    /// (the two wrists' midpoint) by what it leans beyond that, at most [`LEVEL_SPEED`].
+    /// (the two wrists' midpoint) by what it leans beyond that, at most [`LEVEL_SPEED`];
+    /// on the last frame before the hands let go within [`PLACE_HEIGHT`] of it, all the way.
     /// Whether it turned; the caller turns the hands with it.
-    fn level_near_support(&mut self, both: bool) -> bool {
+    fn level_near_support(&mut self, both: bool, letting_go: bool) -> bool {
         let (bottom, floor) = self.floor();
         // A hand sets an object down on the face it stood on (its base) while that points
         // down at all; otherwise on the face nearest below.
         let base = if mat_vec(&self.rot, &self.base)[2] < 0.0 { self.base } else { lowest_axis(&self.rot) };
         let Some((axis, tilt)) = face_toward(&self.rot, &base) else { return false };
-        let allowed = std::f64::consts::FRAC_PI_2 * (bottom - floor).max(0.0) / LEVEL_HEIGHT;
+        let above = (bottom - floor).max(0.0);
+        let allowed =
+            if letting_go && above <= PLACE_HEIGHT { 0.0 } else { std::f64::consts::FRAC_PI_2 * above / LEVEL_HEIGHT };
         if tilt <= allowed || allowed.is_nan() {
             return false;
         }

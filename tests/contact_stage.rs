@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use comgrasp::contact::{FADE_SPEED, TIP_SPEED};
+use comgrasp::contact::{FADE_SPEED, MAX_SPEED, TIP_SPEED};
 use comgrasp::skeleton::{mat_vec, quaternion_to_matrix};
 use comgrasp::{Engine, EngineConfig, Frame, PollResult, StreamConfig};
 
@@ -121,12 +121,16 @@ fn frames_agree_and_the_object_obeys_the_hands() {
                 }
                 for (h, wrist) in [(0usize, 20usize), (1, 21)] {
                     if a.contact[h] == 1 && b.contact[h] == 1 && a.contact[1 - h] == 0 && b.contact[1 - h] == 0 {
-                        // Held by one hand: rigid, the wrist stays as far from the centre.
+                        // Held by one hand: rigid, the wrist stays as far from the centre; on
+                        // the last frame held the object may slip onto the support it is put
+                        // down on (at most half MAX_SPEED).
                         let (da, db) = (
                             dist(&a.joint_positions[wrist], &a.object_centre),
                             dist(&b.joint_positions[wrist], &b.object_centre),
                         );
-                        assert!((da - db).abs() < 1e-3, "{at}: hand {h} slips {da} -> {db}");
+                        let last = fr.get(t + 2).is_some_and(|c| c.contact[h] == 0);
+                        let slip = if last { 0.5 * MAX_SPEED / fps + 1e-3 } else { 1e-3 };
+                        assert!((da - db).abs() < slip, "{at}: hand {h} slips {da} -> {db}");
                     }
                 }
             }

@@ -195,7 +195,9 @@ def test_a_grasp_reaches_holds_rigidly_and_lets_go_onto_the_support(rest):
     wrists = _right_wrist(rest, y)
     centre = y[:, FIELD["object_centre"].slice]
     d = np.linalg.norm(wrists - centre, axis=1)
-    assert d[held].max() - d[held].min() < 1e-4  # rigid
+    # rigid; on the last frame held it may slip onto the support it is put down on
+    assert d[held][:-1].max() - d[held][:-1].min() < 1e-4
+    assert abs(d[held][-1] - d[held][0]) <= 0.5 * cs.MAX_SPEED / 30.0 + 1e-9
     assert d[held].max() < 0.03 + 0.12  # the wrist came to the object
     # it started on a support at its first height (a table top); let go near there, it
     # lands back on it and never hangs in the air

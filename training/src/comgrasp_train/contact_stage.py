@@ -63,6 +63,7 @@ TIP_SPEED = 3.0
 PRESS_UP_SPEED = 0.6
 LEVEL_HEIGHT = 0.1
 LEVEL_SPEED = 6.0
+PLACE_HEIGHT = 0.08
 CONTACT_THRESHOLD = 0.5
 NORM_EPS = 1e-12
 
@@ -527,13 +528,36 @@ class ContactStage:
                 again = self._carried(glob, joints)
                 if again is not None:
                     self.rot, self.pos = again
-            if self._level_near_support(both) and not both:
+            letting_go = all(hd.phase != "holding" or hd.off + 1 >= OFF_FRAMES for hd in self.hands)
+            if self._level_near_support(both, letting_go) and not both:
                 h = 1 if self.hands[1].phase == "holding" else 0
                 w = ARMS[h][3]
                 grasp = self.rot @ self.hands[h].rel_rot.T
                 self.hands[h].turn = grasp @ model_wrist[h].T
                 pose.local[w] = pose.local[w] @ (glob[w].T @ grasp)
                 glob, joints = skel.forward(pose.local, pose.pelvis)
+            holding = [hd for hd in self.hands if hd.phase == "holding"]
+            if all(hd.off > 0 for hd in holding):
+                # letting go just above the support: put it down by the frame they let go
+                bottom, floor = self._floor()
+                above = bottom - floor
+                if 0.0 < above <= PLACE_HEIGHT:
+                    off = min(max(hd.off for hd in holding), OFF_FRAMES)
+                    down = above / max(OFF_FRAMES - off, 1)
+                    for h in range(2):
+                        if self.hands[h].phase == "holding":
+                            self.hands[h].correction[2] -= down
+                            arm_ik(pose.local, glob, joints, h, joints[ARMS[h][3]] - np.array([0.0, 0.0, down]))
+                    glob, joints = skel.forward(pose.local, pose.pelvis)
+                    again = self._carried(glob, joints)
+                    if again is not None:
+                        self.rot, self.pos = again
+                    if letting_go:  # what the arm could not lower slips onto the support
+                        bottom, floor = self._floor()
+                        p = self.pos.copy()
+                        p[2] -= min(max(bottom - floor, 0.0), 0.5 * MAX_SPEED * self.dt)
+                        self.pos = p
+                    self.events["place_frames"] += 1
             if both:
                 # two hands: each to its own grip on the mean pose (the offset joins its correction)
                 for h in range(2):
@@ -676,7 +700,7 @@ class ContactStage:
         frames = min(max(math.ceil(gap / (REACH_SPEED * self.dt)), MIN_REACH_FRAMES), MAX_REACH_FRAMES)
         return _Reach(0, frames, start - wrist, self.bow, grip, again)
 
-    def _level_near_support(self, both: bool) -> bool:
+    def _level_near_support(self, both: bool, letting_go: bool) -> bool:
         """``ContactStage::level_near_support``."""
         bottom, floor = self._floor()
         base = self.base if (self.rot @ self.base)[2] < 0.0 else lowest_axis(self.rot)
@@ -684,7 +708,8 @@ class ContactStage:
         if face is None:
             return False
         axis, tilt = face
-        allowed = math.pi / 2 * max(bottom - floor, 0.0) / LEVEL_HEIGHT
+        above = max(bottom - floor, 0.0)
+        allowed = 0.0 if letting_go and above <= PLACE_HEIGHT else math.pi / 2 * above / LEVEL_HEIGHT
         if not tilt > allowed:
             return False
         if both:
