@@ -662,6 +662,9 @@ impl ContactStage {
         // correction (IK), so the object slides on the top instead of sinking into it.
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
+                // Levelling is for setting down: while the object sinks or the hands let go (a
+                // pour low over the table keeps its tilt).
+                let sinking = pos[2] < self.pos[2];
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
                 // At most PRESS_UP_SPEED: a hand that turns the object deep into the table (a
                 // token seam) lets it sink for a few frames rather than throwing the arm up.
@@ -685,7 +688,8 @@ impl ContactStage {
                 // OFF_FRAMES - 1 frames) just above the support: levelled all the way, then put
                 // down on it below, so the object rests there when they let go.
                 let letting_go = self.hands.iter().all(|h| h.phase != Phase::Holding || h.off + 1 >= OFF_FRAMES);
-                if self.level_near_support(both, letting_go) && !both {
+                let setting_down = sinking || self.hands.iter().any(|h| h.phase == Phase::Holding && h.off > 0);
+                if setting_down && self.level_near_support(both, letting_go) && !both {
                     // One hand: it turns with the object it levels (its turn fades once it lets go).
                     let h = usize::from(self.hands[1].phase == Phase::Holding);
                     let w = ARMS[h][3];

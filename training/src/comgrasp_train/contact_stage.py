@@ -516,6 +516,7 @@ class ContactStage:
 
         carried = self._carried(glob, joints)
         if carried is not None:
+            sinking = carried[1][2] < self.pos[2]  # levelling is for setting down
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
             depth = min(self.table.height - self.shape.bottom_at(*carried), PRESS_UP_SPEED * self.dt)
             if not self.lifted and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
@@ -529,7 +530,8 @@ class ContactStage:
                 if again is not None:
                     self.rot, self.pos = again
             letting_go = all(hd.phase != "holding" or hd.off + 1 >= OFF_FRAMES for hd in self.hands)
-            if self._level_near_support(both, letting_go) and not both:
+            setting_down = sinking or any(hd.phase == "holding" and hd.off > 0 for hd in self.hands)
+            if setting_down and self._level_near_support(both, letting_go) and not both:
                 h = 1 if self.hands[1].phase == "holding" else 0
                 w = ARMS[h][3]
                 grasp = self.rot @ self.hands[h].rel_rot.T
