@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::time::Duration;
 
-use comgrasp::contact::{FADE_SPEED, MAX_SPEED, TIP_SPEED};
+use comgrasp::contact::{ObjectShape, ObjectSurface, FADE_SPEED, MAX_SPEED, TIP_SPEED};
 use comgrasp::skeleton::{mat_vec, quaternion_to_matrix};
 use comgrasp::{Engine, EngineConfig, Frame, PollResult, StreamConfig};
 
@@ -70,14 +70,35 @@ fn frames_agree_and_the_object_obeys_the_hands() {
     let objects = &bundle.manifest.objects;
     let fps = bundle.manifest.fps;
     let mut grasps = 0;
+    // Issue 17's grip bar: the holding hand's nearest joint (wrist, 15 finger joints) to the
+    // object's surface (the bundle's mesh), mean over held frames and max.
+    let (mut grip_sum, mut grip_max, mut grip_n) = (0.0f64, 0.0f64, 0usize);
     for text in PROMPTS {
         let (index, _) = comgrasp::bundle::choose_object(objects, text).unwrap();
         let centre_local = objects[index].centre.map(f64::from);
+        let mesh = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("models/default").join(&objects[index].mesh),
+        )
+        .unwrap();
+        let surface = std::sync::Arc::new(ObjectSurface::from_mesh(&comgrasp::bundle::obj::parse(&mesh).unwrap()));
+        let shape = ObjectShape::from_entry(&objects[index]).with_surface(surface);
         for seed in [1, 2] {
             let fr = frames(&e, text, seed, false);
             assert!(fr.len() >= 16, "{text:?}");
             for (t, f) in fr.iter().enumerate() {
                 let at = format!("{text:?} seed {seed} frame {t}");
+                let r = quaternion_to_matrix(&f.object_rotation.map(f64::from));
+                for (h, wrist, first) in [(0, 20, 25), (1, 21, 40)] {
+                    if f.contact[h] == 1 {
+                        let gap = std::iter::once(wrist).chain(first..first + 15).map(|j| {
+                            let d = sub(&f.joint_positions[j], &f.object_centre).map(f64::from);
+                            // into the object's frame, from its box centre
+                            shape.distance(&std::array::from_fn(|k| (0..3).map(|i| r[i][k] * d[i]).sum()))
+                        });
+                        let gap = gap.fold(f64::INFINITY, f64::min).max(0.0);
+                        (grip_sum, grip_max, grip_n) = (grip_sum + gap, grip_max.max(gap), grip_n + 1);
+                    }
+                }
                 // Fields agree within 1 mm: wrist-to-object is the FK wrist minus the
                 // centre, the centre is the object pose applied to the catalogue's centre.
                 for (h, wrist) in [(0, 20), (1, 21)] {
@@ -165,6 +186,9 @@ fn frames_agree_and_the_object_obeys_the_hands() {
     }
     // The stage is not vacuous on this model: some streams grasp.
     assert!(grasps > 0, "no stream grasped the object");
+    let mean = grip_sum / grip_n.max(1) as f64;
+    println!("held frames {grip_n}: the hand {:.1} mm off the object on average, {:.1} mm at most", mean * 1e3, grip_max * 1e3);
+    assert!(mean <= 0.01 && grip_max <= 0.03, "held: hand {mean} m off the object on average, {grip_max} m at most");
 }
 
 #[test]
@@ -299,7 +323,7 @@ fn a_continued_stream_starts_where_the_earlier_one_left_off() {
 fn the_python_reference_stage_gives_the_same_frames() {
     use comgrasp::assemble::{FrameAssembler, Pose};
     use comgrasp::bundle::{npy, obj};
-    use comgrasp::contact::{ContactStage, ObjectShape, ObjectSurface};
+    use comgrasp::contact::ContactStage;
     use comgrasp::skeleton::SMPLX_PARENTS;
 
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/contact_stage");
