@@ -187,7 +187,11 @@ fn frames_agree_and_the_object_obeys_the_hands() {
     // The stage is not vacuous on this model: some streams grasp.
     assert!(grasps > 0, "no stream grasped the object");
     let mean = grip_sum / grip_n.max(1) as f64;
-    println!("held frames {grip_n}: the hand {:.1} mm off the object on average, {:.1} mm at most", mean * 1e3, grip_max * 1e3);
+    println!(
+        "held frames {grip_n}: the hand {:.1} mm off the object on average, {:.1} mm at most",
+        mean * 1e3,
+        grip_max * 1e3
+    );
     assert!(mean <= 0.01 && grip_max <= 0.03, "held: hand {mean} m off the object on average, {grip_max} m at most");
 }
 
