@@ -1555,20 +1555,26 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_hand_over_moves_the_object_without_a_jump() {
-        // Right hand grasps at frame 5; the left joins at 40; the right lets go at 80 and
-        // moves away; the left carries the object up.
-        const OBJECT: Vec3 = [0.0, 0.4, 0.84];
-        let s = Script {
+    const HAND_OVER_OBJECT: Vec3 = [0.0, 0.4, 0.84];
+
+    /// Right hand grasps at frame 5; the left joins at 40; the right lets go at 80 and
+    /// moves away (the left hand's path is the test's).
+    fn hand_over() -> Script {
+        Script {
             frames: 130,
             wrist: Box::new(|t| {
                 let k = ((t as f64 - 85.0) / 15.0).clamp(0.0, 1.0);
                 add(&scale(&[-0.05, 0.35, 0.92], 1.0 - k), &scale(&[-0.3, 0.2, 0.92], k))
             }),
             contact: Box::new(|t| [t >= 40, (5..80).contains(&t)]),
-            object: Box::new(|_| OBJECT),
-        };
+            object: Box::new(|_| HAND_OVER_OBJECT),
+        }
+    }
+
+    #[test]
+    fn a_hand_over_moves_the_object_without_a_jump() {
+        // The left hand carries the object up after the hand-over.
+        let s = hand_over();
         let left = |t: usize| -> Vec3 {
             let up = if t > 90 { 0.01 * (t - 90) as f64 } else { 0.0 };
             [0.08, 0.37, 0.92 + up]
@@ -1582,7 +1588,7 @@ mod tests {
         }
         // The left hand carries it up: held 25+ cm above the table at the end.
         let end = frames.last().unwrap().0;
-        assert!(end.object_translation[2] > OBJECT[2] + 0.2, "{:?}", end.object_translation);
+        assert!(end.object_translation[2] > HAND_OVER_OBJECT[2] + 0.2, "{:?}", end.object_translation);
     }
 
     #[test]
@@ -1591,16 +1597,7 @@ mod tests {
         // while both hold: each hand turns onto its grasp, so its rotation relative to the
         // object stays what it was (its fingers stay where they closed); after the hold the
         // turn fades, and nothing jumps.
-        const OBJECT: Vec3 = [0.0, 0.4, 0.84];
-        let s = Script {
-            frames: 130,
-            wrist: Box::new(|t| {
-                let k = ((t as f64 - 85.0) / 15.0).clamp(0.0, 1.0);
-                add(&scale(&[-0.05, 0.35, 0.92], 1.0 - k), &scale(&[-0.3, 0.2, 0.92], k))
-            }),
-            contact: Box::new(|t| [t >= 40, (5..80).contains(&t)]),
-            object: Box::new(|_| OBJECT),
-        };
+        let s = hand_over();
         let left = |_: usize| -> Vec3 { [0.08, 0.37, 0.92] };
         let twist = |t: usize| 0.02 * (t.clamp(40, 80) - 40) as f64;
         let frames = run_twisted(&s, Some(&left), &twist);
@@ -1687,14 +1684,15 @@ mod tests {
         }
     }
 
+    /// An 8 cm cube as OBJ triangles (outward, counter-clockwise), centred at (0, 0, 0.04).
+    const CUBE_OBJ: &str = "v -.04 -.04 0\nv .04 -.04 0\nv .04 .04 0\nv -.04 .04 0\n\
+                            v -.04 -.04 .08\nv .04 -.04 .08\nv .04 .04 .08\nv -.04 .04 .08\n\
+                            f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n\
+                            f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
+
     #[test]
     fn a_surface_measures_how_far_outside_a_point_is() {
-        // An 8 cm cube as OBJ triangles (outward, counter-clockwise), centred at (0, 0, 0.04).
-        let text = "v -.04 -.04 0\nv .04 -.04 0\nv .04 .04 0\nv -.04 .04 0\n\
-                    v -.04 -.04 .08\nv .04 -.04 .08\nv .04 .04 .08\nv -.04 .04 .08\n\
-                    f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n\
-                    f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
-        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(text).unwrap());
+        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(CUBE_OBJ).unwrap());
         // 12 triangles with 8 cm and 11.3 cm edges: 8 x 12 samples each
         assert_eq!(surface.points.len(), 12 * 8 * 12);
         for n in &surface.normals {
@@ -1715,11 +1713,7 @@ mod tests {
     fn the_nearest_sample_is_the_one_a_scan_finds() {
         // The x-sorted sweep against a scan in order (lowest index among equal distances),
         // on a cube's samples (many ties in x) and on points inside, on and far off it.
-        let text = "v -.04 -.04 0\nv .04 -.04 0\nv .04 .04 0\nv -.04 .04 0\n\
-                    v -.04 -.04 .08\nv .04 -.04 .08\nv .04 .04 .08\nv -.04 .04 .08\n\
-                    f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n\
-                    f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n";
-        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(text).unwrap());
+        let surface = ObjectSurface::from_mesh(&crate::bundle::obj::parse(CUBE_OBJ).unwrap());
         let mut rng = crate::sampler::SplitMix64::new(7);
         for k in 0..2000 {
             let spread = [0.05, 0.3, 2.0][k % 3];
