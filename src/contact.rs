@@ -448,8 +448,8 @@ struct Limited {
     local: [Mat3; CG_NUM_JOINTS],
     pelvis: Vec3,
     joints: [Vec3; 32],
-    /// Global rotation and position of the wrists.
-    wrists: [(Mat3, Vec3); 2],
+    /// Global rotations of the wrists (their positions are `joints[0]` and `joints[1]`).
+    wrists: [Mat3; 2],
 }
 
 /// One stream's contact state. Feed it every frame in order ([`ContactStage::apply`]).
@@ -692,11 +692,7 @@ impl ContactStage {
                 if setting_down && self.level_near_support(both, letting_go) && !both {
                     // One hand: it turns with the object it levels (its turn fades once it lets go).
                     let h = usize::from(self.hands[1].phase == Phase::Holding);
-                    let w = ARMS[h][3];
-                    let hand = &self.hands[h];
-                    let grasp = mat_mul(&self.rot, &transpose(&hand.rel_rot));
-                    self.hands[h].turn = mat_mul(&grasp, &transpose(&model_wrist[h]));
-                    pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(&global[w]), &grasp));
+                    self.turn_onto_grasp(h, &mut pose.local, &global, &model_wrist[h]);
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
                 }
                 // Letting go just above the support: the hands put the object down on it by the
@@ -734,19 +730,14 @@ impl ContactStage {
                 // turn fades once one lets go), so its fingers stay where they closed on it.
                 if both {
                     for h in 0..2 {
+                        let target = self.wrist_of(h);
                         let hand = &mut self.hands[h];
-                        let grip = mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0));
-                        let target = add(&self.pos, &mat_vec(&self.rot, &grip));
                         hand.correction = add(&hand.correction, &sub(&target, &joints[ARMS[h][3]]));
                         arm_ik(&mut pose.local, &global, &joints, h, &target);
                     }
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
-                    for h in 0..2 {
-                        let hand = &mut self.hands[h];
-                        let w = ARMS[h][3];
-                        let grasp = mat_mul(&self.rot, &transpose(&hand.rel_rot));
-                        hand.turn = mat_mul(&grasp, &transpose(&model_wrist[h]));
-                        pose.local[w] = mat_mul(&pose.local[w], &mat_mul(&transpose(&global[w]), &grasp));
+                    for (h, model) in model_wrist.iter().enumerate() {
+                        self.turn_onto_grasp(h, &mut pose.local, &global, model);
                     }
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
                 }
@@ -839,7 +830,7 @@ impl ContactStage {
                     let w = ARMS[h][3];
                     let (now, before) = (
                         self.held_centre(h, &global[w], &joints[w]),
-                        self.held_centre(h, &prev.wrists[h].0, &prev.wrists[h].1),
+                        self.held_centre(h, &prev.wrists[h], &prev.joints[h]),
                     );
                     norm(&sub(&now, &before))
                 });
@@ -867,13 +858,13 @@ impl ContactStage {
             local: pose.local,
             pelvis: pose.pelvis,
             joints: [[0.0; 3]; 32],
-            wrists: [(IDENTITY, [0.0; 3]); 2],
+            wrists: [IDENTITY; 2],
         });
         (limited.local, limited.pelvis) = (pose.local, pose.pelvis);
         for (k, &j) in LIMITED.iter().enumerate() {
             limited.joints[k] = joints[j];
         }
-        limited.wrists = ARMS.map(|arm| (global[arm[3]], joints[arm[3]]));
+        limited.wrists = ARMS.map(|arm| global[arm[3]]);
     }
 
     /// The object's centre as hand `h` carries it with its wrist at `rot`, `pos`.
@@ -1024,6 +1015,21 @@ impl ContactStage {
         self.rot = mat_mul(&q, &self.rot);
         self.pos = add(&pivot, &mat_vec(&q, &sub(&self.pos, &pivot)));
         true
+    }
+
+    /// Turns holding hand `h`'s wrist (global rotation `global`'s) onto its grasp of the
+    /// object's current pose; its turn is from `model_wrist`, the model's wrist rotation.
+    fn turn_onto_grasp(
+        &mut self,
+        h: usize,
+        local: &mut [Mat3; CG_NUM_JOINTS],
+        global: &[Mat3; CG_NUM_JOINTS],
+        model_wrist: &Mat3,
+    ) {
+        let w = ARMS[h][3];
+        let grasp = mat_mul(&self.rot, &transpose(&self.hands[h].rel_rot));
+        self.hands[h].turn = mat_mul(&grasp, &transpose(model_wrist));
+        local[w] = mat_mul(&local[w], &mat_mul(&transpose(&global[w]), &grasp));
     }
 
     /// Where holding hand `h`'s wrist is, from the object's pose and its grasp.
@@ -1234,16 +1240,7 @@ fn box_distance(p: &Vec3, half: &Vec3) -> f64 {
 
 /// Rotation halfway between `a` and `b` (normalized quaternion mean).
 fn blend_rotations(a: &Mat3, b: &Mat3) -> Mat3 {
-    use crate::skeleton::{matrix_to_quaternion, quaternion_to_matrix};
-    let (qa, qb) = (matrix_to_quaternion(a), matrix_to_quaternion(b));
-    let sign = if (0..4).map(|i| qa[i] * qb[i]).sum::<f64>() < 0.0 { -1.0 } else { 1.0 };
-    let q: [f64; 4] = std::array::from_fn(|i| qa[i] + sign * qb[i]);
-    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    if n > 1e-12 {
-        quaternion_to_matrix(&q.map(|v| v / n))
-    } else {
-        *a
-    }
+    nlerp(a, b, 0.5)
 }
 
 /// Two-bone IK on arm `h`: turns the elbow, then the shoulder, so the wrist lands on

@@ -402,7 +402,7 @@ class _Limited:
     local: np.ndarray
     pelvis: np.ndarray
     joints: np.ndarray  # the LIMITED joints
-    wrists: list  # (global rotation, position) per wrist
+    wrists: list  # global rotation per wrist (positions: joints[0], joints[1])
 
 
 class ContactStage:
@@ -533,10 +533,7 @@ class ContactStage:
             setting_down = sinking or any(hd.phase == "holding" and hd.off > 0 for hd in self.hands)
             if setting_down and self._level_near_support(both, letting_go) and not both:
                 h = 1 if self.hands[1].phase == "holding" else 0
-                w = ARMS[h][3]
-                grasp = self.rot @ self.hands[h].rel_rot.T
-                self.hands[h].turn = grasp @ model_wrist[h].T
-                pose.local[w] = pose.local[w] @ (glob[w].T @ grasp)
+                self._turn_onto_grasp(h, pose.local, glob, model_wrist[h])
                 glob, joints = skel.forward(pose.local, pose.pelvis)
             holding = [hd for hd in self.hands if hd.phase == "holding"]
             if all(hd.off > 0 for hd in holding):
@@ -564,16 +561,13 @@ class ContactStage:
                 # two hands: each to its own grip on the mean pose (the offset joins its correction)
                 for h in range(2):
                     hand = self.hands[h]
-                    target = self.pos + self.rot @ (hand.rel_rot.T @ -hand.rel_pos)
+                    target = self._wrist_of(h)
                     hand.correction = hand.correction + (target - joints[ARMS[h][3]])
                     arm_ik(pose.local, glob, joints, h, target)
                 glob, joints = skel.forward(pose.local, pose.pelvis)
                 # ... and turned onto its grasp of it
                 for h in range(2):
-                    hand, w = self.hands[h], ARMS[h][3]
-                    grasp = self.rot @ hand.rel_rot.T
-                    hand.turn = grasp @ model_wrist[h].T
-                    pose.local[w] = pose.local[w] @ (glob[w].T @ grasp)
+                    self._turn_onto_grasp(h, pose.local, glob, model_wrist[h])
                 glob, joints = skel.forward(pose.local, pose.pelvis)
             self._set_down_on_table()
         else:
@@ -724,6 +718,13 @@ class ContactStage:
         self.events["level_frames"] += 1
         return True
 
+    def _turn_onto_grasp(self, h: int, local: np.ndarray, glob: np.ndarray, model_wrist: np.ndarray) -> None:
+        """``ContactStage::turn_onto_grasp``."""
+        w = ARMS[h][3]
+        grasp = self.rot @ self.hands[h].rel_rot.T
+        self.hands[h].turn = grasp @ model_wrist.T
+        local[w] = local[w] @ (glob[w].T @ grasp)
+
     def _wrist_of(self, h: int) -> np.ndarray:
         hand = self.hands[h]
         return self.pos + self.rot @ (hand.rel_rot.T @ -hand.rel_pos)
@@ -740,7 +741,7 @@ class ContactStage:
                     if self.hands[h].phase == "holding":
                         w = ARMS[h][3]
                         far = max(far, _norm(self._held_centre(h, glob[w], joints[w])
-                                             - self._held_centre(h, *prev.wrists[h])))
+                                             - self._held_centre(h, prev.wrists[h], prev.joints[h])))
                 return far
 
             local, pelvis = pose.local.copy(), pose.pelvis.copy()
@@ -759,7 +760,7 @@ class ContactStage:
             if tries:
                 self.events["speed_limited"] += 1
         self.limited = _Limited(pose.local.copy(), pose.pelvis.copy(), joints[list(LIMITED)].copy(),
-                                [(glob[arm[3]].copy(), joints[arm[3]].copy()) for arm in ARMS])
+                                [glob[arm[3]].copy() for arm in ARMS])
         return glob, joints
 
     def _held_centre(self, h: int, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
@@ -901,10 +902,7 @@ def nlerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
 
 
 def blend_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    qa, qb = matrix_to_quaternion(a), matrix_to_quaternion(b)
-    q = qa + (-1.0 if float(qa @ qb) < 0.0 else 1.0) * qb
-    n = _norm(q)
-    return quaternion_to_matrix(q / n) if n > 1e-12 else a
+    return nlerp(a, b, 0.5)
 
 
 def arm_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, h: int, target: np.ndarray) -> None:
