@@ -35,8 +35,8 @@ $P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small -
   ${VQ_STOP:+--stop-after "$VQ_STOP"}
 [ -z "${VQ_STOP:-}" ] || exit 0
 $P/comgrasp-train -q train-gpt --data ${DATA}_prep --vq $RUN/vq --out $RUN/gpt --preset small \
-  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8 \
+  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8-tok4 \
   ${GPT_STOP:+--stop-after "$GPT_STOP"}
 [ -z "${GPT_STOP:-}" ] || exit 0
-$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights
+$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights --native-text
 RUN=$RUN DATA=${DATA}_prep BUNDLE=$OUT OUT=$RUN/eval bash scripts/quality_report.sh

@@ -662,6 +662,8 @@ impl ContactStage {
         // correction (IK), so the object slides on the top instead of sinking into it.
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
+                // Where it was: only an object coming down from above the top is set down on it.
+                let above_before = self.shape.bottom_at(&self.rot, &self.pos) >= self.table.height;
                 // Levelling is for setting down: while the object sinks or the hands let go (a
                 // pour low over the table keeps its tilt).
                 let sinking = pos[2] < self.pos[2];
@@ -741,7 +743,7 @@ impl ContactStage {
                     }
                     skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
                 }
-                self.set_down_on_table();
+                self.set_down_on_table(above_before);
             }
             None => self.settle(),
         }
@@ -936,14 +938,16 @@ impl ContactStage {
     }
 
     /// A held object brought back down onto the table after a lift stays there: it rests on
-    /// the top and every hand lets go (latched until its flag goes off).
-    fn set_down_on_table(&mut self) {
+    /// the top and every hand lets go (latched until its flag goes off). Only one that was
+    /// above the top the frame before (`above_before`): one carried in below the top from the
+    /// side (the table's edge under it) would be thrown up onto it in one frame.
+    fn set_down_on_table(&mut self, above_before: bool) {
         let bottom = self.shape.bottom_at(&self.rot, &self.pos);
         if bottom > self.table.height + LIFT_CLEAR {
             self.lifted = true;
         }
-        if !(self.lifted && bottom < self.table.height && self.table.over(&self.shape.centre_at(&self.rot, &self.pos)))
-        {
+        let over = self.table.over(&self.shape.centre_at(&self.rot, &self.pos));
+        if !(self.lifted && above_before && bottom < self.table.height && over) {
             return;
         }
         self.pos[2] += self.table.height - bottom;

@@ -18,6 +18,7 @@ use std::time::{Duration, Instant};
 use comgrasp::bundle::source::StaticFiles;
 use comgrasp::bundle::{embedded, select, verify, BundleSource};
 use comgrasp::config::{DecoderBackend, RuntimeOptions, StepBackend};
+use comgrasp::model::text::{TextBackend, TextEncoder};
 use comgrasp::engine::StreamConfig;
 use comgrasp::ffi::*;
 use comgrasp::Bundle;
@@ -127,11 +128,14 @@ fn embedded_set_is_the_listed_files_without_parity_and_reference_graphs() {
     let files = embedded_files();
     assert_eq!(files[0].0, "manifest.json");
     let bundle = Bundle::load(&default_dir()).unwrap();
-    // Both default models run natively: their ONNX graphs stay on disk only, so the
+    // The three default models run natively: their ONNX graphs stay on disk only, so the
     // library holds each weight once.
     let m = &bundle.manifest;
-    assert!(m.transformer.native.is_some() && m.decoder.native.is_some());
-    assert_eq!(embedded::omitted(), [m.transformer.file.as_str(), m.decoder.file.as_str()]);
+    assert!(m.transformer.native.is_some() && m.decoder.native.is_some() && m.text_encoder.native.is_some());
+    assert_eq!(
+        embedded::omitted(),
+        [m.transformer.file.as_str(), m.decoder.file.as_str(), m.text_encoder.files.onnx.as_str()]
+    );
     let mut names: Vec<&str> = files[1..].iter().map(|(n, _)| *n).collect();
     names.sort_unstable();
     let listed: Vec<&str> = m
@@ -161,6 +165,15 @@ fn tract_backend_on_the_embedded_default_says_where_the_graphs_are() {
     let tract = RuntimeOptions { decoder_backend: Some(DecoderBackend::Tract), ..Default::default() };
     match Bundle::load_with(embedded, &tract) {
         Err(Error::Bundle { path, .. }) => assert_eq!(path, Path::new("<embedded>/decoder.onnx")),
+        other => panic!("expected a bundle error, got {:?}", other.map(drop)),
+    }
+    let embedded = BundleSource::embedded().unwrap();
+    let m = verify::read_manifest(&embedded).unwrap();
+    match TextEncoder::load_with(&embedded, &m, TextBackend::Tract) {
+        Err(Error::Bundle { path, msg }) => {
+            assert_eq!(path, Path::new("<embedded>/text_encoder.onnx"));
+            assert!(msg.contains("native text encoder") && msg.contains("models/default"), "{msg}");
+        }
         other => panic!("expected a bundle error, got {:?}", other.map(drop)),
     }
     // The same options on the directory run both graphs in tract.

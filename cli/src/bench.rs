@@ -381,6 +381,7 @@ fn step_weights(step_onnx: Option<&[u8]>, m: &comgrasp::bundle::manifest::Manife
                 f += 4 * n;
                 bytes += match t.dtype {
                     NativeDtype::Int8 => n + 4 * t.shape.first().copied().unwrap_or(1) as u64,
+                    NativeDtype::Int4 => n.div_ceil(2) + 4 * t.shape.first().copied().unwrap_or(1) as u64,
                     NativeDtype::Float32 => 4 * n,
                 };
                 if proto.is_none() && t.dtype == NativeDtype::Int8 {

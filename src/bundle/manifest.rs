@@ -200,6 +200,30 @@ pub struct TextEncoderSpec {
     /// Informational summary of the text parity cases.
     #[serde(default)]
     pub parity: Option<serde_json::Value>,
+    /// Weights for the native text encoder (BERT layout only), when the exporter wrote them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub native: Option<TextNativeSpec>,
+}
+
+/// `text_encoder.native`: a BERT encoder's tensors (`dir`, `tensors` as in [`NativeSpec`],
+/// named as `BertTokenStates.state_dict()`) and what the shapes do not say.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TextNativeSpec {
+    pub dir: String,
+    /// Attention heads per layer (the head width is hidden / heads).
+    pub heads: usize,
+    pub layer_norm_eps: f64,
+    /// The feed-forward activation; only "gelu" (exact, erf) is supported.
+    pub activation: String,
+    pub tensors: BTreeMap<String, NativeTensor>,
+}
+
+impl TextNativeSpec {
+    /// The tensors as a plain [`NativeSpec`] (what the weight reader takes).
+    pub fn weights(&self) -> NativeSpec {
+        NativeSpec { dir: self.dir.clone(), tensors: self.tensors.clone() }
+    }
 }
 
 /// The 4-stream step graph (export/step_graph.py).
@@ -234,6 +258,10 @@ pub enum NativeDtype {
     Float32,
     /// int8 per row, with `<name>.scale.npy` (float32, one per row).
     Int8,
+    /// int4 per row (embedding tables only): `<name>.npy` is uint8 `(rows, ceil(cols / 2))`,
+    /// column `2j` in byte `j`'s low nibble and `2j + 1` in its high one, each `q + 8`; the
+    /// manifest's shape is the logical `(rows, cols)`; `<name>.scale.npy` as for int8.
+    Int4,
 }
 
 /// One tensor of a native section.

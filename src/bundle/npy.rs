@@ -243,6 +243,14 @@ impl Npy {
         }
     }
 
+    /// The values as u8 (uint8 arrays only), e.g. packed int4 weights.
+    pub fn into_u8(self, path: &Path) -> Result<Vec<u8>> {
+        match self.dtype {
+            NpyDtype::U8 => Ok(self.data),
+            d => Err(err(path, format!("expected a uint8 array, got {}", d.numpy_name()))),
+        }
+    }
+
     /// The values as u64 (uint64 arrays only).
     pub fn to_u64(&self, path: &Path) -> Result<Vec<u64>> {
         match self.dtype {

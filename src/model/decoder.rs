@@ -14,9 +14,12 @@
 //! and [`DecoderModel::load_backend`] takes just the backend.
 use std::sync::Arc;
 
+#[cfg(feature = "onnx")]
 use parking_lot::Mutex;
+#[cfg(feature = "onnx")]
 use tract_onnx::prelude::Tensor;
 
+#[cfg(feature = "onnx")]
 use super::graph::{self, Plan, PlanState};
 use super::native::decoder::{NativeDecoder, NativeState, MAX_GROUP};
 use crate::bundle::manifest::{Manifest, FRAME_DIM, MANIFEST_FILE, N_STREAMS};
@@ -40,10 +43,12 @@ pub struct DecoderModel {
 
 #[allow(clippy::large_enum_variant)] // one per loaded bundle
 enum Imp {
+    #[cfg(feature = "onnx")]
     Tract(TractDecoder),
     Native(Arc<NativeDecoder>),
 }
 
+#[cfg(feature = "onnx")]
 struct TractDecoder {
     plan: Plan,
     /// (1, 4, K-1) initial state from the manifest.
@@ -62,6 +67,7 @@ pub struct DecoderState {
 }
 
 enum StateImp {
+    #[cfg(feature = "onnx")]
     Tract {
         plan: Plan,
         run: PlanState,
@@ -113,10 +119,14 @@ impl DecoderModel {
         let imp = match native {
             Some(spec) => {
                 // decoder.onnx stays the bundle's reference graph: it must still match its manifest.
+                #[cfg(feature = "onnx")]
                 graph::check(src, &d.file, &d.inputs, &d.outputs)?;
                 Imp::Native(Arc::new(NativeDecoder::load(src, m, spec, options.decoder_threads)?))
             }
+            #[cfg(feature = "onnx")]
             None => Imp::Tract(TractDecoder::load(src, m)?),
+            #[cfg(not(feature = "onnx"))]
+            None => return Err(super::step::no_onnx(src, &d.file)),
         };
         Ok(DecoderModel {
             frames_per_token: d.frames_per_token,
@@ -134,6 +144,7 @@ impl DecoderModel {
     /// The implementation in use.
     pub fn backend(&self) -> DecoderBackend {
         match self.imp {
+            #[cfg(feature = "onnx")]
             Imp::Tract(_) => DecoderBackend::Tract,
             Imp::Native(_) => DecoderBackend::Native,
         }
@@ -152,6 +163,7 @@ impl DecoderModel {
     /// The state of a new sequence.
     pub fn new_state(&self) -> DecoderState {
         let imp = match &self.imp {
+            #[cfg(feature = "onnx")]
             Imp::Tract(t) => StateImp::Tract {
                 plan: Arc::clone(&t.plan),
                 run: t.template_run.lock().clone(),
@@ -196,8 +208,10 @@ impl DecoderModel {
     /// The errors [`decode_group`](Self::decode_group) reports before it touches `state`.
     pub(crate) fn check(&self, state: &DecoderState, tokens: &[[i64; N_STREAMS]], out: &[f32]) -> Result<()> {
         let same = match (&self.imp, &state.imp) {
+            #[cfg(feature = "onnx")]
             (Imp::Tract(t), StateImp::Tract { plan, .. }) => Arc::ptr_eq(plan, &t.plan),
             (Imp::Native(n), StateImp::Native { model, .. }) => Arc::ptr_eq(model, n),
+            #[cfg(feature = "onnx")]
             _ => false,
         };
         if !same {
@@ -239,6 +253,7 @@ impl DecoderModel {
         team: bool,
     ) -> Result<()> {
         match &mut state.imp {
+            #[cfg(feature = "onnx")]
             StateImp::Tract { run, inputs, .. } => {
                 for (t, o) in tokens.iter().zip(out.chunks_exact_mut(self.chunk_len())) {
                     self.decode_tract(run, inputs, *t, o)?;
@@ -265,10 +280,12 @@ impl DecoderModel {
     pub(crate) fn native_threads_and_bytes(&self) -> Option<(usize, usize)> {
         match &self.imp {
             Imp::Native(n) => Some((if n.has_helper() { 2 } else { 1 }, n.weight_bytes())),
+            #[cfg(feature = "onnx")]
             Imp::Tract(_) => None,
         }
     }
 
+    #[cfg(feature = "onnx")]
     fn decode_tract(
         &self,
         run: &mut PlanState,
@@ -288,6 +305,7 @@ impl DecoderModel {
     }
 }
 
+#[cfg(feature = "onnx")]
 impl TractDecoder {
     fn load(src: &BundleSource, m: &Manifest) -> Result<TractDecoder> {
         let d = &m.decoder;
@@ -314,6 +332,7 @@ impl DecoderState {
     /// Starts a new sequence (no allocation).
     pub fn reset(&mut self) -> Result<()> {
         match &mut self.imp {
+            #[cfg(feature = "onnx")]
             StateImp::Tract { inputs, initial, .. } => {
                 let init = graph::slice::<i64>(initial, "decoder initial state", initial.len())?;
                 graph::slice_mut::<i64>(&mut inputs[0], "decoder state")?.copy_from_slice(init);

@@ -5,12 +5,15 @@
 //! chunk k and its step k+1 at once; [`decode_group`] says how many tokens one decode takes.
 pub mod decode_group;
 mod decoder;
+#[cfg(feature = "onnx")]
 pub(crate) mod graph;
 mod loaded;
 pub(crate) mod native;
 pub mod overlap;
 mod step;
 pub mod text;
+#[cfg(feature = "onnx")]
+mod text_graph;
 
 pub use decoder::{DecoderBackend, DecoderModel, DecoderState, MAX_DECODE_GROUP};
 pub use loaded::Bundle;

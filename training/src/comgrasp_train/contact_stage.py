@@ -516,6 +516,8 @@ class ContactStage:
 
         carried = self._carried(glob, joints)
         if carried is not None:
+            # where it was: only an object coming down from above the top is set down on it
+            above_before = self.shape.bottom_at(self.rot, self.pos) >= self.table.height
             sinking = carried[1][2] < self.pos[2]  # levelling is for setting down
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
             depth = min(self.table.height - self.shape.bottom_at(*carried), PRESS_UP_SPEED * self.dt)
@@ -569,7 +571,7 @@ class ContactStage:
                 for h in range(2):
                     self._turn_onto_grasp(h, pose.local, glob, model_wrist[h])
                 glob, joints = skel.forward(pose.local, pose.pelvis)
-            self._set_down_on_table()
+            self._set_down_on_table(above_before)
         else:
             self._settle()
 
@@ -640,11 +642,14 @@ class ContactStage:
         self.lifted = False
         self.events["capture"] += 1
 
-    def _set_down_on_table(self) -> None:
+    def _set_down_on_table(self, above_before: bool) -> None:
         bottom = self.shape.bottom_at(self.rot, self.pos)
         if bottom > self.table.height + LIFT_CLEAR:
             self.lifted = True
-        if not (self.lifted and bottom < self.table.height and self.table.over(self.shape.centre_at(self.rot, self.pos))):
+        over = self.table.over(self.shape.centre_at(self.rot, self.pos))
+        if self.lifted and not above_before and bottom < self.table.height and over:
+            self.events["not_set_down_from_below"] += 1
+        if not (self.lifted and above_before and bottom < self.table.height and over):
             return
         self.pos = self.pos + np.array([0.0, 0.0, self.table.height - bottom])
         self.lifted = False

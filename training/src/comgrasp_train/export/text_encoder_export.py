@@ -30,8 +30,24 @@ Files written under ``out_dir`` (names relative to it):
   ``case{k}_input_ids.npy``, ``case{k}_attention_mask.npy`` [, ``case{k}_token_type_ids.npy``],
   ``case{k}_position_ids.npy``, ``case{k}_{output}.npy`` (the full PyTorch graph output,
   (1, T, width) float32) and ``case{k}_embedding.npy`` ((dim,) float32).
+* ``native/text/`` (only with ``native=True``, BERT/MiniLM encoders only): the network's
+  weights for the engine's native text encoder, one ``.npy`` per ``BertTokenStates``
+  parameter (``export/native_weights.py``: float32, int8 + scale, or the word table as packed
+  int4 + scale); the fragment's ``native`` entry lists them with ``heads``,
+  ``layer_norm_eps`` and ``activation``.
 * ``text_encoder.manifest.json`` (unless ``fragment_name=None``): the manifest fragment that
   :func:`export_text_encoder` also returns.
+
+A rounded encoder (``load_text_encoder(weights="int8" | "int8-tok4")``) is stored as it
+computes: the graph's int8 initializers (``weight_quant.store_int8_initializers``; the int4
+word table is int8 values in [-7, 7] there) and the fragment's ``weights`` entry (the bundle
+moves it to ``provenance.text_encoder_weights``).
+
+Run as a module, it re-exports the text encoder of an existing bundle in place
+(:func:`~comgrasp_train.export.bundle.reexport_text_encoder`)::
+
+    python -m comgrasp_train.export.text_encoder_export --bundle models/default \
+        --weights int8-tok4 --native-text
 
 The engine should check its pooled embedding against ``embedding`` to <= 1e-5 (max abs) and
 may check the graph outputs against the ``.npy`` files (<= 1e-4 on real tokens).
@@ -260,13 +276,20 @@ def export_text_encoder(
     parity_prompts: Sequence[str] | None = DEFAULT_PARITY_PROMPTS,
     fragment_name: str | None = FRAGMENT_NAME,
     opset: int = OPSET,
+    native: bool = False,
 ) -> dict:
-    """Write tokenizer.json, text_encoder.onnx and parity/text/ into ``out_dir``; check the
-    graph in onnxruntime; return the manifest fragment (also written to ``fragment_name``).
+    """Write tokenizer.json, text_encoder.onnx and parity/text/ into ``out_dir`` (with
+    ``native``: also native/text/, BERT encoders only); check the graph in onnxruntime;
+    return the manifest fragment (also written to ``fragment_name``).
 
     Raises if onnxruntime + Python pooling differs from ``encoder.encode`` by more than 1e-5.
     """
     out = Path(out_dir)
+    if native:
+        from ..text_encoder import BertTokenStates
+
+        if not isinstance(encoder.network, BertTokenStates):
+            raise ValueError(f"native text weights exist for BERT (minilm-kind) encoders only, not {encoder.kind!r}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     tok_path = out / TOKENIZER_NAME
@@ -288,12 +311,34 @@ def export_text_encoder(
                 f"{par['onnxruntime_embedding_max_abs_diff']:.3g} > 1e-5"
             )
         frag["parity"] = par
+    if native:
+        from .native_weights import write_native_text
+
+        frag["native"] = write_native_text(encoder, out)
     frag["export_seconds"] = round(time.perf_counter() - t0, 2)
     if quant is not None:
-        frag["weights"] = quant
+        frag["weights"] = weights_record(encoder, quant)
     if fragment_name:
         (out / fragment_name).write_text(json.dumps(frag, indent=1, ensure_ascii=False), encoding="utf-8")
     return frag
+
+
+def weights_record(encoder: TextEncoder, stored: dict) -> dict:
+    """What goes to ``provenance.text_encoder_weights`` for a rounded encoder:
+    ``store_int8_initializers``' summary, with the scheme name (``"weights"``: "int8" |
+    "int8-tok4", what ``load_text_encoder(weights=...)`` rebuilds) and, for int4 tables,
+    their names and the rule."""
+    weights = getattr(encoder, "weights", "fp32")
+    if weights == "fp32":  # rounded by hand (tests): int8 unless a table is int4
+        weights = "int8-tok4" if any(w.bits == 4 for w in encoder.int8_weights) else "int8"
+    rec = {"weights": weights, **stored}
+    int4 = [w.name for w in encoder.int8_weights if w.bits == 4]
+    if int4:
+        rec["scheme"] = (f"{stored['scheme']}; {', '.join(int4)} int4 per row (q in [-7, 7], stored as int8; "
+                         f"scale = amax * f / 7 with the f in linspace(0.5, 1, 21) of least squared error)")
+        rec["int4_tensors"] = int4
+        rec["int4_params"] = int(sum(w.q.size for w in encoder.int8_weights if w.bits == 4))
+    return rec
 
 
 def quantize_text_encoder(
@@ -348,3 +393,35 @@ def quantize_text_encoder(
         "embedding_max_abs_diff": float((e32 - e8).abs().max()),
         "sha256": sha256_file(out_path),
     }
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    from ..text_encoder import TEXT_WEIGHTS
+
+    ap = argparse.ArgumentParser(description="re-export the text encoder of a bundle in place (tokenizer.json, "
+                                             "text_encoder.onnx, parity/text, native/text, the step/decode parity "
+                                             "cases that depend on the embedding, manifest)")
+    ap.add_argument("--bundle", required=True, help="the bundle directory (e.g. models/default)")
+    ap.add_argument("--weights", default=None, choices=TEXT_WEIGHTS,
+                    help="text encoder weights (default: the bundle's own, provenance.text_encoder_weights)")
+    ap.add_argument("--native-text", action="store_true",
+                    help="also write native/text/ and text_encoder.native (BERT/MiniLM only)")
+    a = ap.parse_args(argv)
+    import sys
+
+    from .bundle import reexport_text_encoder
+
+    args = sys.argv[1:] if argv is None else list(argv)
+    m = reexport_text_encoder(a.bundle, weights=a.weights, native=a.native_text,
+                              command=" ".join(["python -m comgrasp_train.export.text_encoder_export", *args]))
+    te = m["text_encoder"]
+    size = sum(f["bytes"] for f in m["files"].values())
+    print(f"{a.bundle}: text encoder {m['provenance']['text_encoder_weights'].get('weights', 'fp32')}, "
+          f"{te['size_bytes'][ONNX_NAME] / 2**20:.1f} MiB onnx, native {'yes' if 'native' in te else 'no'}; "
+          f"bundle {len(m['files'])} files, {size / 2**20:.1f} MiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -4,7 +4,8 @@
 first problem: unknown format/version, a missing, unlisted, resized or altered file (by
 SHA-256), a manifest shape that disagrees with a graph's real inputs/outputs (read with
 ``onnx``), a layout that does not tile 0..335, component ids that break the
-End = J, Pad = J + 1 rule, and so on. The schema is in ``export.bundle``'s docstring.
+End = J, Pad = J + 1 rule, a native weight file (``native`` sections) whose dtype or shape
+disagrees with its entry, and so on. The schema is in ``export.bundle``'s docstring.
 """
 
 from __future__ import annotations
@@ -56,6 +57,11 @@ def load_and_verify_bundle(bundle_dir: str | Path, strict: bool = True) -> dict:
         _verify_transformer(root, m)
         _verify_decoder(root, m)
         _verify_rest(root, m)
+        for key in ("text_encoder", "transformer", "decoder"):
+            if m[key].get("native") is not None:
+                _verify_native(root, m, m[key]["native"], f"{key}.native")
+        if m["text_encoder"].get("native") is not None:
+            _verify_text_native(m)
     except (KeyError, TypeError, IndexError, StopIteration) as e:  # a malformed entry, never a crash
         raise BundleError(f"{MANIFEST}: malformed or incomplete entry ({type(e).__name__}: {e})") from e
     return m
@@ -225,3 +231,85 @@ def _verify_rest(root: Path, m: dict) -> None:
         a = np.load(root / e["path"], mmap_mode="r")
         _check(str(a.dtype) == e["dtype"] and list(a.shape) == e["shape"],
                f"{e['path']}: {a.dtype} {list(a.shape)} but parity/index.json says {e['dtype']} {e['shape']}")
+
+
+def _npy_header(path: Path) -> tuple[str, list]:
+    a = np.load(path, mmap_mode="r")
+    return str(a.dtype), list(a.shape)
+
+
+def _verify_native(root: Path, m: dict, section: dict, what: str) -> None:
+    """Every tensor of a native section: its files listed, their npy dtype/shape as the
+    entry says (int8: (shape) int8 + (rows,) float32 scale; int4: (rows, ceil(cols/2))
+    uint8 + scale)."""
+    base = section["dir"].rstrip("/")
+    for name, spec in section["tensors"].items():
+        dtype, shape = spec["dtype"], [int(d) for d in spec["shape"]]
+        rel = f"{base}/{name}.npy"
+        _listed(m, rel, what)
+        if dtype == "float32":
+            want = ("float32", shape)
+        elif dtype == "int8":
+            want = ("int8", shape)
+        elif dtype == "int4":
+            _check(len(shape) == 2, f"{what} {name}: int4 tensors are 2-D, shape {shape}")
+            want = ("uint8", [shape[0], (shape[1] + 1) // 2])
+        else:
+            raise BundleError(f"{what} {name}: unknown dtype {dtype!r} (float32 | int8 | int4)")
+        got = _npy_header(root / rel)
+        _check(got == (want[0], want[1]), f"{rel}: {got[0]} {got[1]}, but {what} implies {want[0]} {want[1]}")
+        if dtype in ("int8", "int4"):
+            srel = f"{base}/{name}.scale.npy"
+            _listed(m, srel, what)
+            got = _npy_header(root / srel)
+            _check(got == ("float32", shape[:1]), f"{srel}: {got[0]} {got[1]}, expected float32 {shape[:1]}")
+
+
+def _verify_text_native(m: dict) -> None:
+    """text_encoder.native: a whole BERT (every BertTokenStates parameter, nothing else),
+    exact GELU, heads dividing the width, the position table cut to max_tokens."""
+    from .native_weights import bert_native_names
+
+    t = m["text_encoder"]
+    n = t["native"]
+    names = set(n["tensors"])
+    layers = sorted({int(k.split(".")[1]) for k in names if k.startswith("layers.")})
+    _check(layers == list(range(len(layers))) and names == set(bert_native_names(len(layers))),
+           f"text_encoder.native: tensors are not those of a BERT of {len(layers)} layers")
+    _check(n["activation"] == "gelu", f"text_encoder.native: activation {n['activation']!r}, only 'gelu' (erf)")
+    hidden = t["hidden"]
+    _check(isinstance(n["heads"], int) and n["heads"] > 0 and hidden % n["heads"] == 0,
+           f"text_encoder.native: heads {n['heads']} does not divide hidden {hidden}")
+    _check(float(n["layer_norm_eps"]) > 0, "text_encoder.native: layer_norm_eps must be > 0")
+    tensors = n["tensors"]
+    _check(tensors["embeddings.position_embeddings.weight"]["shape"] == [t["max_tokens"], hidden],
+           f"text_encoder.native: position table {tensors['embeddings.position_embeddings.weight']['shape']} "
+           f"!= [max_tokens {t['max_tokens']}, hidden {hidden}]")
+    word = tensors["embeddings.word_embeddings.weight"]["shape"]
+    _check(len(word) == 2 and word[1] == hidden, f"text_encoder.native: word table {word} is not [vocab, {hidden}]")
+    int4 = sorted(k for k, v in tensors.items() if v["dtype"] == "int4")
+    _check(int4 in ([], ["embeddings.word_embeddings.weight"]),
+           f"text_encoder.native: only the word table may be int4, got {int4}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m comgrasp_train.export.verify BUNDLE...``: exit 1 naming the first problem."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(description="verify model bundles as the engine loads them")
+    ap.add_argument("bundles", nargs="+")
+    ap.add_argument("--lenient", action="store_true", help="allow files the manifest does not list")
+    a = ap.parse_args(argv)
+    for b in a.bundles:
+        try:
+            load_and_verify_bundle(b, strict=not a.lenient)
+        except BundleError as e:
+            print(f"{b}: {e}", file=sys.stderr)
+            return 1
+        print(f"{b}: ok")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -53,7 +53,7 @@ class TextConfig:
     backend: str = "minilm"  # "minilm" | "clip" (then checkpoint is required)
     checkpoint: str | None = None
     max_tokens: int | None = None
-    weights: str = "fp32"  # "int8": the weights the exported bundle stores (weight_quant.py)
+    weights: str = "fp32"  # "int8" | "int8-tok4": the weights the exported bundle stores (weight_quant.py)
 
 
 def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, torch.Tensor]:
