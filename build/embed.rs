@@ -71,14 +71,15 @@ pub fn generate(crate_dir: &Path, out_dir: &Path) {
         writeln!(code, "    ({rel:?}, include_bytes!({abs:?}), {}),", raw.len()).unwrap();
     };
     // The reference graph of each natively-run model (the text encoder's sits in `files.onnx`).
-    let omitted: Vec<&str> = [("transformer", &["file"][..]), ("decoder", &["file"]), ("text_encoder", &["files", "onnx"])]
-        .iter()
-        .filter_map(|(model, file)| {
-            let m = value.get(model)?;
-            m.get("native").filter(|n| !n.is_null())?;
-            file.iter().try_fold(m, |v, k| v.get(k))?.as_str()
-        })
-        .collect();
+    let omitted: Vec<&str> =
+        [("transformer", &["file"][..]), ("decoder", &["file"]), ("text_encoder", &["files", "onnx"])]
+            .iter()
+            .filter_map(|(model, file)| {
+                let m = value.get(model)?;
+                m.get("native").filter(|n| !n.is_null())?;
+                file.iter().try_fold(m, |v, k| v.get(k))?.as_str()
+            })
+            .collect();
     entry("manifest.json");
     for rel in files.keys().filter(|rel| !rel.starts_with("parity/") && !omitted.contains(&rel.as_str())) {
         // A name leaving the bundle would embed an arbitrary file; the loader rejects such

@@ -20,6 +20,9 @@ cargo test --locked --lib --bins --tests 2>&1 | tee -a "$log"
 # The shipped default's PyTorch parity vectors, replayed by the same tests as models/tiny's;
 # and its streams allocation-free (its decoder has the second thread and overlaps the step).
 COMGRASP_PARITY_BUNDLE=models/default cargo test --locked --test parity_tiny --test alloc_free_stream 2>&1 | tee -a "$log"
+# The library a host ships (no tract, the embedded default deflated): its size against the
+# 40 MB goal and a C program streaming a prompt through it (~3 min: its own profile).
+bash scripts/plugin.sh
 # Issue 8's memory checks. Not tee'd into $log: their indented test summaries are re-runs
 # of tests counted above. Either failing exits non-zero here (set -e).
 # valgrind + ASan on the C example, valgrind on the C-ABI test binaries (built above).

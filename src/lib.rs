@@ -13,8 +13,8 @@
 //!    (frames in the host's world), [`retarget`] (frames on a host's skeleton) and [`bvh`]
 //!    (BVH files);
 //! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
-//!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract; graph rewrites
-//!    in `model::graph` only);
+//!    Rust-owned KV cache, streaming VQ decoder; native kernels or tract (cargo feature
+//!    `onnx`); graph rewrites in `model::graph` and `model::text_graph` only);
 //! 5. [`generator`]: one generation, text -> tokens -> 16-frame chunks (a [`ChunkSource`]);
 //! 6. [`stream`]: a worker thread, its ring buffer, cancellation, [`stream::StreamSink`]s;
 //!    then [`crowd`]: the scheduler that drives many streams' generations on a few threads,

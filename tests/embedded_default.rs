@@ -18,9 +18,9 @@ use std::time::{Duration, Instant};
 use comgrasp::bundle::source::StaticFiles;
 use comgrasp::bundle::{embedded, select, verify, BundleSource};
 use comgrasp::config::{DecoderBackend, RuntimeOptions, StepBackend};
-use comgrasp::model::text::{TextBackend, TextEncoder};
 use comgrasp::engine::StreamConfig;
 use comgrasp::ffi::*;
+use comgrasp::model::text::{TextBackend, TextEncoder};
 use comgrasp::Bundle;
 use comgrasp::{Engine, EngineConfig, Error, Frame, PollResult};
 

@@ -81,7 +81,6 @@ pub struct TextEmbedding {
     pub n_tokens: usize,
 }
 
-
 /// Tokenizer + encoder + pooling rule; shared by all streams (`Send + Sync`).
 pub struct TextEncoder {
     tokenizer: Tokenizer,
@@ -392,7 +391,6 @@ fn _assert_send_sync() {
     fn is_send_sync<T: Send + Sync>() {}
     is_send_sync::<TextEncoder>();
 }
-
 
 #[cfg(test)]
 pub(crate) mod test_support {

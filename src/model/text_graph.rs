@@ -439,7 +439,6 @@ mod tests {
         }
     }
 
-
     #[test]
     fn without_a_probe_the_graph_runs_padded() {
         let (src, m) = bundles().into_iter().next().unwrap();
@@ -450,7 +449,6 @@ mod tests {
         assert_eq!(mode, SequenceMode::Padded);
         assert!(why.unwrap().contains("no probe"));
     }
-
 
     #[test]
     fn int8_gather_rewrite_is_bit_exact() {
@@ -491,7 +489,6 @@ mod tests {
             }
         }
     }
-
 
     #[test]
     fn reshape_targets_are_rewritten_only_when_safe() {
@@ -539,4 +536,3 @@ mod tests {
         assert!(generalize_reshapes(&mut p, 8).is_err());
     }
 }
-

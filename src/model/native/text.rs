@@ -123,7 +123,8 @@ impl NativeText {
             Ok((w.vector(&format!("{p}.weight"), hidden)?, w.vector(&format!("{p}.bias"), hidden)?))
         };
         let ln = norm("embeddings.LayerNorm")?;
-        let n_layers = (0..).take_while(|i| w.shape(&format!("layers.{i}.attention.self.query.weight")).is_ok()).count();
+        let n_layers =
+            (0..).take_while(|i| w.shape(&format!("layers.{i}.attention.self.query.weight")).is_ok()).count();
         if n_layers == 0 {
             return Err(bad("no layers (layers.0.attention.self.query.weight)".into()));
         }

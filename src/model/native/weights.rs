@@ -201,7 +201,10 @@ impl<'a> Tensors<'a> {
         let scale = || -> Result<Vec<f32>> {
             let scale = self.floats(&self.file(name, ".scale"), &[rows])?;
             if let Some(i) = scale.iter().position(|s| *s < 0.0) {
-                return Err(Error::bundle(self.src.path_of(&self.file(name, ".scale")), format!("scale {i} is negative")));
+                return Err(Error::bundle(
+                    self.src.path_of(&self.file(name, ".scale")),
+                    format!("scale {i} is negative"),
+                ));
             }
             Ok(scale)
         };
