@@ -224,3 +224,35 @@ impl<'a> Tensors<'a> {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The exporter's packing (`native_weights.pack_int4`): column 2j in byte j's low nibble,
+    /// 2j + 1 in its high one, each q + 8; an odd row's last high nibble is 8 (zero).
+    fn pack(q: &[i8], cols: usize) -> Vec<u8> {
+        q.chunks(cols)
+            .flat_map(|row| {
+                row.chunks(2).map(|p| (p[0] + 8) as u8 | (((p.get(1).copied().unwrap_or(0) + 8) as u8) << 4))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn int4_rows_unpack_to_q_times_scale() {
+        for cols in [1, 2, 7, 8] {
+            let rows = 3;
+            let q: Vec<i8> = (0..rows * cols).map(|i| (i as i8 * 5) % 15 - 7).collect();
+            let scale = vec![0.5, 0.25, 2.0];
+            let t = Table::I4 { rows, cols, packed: pack(&q, cols), scale: scale.clone() };
+            assert_eq!(t.rows(), rows);
+            let mut row = vec![0.0; cols];
+            for r in 0..rows {
+                t.row_into(r, &mut row);
+                let want: Vec<f32> = q[r * cols..(r + 1) * cols].iter().map(|&v| f32::from(v) * scale[r]).collect();
+                assert_eq!(row, want, "{cols} columns, row {r}");
+            }
+        }
+    }
+}
