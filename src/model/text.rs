@@ -153,13 +153,7 @@ impl TextEncoder {
                 Backend::Graph(GraphText::load(src, t, probe.as_ref().ok())?)
             }
             #[cfg(not(feature = "onnx"))]
-            (TextBackend::Auto | TextBackend::Tract, _) => {
-                return Err(Error::bundle(
-                    src.path_of(&t.files.onnx),
-                    "this library was built without the ONNX runtime (cargo feature `onnx`), and the bundle's \
-                     text encoder has no native weights (text_encoder.native)",
-                ));
-            }
+            (TextBackend::Auto | TextBackend::Tract, _) => return Err(super::step::no_onnx(src, &t.files.onnx)),
         };
         let enc = TextEncoder {
             tokenizer,

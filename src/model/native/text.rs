@@ -64,31 +64,21 @@ impl std::fmt::Debug for NativeText {
 fn stack(parts: Vec<Matrix>) -> Result<Matrix> {
     let cols = parts[0].cols();
     let rows = parts.iter().map(Matrix::rows).sum();
-    match &parts[0] {
-        Matrix::I8 { .. } => {
-            let (mut q, mut scale) = (Vec::new(), Vec::new());
-            for p in parts {
-                match p {
-                    Matrix::I8 { q: pq, scale: ps, .. } => {
-                        q.extend(pq);
-                        scale.extend(ps);
-                    }
-                    Matrix::F32 { .. } => return Err(Error::Inference("mixed int8 and f32 q/k/v".into())),
-                }
+    let mut out = match &parts[0] {
+        Matrix::I8 { .. } => Matrix::I8 { rows, cols, q: Vec::new(), scale: Vec::new() },
+        Matrix::F32 { .. } => Matrix::F32 { rows, cols, w: Vec::new() },
+    };
+    for p in parts {
+        match (&mut out, p) {
+            (Matrix::I8 { q, scale, .. }, Matrix::I8 { q: pq, scale: ps, .. }) => {
+                q.extend(pq);
+                scale.extend(ps);
             }
-            Ok(Matrix::I8 { rows, cols, q, scale })
-        }
-        Matrix::F32 { .. } => {
-            let mut w = Vec::new();
-            for p in parts {
-                match p {
-                    Matrix::F32 { w: pw, .. } => w.extend(pw),
-                    Matrix::I8 { .. } => return Err(Error::Inference("mixed int8 and f32 q/k/v".into())),
-                }
-            }
-            Ok(Matrix::F32 { rows, cols, w })
+            (Matrix::F32 { w, .. }, Matrix::F32 { w: pw, .. }) => w.extend(pw),
+            _ => return Err(Error::Inference("mixed int8 and f32 q/k/v".into())),
         }
     }
+    Ok(out)
 }
 
 impl NativeText {
