@@ -95,6 +95,23 @@ def test_vq_training_resumes_exactly(prepared, tmp_path):
         assert torch.equal(sa["model"][k], sb["model"][k]), k
 
 
+def test_vq_run_saved_before_the_ema_warmup_resumes_without_it(prepared, tmp_path):
+    """A checkpoint whose config predates ``ema_warmup`` (and so has no warm-up buffers)
+    resumes under today's CLI with its own setting instead of failing as a new config."""
+    run = tmp_path / "old"
+    args = ["-q", "train-vq", "--data", str(prepared), "--out", str(run), "--preset", "tiny", "--batch", "4",
+            "--device", "cpu", "--iters", "4"]
+    assert train_main(args + ["--stop-after", "2"]) == 0
+    ckpt = torch.load(run / "ckpt.pt", weights_only=False)
+    del ckpt["config"]["vq"]["model"]["ema_warmup"]
+    ckpt["model"] = {k: v for k, v in ckpt["model"].items() if not k.endswith("ema_updates")}
+    torch.save(ckpt, run / "ckpt.pt")
+    assert train_main(args) == 0
+    done = torch.load(run / "ckpt.pt", weights_only=False)
+    assert done["step"] == 4 and done["config"]["vq"]["model"]["ema_warmup"] is False
+    assert not any(k.endswith("ema_updates") for k in done["model"])
+
+
 def test_time_budgeted_vq_run_records_its_fitted_length_and_resumes_to_it(prepared, tmp_path):
     run = tmp_path / "vq"
     args = ["-q", "train-vq", "--data", str(prepared), "--preset", "tiny", "--batch", "4", "--device", "cpu",

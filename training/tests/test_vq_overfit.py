@@ -4,10 +4,11 @@ fixed set of SynthGrasp windows, must fit it to <= 5 mm MPJPE (issue 15, deliver
 A model that cannot overfit a handful of windows cannot fit a dataset: a fault in the
 loss or its weighting, FK, the straight-through path, the learning-rate schedule or the
 decoder shows here as a fit that stalls. The recipe's architecture (``small``, half widths,
-lambda_joint 10, lr 1e-3, the drop at two thirds) trains on 8 windows of 64 frames (32
+lambda_joint 10, lr 1e-3, the drop at two thirds, the EMA warm-up) trains on 8 windows of 64 frames (32
 tokens per component) for 400 steps. Measured when written (docs/training.md, "Fitting a
-small set"): whole-set MPJPE 99 / 60 / 33 / 11 / 11 / 4.2 / 3.4 / 3.1 mm every 50 steps;
-without the learning-rate drop it wanders between 8 and 9 mm from step 300.
+small set"): whole-set MPJPE 65 / 30 / 20 / 13 / 10 / 3.7 / 3.0 / 2.8 mm every 50 steps
+(99 / 60 / 33 / 11 / 11 / 4.2 / 3.4 / 3.1 without the quantizer's EMA warm-up); without the
+learning-rate drop it wanders between 8 and 9 mm from step 300.
 """
 
 from __future__ import annotations

@@ -523,7 +523,7 @@ def torch_models_from_native(root: str | Path, manifest: dict):
 
 
 # state_dict entries of the VQ that decoding never reads (not in decoder.native)
-_UNUSED_BY_DECODING = ("encoder.", "ema_count", "ema_sum", "initialised")
+_UNUSED_BY_DECODING = ("encoder.", "ema_count", "ema_sum", "ema_updates", "initialised")
 
 
 def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None, native: bool = False,

@@ -78,6 +78,8 @@ class ModelConfig:
     # per step, K codes); "absolute" (T2M-GPT, checkpoints saved before the switch): < reset_threshold.
     reset_threshold: float = 0.1
     reset_mode: str = "relative"
+    # The EMA starts as a running mean (models.quantizer); configs saved before: off.
+    ema_warmup: bool = True
 
     def __post_init__(self):
         if self.down_t < 1:
@@ -141,6 +143,7 @@ class VQConfig:
         m = dict(d["model"])
         m["components"] = tuple(ComponentConfig(**c) for c in m["components"])
         m.setdefault("reset_mode", "absolute")  # configs saved before the mode existed
+        m.setdefault("ema_warmup", False)  # ... and before the EMA warm-up
         t = dict(d.get("train", {}))
         if "betas" in t:
             t["betas"] = tuple(t["betas"])

@@ -130,7 +130,7 @@ class ComponentVQVAE(nn.Module):
         self.comp, self.cfg = comp, cfg
         self.encoder = Encoder(comp, cfg)
         self.quantizer = EMAResetQuantizer(comp.codebook_size, comp.code_dim, cfg.ema_decay, cfg.reset_threshold,
-                                           cfg.reset_mode)
+                                           cfg.reset_mode, cfg.ema_warmup)
         self.decoder = Decoder(comp, cfg)
         self.context_tokens = self.decoder.context_tokens
         # The learned "before the start" embedding; its token id in a step window is codebook_size.

@@ -53,19 +53,21 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         np.save(out_dir / REST_JOINTS_FILE, np.mean(np.stack(fs.rest_joints), axis=0).astype(np.float64))
     seed_everything(seed + rt.rank)
     sampler = WindowSampler(fs, norm, cfg.train.window_frames)
+    ckpt = load_checkpoint(ckpt_path, rt.device) if resume and ckpt_path.is_file() else None
+    if ckpt is not None:
+        saved = VQConfig.from_dict(ckpt["config"]["vq"])
+        # A run started before the EMA warm-up existed resumes without it (its saved config).
+        if replace(saved.model, ema_warmup=cfg.model.ema_warmup) != cfg.model:
+            raise ValueError(f"{ckpt_path} was trained with a different model config; use a new --out")
+        cfg = replace(cfg, model=saved.model)
+        if time_budget is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
+            cfg = replace(cfg, train=replace(cfg.train, total_iters=saved.train.total_iters))
     model = build_vq(cfg.model, rt.device)
     opt = make_optimizer(model, cfg)
     sched = make_scheduler(opt, cfg)
     gen = torch.Generator().manual_seed(seed + 1000 * rt.rank)
     step, best_val = 0, float("inf")
-    if resume and ckpt_path.is_file():
-        ckpt = load_checkpoint(ckpt_path, rt.device)
-        saved = VQConfig.from_dict(ckpt["config"]["vq"])
-        if saved.model != cfg.model:
-            raise ValueError(f"{ckpt_path} was trained with a different model config; use a new --out")
-        cfg = replace(cfg, model=saved.model)
-        if time_budget is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
-            cfg = replace(cfg, train=replace(cfg.train, total_iters=saved.train.total_iters))
+    if ckpt is not None:
         step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
         gen.set_state(ckpt["extra"]["sampler_rng"])
         best_val = ckpt["extra"].get("best_val", best_val)
