@@ -9,14 +9,17 @@
 //!    (`StepModel::step_batch_checked`: each block of weight rows is applied to every
 //!    stream before the next is read, so the step's weights stream from memory once per
 //!    batch instead of once per stream), then samples its token;
-//! 3. every stream whose group of tokens is complete decodes it (on this thread alone) and
-//!    its frames are assembled and pushed; streams that have not produced a frame yet go
-//!    first.
+//! 3. every stream whose group of tokens is complete decodes it on this thread, and its
+//!    frames are assembled and pushed: streams that have not produced a frame yet first,
+//!    each alone (a first decode is one token), then the others in **batched decodes** of
+//!    up to `MAX_DECODE_BATCH` streams (`DecoderModel::decode_batch_checked`: each layer one
+//!    GEMM over the new positions of all of them).
 //!
 //! A stream's tokens and frames are **bit-identical** to the same stream run alone, on this
 //! scheduler or on its own worker thread: every value of the batched step is computed by
 //! the kernel, inputs and row blocks of the one-stream step, and the decoder computes the
-//! same bits on one thread or two (tests/crowd.rs starts streams at staggered times).
+//! same bits on one thread or two and for a stream alone or in a batch (tests/crowd.rs
+//! starts streams at staggered times).
 //!
 //! **Fairness.** Every stream that can run gets one step or one decode per round, so none
 //! starves. A stream whose ring is full (a host that polls slowly) is skipped until the
@@ -34,8 +37,8 @@
 //! second stream arrives.
 //!
 //! **Memory.** A stream's model state (KV cache, decoder context, decode buffer) is
-//! allocated once, at its first step; the shard's lists are allocated at engine creation
-//! for `max_streams` streams, so a round allocates nothing.
+//! allocated once, at its first step; the shard's lists and the batched step's and decode's
+//! scratch are allocated at engine creation, so a round allocates nothing.
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -48,7 +51,7 @@ use ringbuf::HeapProd;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::generator::{ChunkSource, Generator, Need, Pipeline};
-use crate::model::{StepJob, StepJobs, StepScratch};
+use crate::model::{DecodeJob, DecodeJobs, DecodeScratch, StepJob, StepJobs, StepScratch, MAX_DECODE_BATCH};
 use crate::stream::{finish, panic_message, Outcome, Stream, StreamSet, StreamShared, StreamSink};
 
 /// Most streams in one batched step; the shard looks for new streams between batches.
@@ -201,8 +204,9 @@ struct Round {
     work: Vec<usize>,
     /// Members that joined during the round (indices), served at once.
     fresh: Vec<usize>,
-    /// The batched step's buffers.
+    /// The batched step's and the batched decode's buffers.
     scratch: StepScratch,
+    decode: DecodeScratch,
 }
 
 impl Round {
@@ -215,6 +219,7 @@ impl Round {
             work: Vec::with_capacity(max_streams),
             fresh: Vec::with_capacity(max_streams),
             scratch: pipeline.bundle().step.batch_scratch(MAX_BATCH),
+            decode: pipeline.bundle().decoder.batch_scratch(),
         }
     }
 
@@ -291,9 +296,24 @@ impl Round {
         // the ones without a frame yet first, otherwise in join order (unstable: no buffer)
         let members = &self.members;
         self.work.sort_unstable_by_key(|&i| (members[i].made > 0, i));
+        // Streams without a frame yet (a first decode of one token) and ends alone, first;
+        // the others in batches.
+        self.batch.clear();
         for w in 0..self.work.len() {
             let i = self.work[w];
-            progressed |= decode(&mut self.members[i], &self.live);
+            let m = &mut self.members[i];
+            if m.made > 0 && m.gen.need() == Need::Decode {
+                self.batch.push(i);
+                continue;
+            }
+            progressed |= decode(m, &self.live);
+            self.serve_new();
+        }
+        let mut at = 0;
+        while at < self.batch.len() {
+            let end = (at + MAX_DECODE_BATCH).min(self.batch.len());
+            progressed |= decode_batch(&mut self.members, &self.batch[at..end], &mut self.decode);
+            at = end;
             self.serve_new();
         }
         for m in &mut self.members {
@@ -411,16 +431,64 @@ impl Member {
 }
 
 /// The batched token step of `batch` (indices into `members`, each needing a step), then
-/// each member samples its token. A member whose step cannot be prepared fails alone; a
-/// panic inside the batch fails the batch's members.
+/// each member samples its token.
 fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize, scratch: &mut StepScratch) -> bool {
+    batched::<MAX_BATCH>(
+        members,
+        batch,
+        "batched step",
+        |g| g.step_job().map(|_| ()),
+        |members, good| {
+            let pipe = Arc::clone(members[good[0]].gen.pipeline());
+            let step = &pipe.bundle().step;
+            // A lone stream on the whole scheduler: the step may use the model's helper thread.
+            if good.len() == 1 && live.load(Ordering::Relaxed) == 1 {
+                let j = members[good[0]].gen.job();
+                step.run_checked(j.state, j.tokens, j.pos, j.text_emb, false)
+            } else {
+                step.step_batch_checked(&mut Jobs { members, idx: good }, scratch)
+            }
+        },
+        |g, out| g.sampled(out),
+    )
+}
+
+/// The batched decode of `batch` (indices into `members`, each needing a decode and
+/// having made frames before), then each member's frames are assembled and pushed.
+fn decode_batch(members: &mut [Member], batch: &[usize], scratch: &mut DecodeScratch) -> bool {
+    batched::<MAX_DECODE_BATCH>(
+        members,
+        batch,
+        "batched decode",
+        |g| g.decode_job().map(|_| ()),
+        |members, good| {
+            let pipe = Arc::clone(members[good[0]].gen.pipeline());
+            pipe.bundle().decoder.decode_batch_checked(&mut Decodes { members, idx: good }, scratch)
+        },
+        |g, out| {
+            g.decoded(out);
+            Ok(())
+        },
+    )
+}
+
+/// One batched piece of work for up to `N` of `batch`'s members: each is prepared
+/// (`prepare`; one that fails, fails alone), `run` takes the good ones at once (an error
+/// or panic there fails them all: their state is not to be trusted), then `after` gives
+/// each member's frames. Whether anything ran. No allocation.
+fn batched<const N: usize>(
+    members: &mut [Member],
+    batch: &[usize],
+    what: &str,
+    prepare: impl Fn(&mut Generator) -> Result<()>,
+    run: impl FnOnce(&mut [Member], &[usize]) -> Result<()>,
+    after: impl Fn(&mut Generator, &mut Vec<Frame>) -> Result<()>,
+) -> bool {
+    let mut good = [0usize; N];
     let mut ok = 0usize;
-    // Prepare (text encoding, state, checks) one by one; keep the good ones up front of
-    // a fixed-size index list (no allocation: at most MAX_BATCH per call).
-    let mut good = [0usize; MAX_BATCH];
-    for &i in batch.iter().take(MAX_BATCH) {
+    for &i in batch.iter().take(N) {
         let m = &mut members[i];
-        match catch_unwind(AssertUnwindSafe(|| m.gen.step_job().map(|_| ()))) {
+        match catch_unwind(AssertUnwindSafe(|| prepare(&mut m.gen))) {
             Ok(Ok(())) => {
                 good[ok] = i;
                 ok += 1;
@@ -433,19 +501,7 @@ fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize, scratch: &m
     if good.is_empty() {
         return false;
     }
-    let pipe = Arc::clone(members[good[0]].gen.pipeline());
-    let step = &pipe.bundle().step;
-    // A lone stream on the whole scheduler: the step may use the model's helper thread.
-    let alone = good.len() == 1 && live.load(Ordering::Relaxed) == 1;
-    let ran = catch_unwind(AssertUnwindSafe(|| {
-        if alone {
-            let j = members[good[0]].gen.job();
-            step.run_checked(j.state, j.tokens, j.pos, j.text_emb, false)
-        } else {
-            step.step_batch_checked(&mut Jobs { members, idx: good }, scratch)
-        }
-    }));
-    let err = match ran {
+    let err = match catch_unwind(AssertUnwindSafe(|| run(members, good))) {
         Ok(Ok(())) => None,
         Ok(Err(e)) => Some(e),
         Err(p) => Some(Error::Panic(panic_message(&*p))),
@@ -453,11 +509,11 @@ fn step(members: &mut [Member], batch: &[usize], live: &AtomicUsize, scratch: &m
     for &i in good {
         let m = &mut members[i];
         if let Some(e) = &err {
-            m.fail(Error::Inference(format!("batched step: {e}")));
+            m.fail(Error::Inference(format!("{what}: {e}")));
             continue;
         }
         let from = m.out.len();
-        match catch_unwind(AssertUnwindSafe(|| m.gen.sampled(&mut m.out))) {
+        match catch_unwind(AssertUnwindSafe(|| after(&mut m.gen, &mut m.out))) {
             Ok(Ok(())) => m.produced(from),
             Ok(Err(e)) => m.fail(e),
             Err(p) => m.fail(Error::Panic(panic_message(&*p))),
@@ -515,5 +571,21 @@ impl StepJobs for Jobs<'_> {
 
     fn job(&mut self, i: usize) -> StepJob<'_> {
         self.members[self.idx[i]].gen.job()
+    }
+}
+
+/// The members of a batched decode as the decoder's jobs.
+struct Decodes<'a> {
+    members: &'a mut [Member],
+    idx: &'a [usize],
+}
+
+impl DecodeJobs for Decodes<'_> {
+    fn count(&self) -> usize {
+        self.idx.len()
+    }
+
+    fn job(&mut self, i: usize) -> DecodeJob<'_> {
+        self.members[self.idx[i]].gen.decode_job_unchecked()
     }
 }

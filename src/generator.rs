@@ -53,7 +53,7 @@ use crate::config::{EngineConfig, StreamConfig};
 use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurface};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
-use crate::model::{decode_group, overlap, Bundle, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
+use crate::model::{decode_group, overlap, Bundle, DecodeJob, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
 use crate::sampler::{SamplingParams, TokenSampler};
 use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 
@@ -757,26 +757,44 @@ impl Generator {
     /// unless the sequence is known to end with them. `team`: the decoder may use its
     /// helper thread. The same bits either way.
     pub fn decode(&mut self, team: bool, out: &mut Vec<Frame>) -> Result<()> {
-        let g = self.ahead_n;
-        if g == 0 {
+        let pipe = Arc::clone(&self.pipe);
+        let j = self.decode_job()?;
+        pipe.bundle.decoder.decode_checked(j.state, j.tokens, j.out, None, team)?;
+        self.decoded(out);
+        Ok(())
+    }
+
+    /// The decode this generation needs ([`Need::Decode`]), checked; after it ran,
+    /// [`decoded`](Self::decoded).
+    pub(crate) fn decode_job(&mut self) -> Result<DecodeJob<'_>> {
+        if self.ahead_n == 0 {
             return Err(Error::WrongState("no tokens to decode".into()));
         }
-        let next = self.k + g;
-        let ended = self.ahead_end || next >= self.max_len;
+        let pipe = Arc::clone(&self.pipe);
+        let j = self.decode_job_unchecked();
+        pipe.bundle.decoder.check(j.state, j.tokens, j.out)?;
+        Ok(j)
+    }
+
+    /// [`decode_job`](Self::decode_job) again, once it passed.
+    pub(crate) fn decode_job_unchecked(&mut self) -> DecodeJob<'_> {
         let b = &self.pipe.bundle;
         let state = self.state.get_or_insert_with(|| State::new(b));
-        let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
-        if team {
-            b.decoder.decode_group(&mut state.decoder, &self.ahead[..g], normalized)?;
-        } else {
-            b.decoder.decode_group_solo(&mut state.decoder, &self.ahead[..g], normalized)?;
-        }
-        let used = normalized.len();
-        self.emit_group(used, ended.then_some(true), out);
+        let g = self.ahead_n;
+        let out = &mut state.normalized[..g * b.decoder.chunk_len()];
+        DecodeJob { state: &mut state.decoder, tokens: &self.ahead[..g], out }
+    }
+
+    /// The frames of the decode [`decode_job`](Self::decode_job) gave, once it ran, into
+    /// `out`.
+    pub(crate) fn decoded(&mut self, out: &mut Vec<Frame>) {
+        let g = self.ahead_n;
+        let next = self.k + g;
+        let ended = self.ahead_end || next >= self.max_len;
+        self.emit_group(g * self.pipe.bundle.decoder.chunk_len(), ended.then_some(true), out);
         self.prev = self.ahead[g - 1];
         self.k = next;
         (self.ahead_n, self.ahead_end) = (0, false);
-        Ok(())
     }
 
     /// The end ([`Need::Finish`]): the held frame goes out into `out`, marked last.

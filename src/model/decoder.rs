@@ -21,7 +21,7 @@ use tract_onnx::prelude::Tensor;
 
 #[cfg(feature = "onnx")]
 use super::graph::{self, Plan, PlanState};
-use super::native::decoder::{NativeDecoder, NativeState, MAX_GROUP};
+use super::native::decoder::{Batch, NativeDecoder, NativeState, Work, MAX_BATCH, MAX_GROUP};
 use crate::bundle::manifest::{Manifest, FRAME_DIM, MANIFEST_FILE, N_STREAMS};
 use crate::bundle::BundleSource;
 use crate::config::RuntimeOptions;
@@ -30,6 +30,26 @@ use crate::error::{Error, Result};
 /// Most tokens one [`DecoderModel::decode_group`] takes.
 pub const MAX_DECODE_GROUP: usize = crate::config::MAX_DECODE_GROUP;
 const _: () = assert!(MAX_DECODE_GROUP == MAX_GROUP);
+
+/// Most streams one [`DecoderModel::decode_batch_checked`] takes.
+pub(crate) const MAX_DECODE_BATCH: usize = MAX_BATCH;
+
+/// One stream of a batched decode: its state, its tokens (checked) and where its frames go.
+pub(crate) struct DecodeJob<'a> {
+    pub state: &'a mut DecoderState,
+    pub tokens: &'a [[i64; N_STREAMS]],
+    pub out: &'a mut [f32],
+}
+
+/// The streams of a batched decode (as `StepJobs` for the batched step).
+pub(crate) trait DecodeJobs {
+    fn count(&self) -> usize;
+    fn job(&mut self, i: usize) -> DecodeJob<'_>;
+}
+
+/// Scratch of batched decodes, made once per scheduler thread (the native decoder's
+/// stacked buffers; nothing for tract).
+pub(crate) struct DecodeScratch(Option<Work>);
 
 pub use crate::config::DecoderBackend;
 
@@ -192,19 +212,6 @@ impl DecoderModel {
         self.decode_checked(state, tokens, out, None, true)
     }
 
-    /// [`decode_group`](Self::decode_group) on the calling thread alone (the native
-    /// decoder's helper is left to others: the crowd scheduler runs one decode per
-    /// thread), the same bits.
-    pub(crate) fn decode_group_solo(
-        &self,
-        state: &mut DecoderState,
-        tokens: &[[i64; N_STREAMS]],
-        out: &mut [f32],
-    ) -> Result<()> {
-        self.check(state, tokens, out)?;
-        self.decode_checked(state, tokens, out, None, false)
-    }
-
     /// The errors [`decode_group`](Self::decode_group) reports before it touches `state`.
     pub(crate) fn check(&self, state: &DecoderState, tokens: &[[i64; N_STREAMS]], out: &[f32]) -> Result<()> {
         let same = match (&self.imp, &state.imp) {
@@ -271,6 +278,64 @@ impl DecoderModel {
                 model.decode_with(st, &ids[..tokens.len()], out, extra, team)?;
                 state.decoded += tokens.len();
             }
+        }
+        Ok(())
+    }
+
+    /// Scratch for [`decode_batch_checked`](Self::decode_batch_checked).
+    pub(crate) fn batch_scratch(&self) -> DecodeScratch {
+        DecodeScratch(match &self.imp {
+            Imp::Native(n) => Some(n.batch_work()),
+            #[cfg(feature = "onnx")]
+            Imp::Tract(_) => None,
+        })
+    }
+
+    /// [`decode_checked`](Self::decode_checked) of 1 to [`MAX_DECODE_BATCH`] streams whose
+    /// jobs passed [`check`](Self::check), on the calling thread. The native decoder runs
+    /// them as one decode (each layer one GEMM over all their new positions: its weights
+    /// read once, not once per stream), tract one after another; every stream gets the bits
+    /// of its own decode. Allocation-free. Fails on a job of another decoder (before
+    /// anything is decoded) or when `scratch` is not this decoder's.
+    pub(crate) fn decode_batch_checked(&self, jobs: &mut dyn DecodeJobs, scratch: &mut DecodeScratch) -> Result<()> {
+        let n = jobs.count();
+        if !(1..=MAX_DECODE_BATCH).contains(&n) {
+            return Err(Error::InvalidArgument(format!(
+                "a batched decode takes 1 to {MAX_DECODE_BATCH} streams, got {n}"
+            )));
+        }
+        #[allow(clippy::infallible_destructuring_match)] // (one variant without the onnx feature)
+        let model = match &self.imp {
+            Imp::Native(m) => m,
+            #[cfg(feature = "onnx")]
+            Imp::Tract(_) => {
+                for i in 0..n {
+                    let j = jobs.job(i);
+                    self.decode_checked(j.state, j.tokens, j.out, None, false)?;
+                }
+                return Ok(());
+            }
+        };
+        let wk = scratch.0.as_mut().ok_or_else(|| Error::WrongState("decode scratch of another decoder".into()))?;
+        let mut ids = [[[0; N_STREAMS]; MAX_GROUP]; MAX_BATCH];
+        let mut g = [0; MAX_BATCH];
+        for i in 0..n {
+            let j = jobs.job(i);
+            match &j.state.imp {
+                StateImp::Native { model: m, .. } if Arc::ptr_eq(m, model) => {}
+                _ => return Err(Error::WrongState("a DecoderState of another DecoderModel in a batch".into())),
+            }
+            g[i] = j.tokens.len();
+            if !(1..=MAX_GROUP).contains(&g[i]) {
+                return Err(Error::InvalidArgument(format!("a decode takes 1 to {MAX_GROUP} tokens, got {}", g[i])));
+            }
+            for (d, t) in ids[i].iter_mut().zip(j.tokens) {
+                *d = t.map(|c| c as usize);
+            }
+        }
+        model.decode_batch(&mut NativeJobs { jobs: &mut *jobs, ids: &ids, g: &g[..n] }, wk);
+        for (i, &g) in g[..n].iter().enumerate() {
+            jobs.job(i).state.decoded += g;
         }
         Ok(())
     }
@@ -344,10 +409,154 @@ impl DecoderState {
     }
 }
 
+/// A batch's jobs as the native decoder's [`Batch`] (their tokens copied as ids).
+struct NativeJobs<'a> {
+    jobs: &'a mut dyn DecodeJobs,
+    ids: &'a [[[usize; N_STREAMS]; MAX_GROUP]; MAX_BATCH],
+    g: &'a [usize],
+}
+
+impl Batch for NativeJobs<'_> {
+    fn count(&self) -> usize {
+        self.g.len()
+    }
+
+    fn ids(&self, i: usize) -> &[[usize; N_STREAMS]] {
+        &self.ids[i][..self.g[i]]
+    }
+
+    fn state(&mut self, i: usize) -> &mut NativeState {
+        let st: &mut DecoderState = self.jobs.job(i).state;
+        match &mut st.imp {
+            StateImp::Native { state, .. } => state,
+            // (decode_batch_checked looked at every job's state first)
+            #[cfg(feature = "onnx")]
+            StateImp::Tract { .. } => unreachable!("a tract state in a native batch"),
+        }
+    }
+
+    fn out(&mut self, i: usize) -> &mut [f32] {
+        self.jobs.job(i).out
+    }
+}
+
 #[allow(dead_code)]
 fn _assert_send() {
     fn is_send<T: Send>() {}
     fn is_send_sync<T: Send + Sync>() {}
     is_send::<DecoderState>();
     is_send_sync::<DecoderModel>();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::Bundle;
+
+    /// Stream `i`'s group sizes and codes: every size 1 ..= 8 turns up, starts staggered.
+    fn plan(i: usize, books: [usize; N_STREAMS]) -> Vec<Vec<[i64; N_STREAMS]>> {
+        let mut s = (i as u64 + 7).wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        (0..6 + i)
+            .map(|k| {
+                let g = (i + 3 * k) % MAX_GROUP + 1;
+                (0..g).map(|_| std::array::from_fn(|c| (next() % books[c] as u64) as i64)).collect()
+            })
+            .collect()
+    }
+
+    struct Jobs<'a> {
+        states: &'a mut [DecoderState],
+        tokens: Vec<&'a [[i64; N_STREAMS]]>,
+        outs: &'a mut [Vec<f32>],
+        idx: Vec<usize>,
+        len: usize,
+    }
+
+    impl DecodeJobs for Jobs<'_> {
+        fn count(&self) -> usize {
+            self.idx.len()
+        }
+        fn job(&mut self, j: usize) -> DecodeJob<'_> {
+            let i = self.idx[j];
+            let n = self.tokens[j].len() * self.len;
+            DecodeJob { state: &mut self.states[i], tokens: self.tokens[j], out: &mut self.outs[i][..n] }
+        }
+    }
+
+    /// Streams at staggered positions with group sizes 1 to 8, decoded in batches of
+    /// changing members, get the bits each gets decoded alone, native and tract.
+    #[test]
+    fn a_batched_decode_gives_each_stream_its_own_bits() {
+        for dir in ["models/tiny", "models/default"] {
+            let b = Bundle::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)).unwrap();
+            let backends: &[DecoderBackend] = if cfg!(feature = "onnx") && dir == "models/tiny" {
+                &[DecoderBackend::Native, DecoderBackend::Tract]
+            } else {
+                &[DecoderBackend::Native]
+            };
+            for &backend in backends {
+                let m = DecoderModel::load_backend(b.origin(), &b.manifest, Some(backend)).unwrap();
+                let n = MAX_DECODE_BATCH + 1;
+                let plans: Vec<_> = (0..n).map(|i| plan(i, m.codebook)).collect();
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                let alone: Vec<Vec<u32>> = plans
+                    .iter()
+                    .map(|p| {
+                        let mut st = m.new_state();
+                        let mut all = Vec::new();
+                        for g in p {
+                            let mut out = vec![0.0; g.len() * m.chunk_len()];
+                            m.decode_group(&mut st, g, &mut out).unwrap();
+                            all.extend(bits(&out));
+                        }
+                        all
+                    })
+                    .collect();
+                let mut states: Vec<_> = (0..n).map(|_| m.new_state()).collect();
+                let mut outs = vec![vec![0.0; MAX_GROUP * m.chunk_len()]; n];
+                let mut got = vec![Vec::new(); n];
+                let mut sc = m.batch_scratch();
+                // stream i starts at round i; a round's batches take up to MAX_DECODE_BATCH
+                for round in 0..40 {
+                    let live: Vec<usize> = (0..n).filter(|&i| round >= i && round - i < plans[i].len()).collect();
+                    for part in live.chunks(MAX_DECODE_BATCH) {
+                        let tokens = part.iter().map(|&i| &plans[i][round - i][..]).collect();
+                        let len = m.chunk_len();
+                        let mut jobs = Jobs { states: &mut states, tokens, outs: &mut outs, idx: part.to_vec(), len };
+                        m.decode_batch_checked(&mut jobs, &mut sc).unwrap();
+                        for &i in part {
+                            got[i].extend(bits(&outs[i][..plans[i][round - i].len() * len]));
+                        }
+                    }
+                }
+                for i in 0..n {
+                    assert_eq!(got[i], alone[i], "{dir} {backend:?}: stream {i}");
+                    assert_eq!(states[i].decoded(), plans[i].iter().map(Vec::len).sum::<usize>());
+                }
+                // Wrong use fails before anything is decoded.
+                let other = DecoderModel::load_backend(b.origin(), &b.manifest, Some(backend)).unwrap();
+                let mut foreign = vec![other.new_state(), m.new_state()];
+                let g = &plans[0][0][..];
+                let mut jobs = Jobs {
+                    states: &mut foreign,
+                    tokens: vec![g, g],
+                    outs: &mut outs,
+                    idx: vec![1, 0],
+                    len: m.chunk_len(),
+                };
+                if backend == DecoderBackend::Native {
+                    assert!(matches!(m.decode_batch_checked(&mut jobs, &mut sc), Err(Error::WrongState(_))));
+                    assert_eq!(foreign[1].decoded(), 0);
+                }
+                let mut none = Jobs { states: &mut states, tokens: vec![], outs: &mut outs, idx: vec![], len: 1 };
+                assert!(matches!(m.decode_batch_checked(&mut none, &mut sc), Err(Error::InvalidArgument(_))));
+            }
+        }
+    }
 }

@@ -15,6 +15,7 @@ pub mod text;
 #[cfg(feature = "onnx")]
 mod text_graph;
 
+pub(crate) use decoder::{DecodeJob, DecodeJobs, DecodeScratch, MAX_DECODE_BATCH};
 pub use decoder::{DecoderBackend, DecoderModel, DecoderState, MAX_DECODE_GROUP};
 pub use loaded::Bundle;
 pub use step::{StepBackend, StepModel, StepState};

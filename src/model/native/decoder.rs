@@ -13,7 +13,10 @@
 //! histories (`F.pad`'s zeros at the very start) and feeds the manifest's initial state
 //! (K-1 pad ids) first, which is done once at load and copied on `reset`. G consecutive
 //! tokens decoded in one call add G times those positions, and each layer takes them at
-//! once: its weights are read once per call (`model::decode_group`).
+//! once: its weights are read once per call (`model::decode_group`). A batched decode
+//! ([`NativeDecoder::decode_batch`], the crowd scheduler's) stacks the new positions of up
+//! to [`MAX_BATCH`] streams the same way, each stream with its own histories: one GEMM per
+//! layer for all of them, every stream's frames the bits of its own decode.
 //!
 //! The architecture is read from the tensor names and shapes (`parts.<component>.decoder.
 //! layers.<i>.*`, the layer list of `models.vqvae.Decoder`: Conv, ReLU, [AttentionBlock],
@@ -27,8 +30,9 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
 
 use super::arena::{Arena, Wm};
-use super::decoder_attention::{AttnState, WindowAttention};
-use super::decoder_conv::{relu, CausalConv, ResBlock, UpConv};
+use super::decoder_attention::{AttnState, AttnWork, WindowAttention};
+pub(crate) use super::decoder_conv::MAX_BATCH;
+use super::decoder_conv::{relu, CausalConv, PerStream, ResBlock, Segs, UpConv};
 use super::team::{Crew, Each, Helper, Order};
 use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
@@ -48,8 +52,8 @@ pub(crate) const MAX_GROUP: usize = 8;
 pub(crate) struct NativeDecoder {
     comps: Vec<Component>,
     frames: usize,
-    /// The state after the manifest's initial (pad) tokens: what a new sequence starts from.
-    initial: NativeState,
+    /// The context after the manifest's initial (pad) tokens: what a new sequence starts from.
+    initial: Vec<CompCtx>,
     /// The second thread (two-thread decodes).
     helper: Option<Helper>,
     /// Every component's weight matrices (the layers hold their places in it).
@@ -78,7 +82,7 @@ impl DecodeJob<'_> {
     }
 }
 
-/// One stream's decoder context: every layer's history, plus scratch.
+/// One stream's decoder context: every layer's history, plus scratch for decodes alone.
 #[derive(Clone, Debug)]
 pub(crate) struct NativeState {
     comps: Vec<CompState>,
@@ -112,19 +116,127 @@ struct Level {
 
 #[derive(Clone, Debug)]
 struct CompState {
+    ctx: CompCtx,
+    /// Scratch of this stream's own decodes (a batched decode brings its own).
+    work: Work,
+}
+
+/// A component's context in one stream: every layer's history.
+#[derive(Clone, Debug)]
+struct CompCtx {
     emb: Vec<f32>,
     attn: Option<AttnState>,
-    /// Input buffers of the ResBlock convs (level-major) and the Z buffers of the UpConvs.
+    /// The ResBlock convs' (level-major), the UpConvs' `Z`s, the final convs'.
     res: Vec<Vec<f32>>,
     z: Vec<Vec<f32>>,
     fa: Vec<f32>,
     fb: Vec<f32>,
-    // scratch, F x width (x, y, a, b) and F x dim (out)
+}
+
+/// Which history of a [`CompCtx`] a layer reads.
+#[derive(Clone, Copy)]
+enum Slot {
+    Emb,
+    Res(usize),
+    Z(usize),
+    Fa,
+    Fb,
+}
+
+impl CompCtx {
+    fn slot(&mut self, s: Slot) -> &mut [f32] {
+        match s {
+            Slot::Emb => &mut self.emb,
+            Slot::Res(i) => &mut self.res[i],
+            Slot::Z(l) => &mut self.z[l],
+            Slot::Fa => &mut self.fa,
+            Slot::Fb => &mut self.fb,
+        }
+    }
+
+    /// Copies `o` (the same component's) into `self` without allocating.
+    fn copy_from(&mut self, o: &CompCtx) {
+        self.emb.copy_from_slice(&o.emb);
+        if let (Some(a), Some(b)) = (self.attn.as_mut(), o.attn.as_ref()) {
+            a.copy_from(b);
+        }
+        for (d, s) in self.res.iter_mut().zip(&o.res).chain(self.z.iter_mut().zip(&o.z)) {
+            d.copy_from_slice(s);
+        }
+        self.fa.copy_from_slice(&o.fa);
+        self.fb.copy_from_slice(&o.fb);
+    }
+}
+
+/// One stream alone.
+struct One<'a>(&'a mut CompCtx);
+
+impl PerStream<CompCtx> for One<'_> {
+    fn get(&mut self, _: usize) -> &mut CompCtx {
+        self.0
+    }
+}
+
+/// One layer's histories: `slot` of every stream's context.
+struct Hist<'a> {
+    ctxs: &'a mut dyn PerStream<CompCtx>,
+    slot: Slot,
+}
+
+impl PerStream<[f32]> for Hist<'_> {
+    fn get(&mut self, i: usize) -> &mut [f32] {
+        self.ctxs.get(i).slot(self.slot)
+    }
+}
+
+/// The attention block's contexts.
+struct Attns<'a>(&'a mut dyn PerStream<CompCtx>);
+
+impl PerStream<AttnState> for Attns<'_> {
+    fn get(&mut self, i: usize) -> &mut AttnState {
+        // (a context is made by its component: it has the attention's iff the component has one)
+        self.0.get(i).attn.as_mut().expect("a component with attention has its context")
+    }
+}
+
+/// Scratch of a decode: the new positions of all its streams, stacked (`Segs`).
+#[derive(Clone, Debug)]
+pub(crate) struct Work {
+    e: Vec<f32>,
     x: Vec<f32>,
     y: Vec<f32>,
     a: Vec<f32>,
     b: Vec<f32>,
+    win: Vec<f32>,
+    z: Vec<f32>,
     out: Vec<f32>,
+    attn: Option<AttnWork>,
+}
+
+impl Work {
+    /// For decodes of up to `tokens` tokens (all streams) by any of `comps`.
+    fn new<'c>(comps: impl Iterator<Item = &'c Component> + Clone, frames: usize, tokens: usize) -> Work {
+        let max = |f: fn(&Component) -> usize| comps.clone().map(f).max().unwrap_or(0);
+        let pos = tokens * frames;
+        let w = max(|c| c.width);
+        let win = max(|c| c.conv_in.k * c.code_dim.max(c.width));
+        let attn = comps
+            .clone()
+            .filter_map(|c| c.attn.as_ref())
+            .map(|a| (a.width(), a.window()))
+            .reduce(|a, b| (a.0.max(b.0), a.1.max(b.1)));
+        Work {
+            e: vec![0.0; tokens * max(|c| c.code_dim)],
+            x: vec![0.0; pos * w],
+            y: vec![0.0; pos * w],
+            a: vec![0.0; pos * w],
+            b: vec![0.0; pos * w],
+            win: vec![0.0; pos * win],
+            z: vec![0.0; pos / 2 * max(|c| c.levels.first().map_or(0, |l| l.up.k * l.up.c))],
+            out: vec![0.0; pos * max(|c| c.dim)],
+            attn: attn.map(|(w, win)| AttnWork::new(w, win, tokens)),
+        }
+    }
 }
 
 /// Names `parts.<c>.decoder.layers.<i>` tensors are read under, collected while loading.
@@ -248,90 +360,72 @@ impl Component {
         (n - pos + 1) as usize
     }
 
-    /// A zero context with scratch for [`MAX_GROUP`] tokens per decode.
-    fn new_state(&self, frames: usize) -> CompState {
-        let (w, g) = (self.width, MAX_GROUP);
-        let mut res = Vec::new();
-        let mut z = Vec::new();
-        for (l, lev) in self.levels.iter().enumerate() {
-            for r in &lev.res {
-                res.push(vec![0.0; r.conv.buf_len(g << l)]);
-            }
-            z.push(vec![0.0; lev.up.z_len(g << l)]);
-        }
-        CompState {
-            emb: vec![0.0; self.conv_in.buf_len(g)],
-            attn: self.attn.as_ref().map(|a| a.new_state(g)),
+    /// A zero context (the start of a sequence, before the initial tokens).
+    fn new_ctx(&self) -> CompCtx {
+        let res = self.levels.iter().flat_map(|l| &l.res).map(|r| vec![0.0; r.conv.hist_len()]).collect();
+        CompCtx {
+            emb: vec![0.0; self.conv_in.hist_len()],
+            attn: self.attn.as_ref().map(|a| a.new_state()),
             res,
-            z,
-            fa: vec![0.0; self.final_a.buf_len(g * frames)],
-            fb: vec![0.0; self.final_b.buf_len(g * frames)],
-            x: vec![0.0; g * frames * w],
-            y: vec![0.0; g * frames * w],
-            a: vec![0.0; g * frames * w],
-            b: vec![0.0; g * frames * w],
-            out: vec![0.0; g * frames * self.dim],
+            z: self.levels.iter().map(|l| vec![0.0; l.up.hist_len()]).collect(),
+            fa: vec![0.0; self.final_a.hist_len()],
+            fb: vec![0.0; self.final_b.hist_len()],
         }
     }
 
-    /// Copies the context of `o` into `s` (every buffer's history and the attention's keys
-    /// and values, not the scratch after them), without allocating.
-    fn copy_context(&self, s: &mut CompState, o: &CompState) {
-        fn prefix(d: &mut [f32], o: &[f32], n: usize) {
-            d[..n].copy_from_slice(&o[..n]);
-        }
-        prefix(&mut s.emb, &o.emb, self.conv_in.buf_len(0));
-        if let (Some(a), Some(b)) = (s.attn.as_mut(), o.attn.as_ref()) {
-            a.copy_from(b);
-        }
-        let res = self.levels.iter().flat_map(|l| &l.res);
-        for ((d, src), r) in s.res.iter_mut().zip(&o.res).zip(res) {
-            prefix(d, src, r.conv.buf_len(0));
-        }
-        for ((d, src), l) in s.z.iter_mut().zip(&o.z).zip(&self.levels) {
-            prefix(d, src, l.up.z_len(0));
-        }
-        prefix(&mut s.fa, &o.fa, self.final_a.buf_len(0));
-        prefix(&mut s.fb, &o.fb, self.final_b.buf_len(0));
-    }
-
-    /// Decodes `ids` (1 to [`MAX_GROUP`] tokens, in order; each a code or the pad id =
-    /// codebook size) into `s.out` (`ids.len()` x F x dim, raw). Every layer takes the new
-    /// positions of all the tokens at once, so a weight is read once per call, not once
-    /// per token; the results are the bits one token per call gives (the layers are
-    /// causal and `gemm` does not depend on the number of positions).
-    fn run(&self, ar: &Arena, s: &mut CompState, ids: &[usize]) {
-        let (d, w, g) = (self.code_dim, self.width, ids.len());
-        for (dst, &id) in self.conv_in.input(&mut s.emb, g).chunks_exact_mut(d).zip(ids) {
-            dst.copy_from_slice(&self.table[id * d..(id + 1) * d]);
-        }
-        self.conv_in.run(ar, &mut s.emb, g, &mut s.x[..g * w]);
-        relu(&mut s.x[..g * w]);
-        if let (Some(a), Some(st)) = (&self.attn, s.attn.as_mut()) {
-            a.run(ar, &mut s.x[..g * w], g, st);
-        }
-        let mut n = g;
-        for (l, lev) in self.levels.iter().enumerate() {
-            for (r, buf) in lev.res.iter().zip(&mut s.res[l * self.depth..(l + 1) * self.depth]) {
-                r.run(ar, &mut s.x, n, buf, &mut s.a, &mut s.b);
+    /// Decodes the tokens of every stream of `segs` (`id(i, t)`: stream `i`'s token `t`, a
+    /// code or the pad id = codebook size) into `wk.out` (stacked, raw). Every layer takes
+    /// the new positions of all the tokens of all the streams at once, so a weight is read
+    /// once per call, not once per token or stream; a stream's results are the bits one
+    /// token per call alone gives (the layers are causal, each stream has its own context
+    /// and `gemm` does not depend on the positions computed with one).
+    fn run(
+        &self,
+        ar: &Arena,
+        ctxs: &mut dyn PerStream<CompCtx>,
+        segs: &Segs,
+        id: &dyn Fn(usize, usize) -> usize,
+        wk: &mut Work,
+    ) {
+        let (d, w) = (self.code_dim, self.width);
+        let n = segs.total(0);
+        for i in 0..segs.count() {
+            let (o, g) = segs.at(i, 0);
+            for t in 0..g {
+                let id = id(i, t);
+                wk.e[(o + t) * d..(o + t + 1) * d].copy_from_slice(&self.table[id * d..(id + 1) * d]);
             }
-            lev.up.run(ar, &s.x[..n * w], n, &mut s.z[l], &mut s.y[..2 * n * w]);
-            std::mem::swap(&mut s.x, &mut s.y);
-            n *= 2;
         }
-        self.final_a.input(&mut s.fa, n).copy_from_slice(&s.x[..n * w]);
-        self.final_a.run(ar, &mut s.fa, n, &mut s.y[..n * w]);
-        for (d, v) in self.final_b.input(&mut s.fb, n).iter_mut().zip(&s.y[..n * w]) {
-            *d = v.max(0.0);
+        let emb = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Emb };
+        self.conv_in.run(ar, emb, segs, 0, &wk.e[..n * d], false, &mut wk.win, &mut wk.x[..n * w]);
+        relu(&mut wk.x[..n * w]);
+        if let (Some(a), Some(aw)) = (&self.attn, wk.attn.as_mut()) {
+            a.run(ar, &mut wk.x[..n * w], segs, &mut Attns(&mut *ctxs), aw);
         }
-        self.final_b.run(ar, &mut s.fb, n, &mut s.out[..n * self.dim]);
+        for (l, lev) in self.levels.iter().enumerate() {
+            for (j, r) in lev.res.iter().enumerate() {
+                let h = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Res(l * self.depth + j) };
+                r.run(ar, h, segs, l, &mut wk.x, &mut wk.win, &mut wk.a, &mut wk.b);
+            }
+            let n = segs.total(l);
+            let h = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Z(l) };
+            lev.up.run(ar, h, segs, l, &wk.x[..n * w], &mut wk.z, &mut wk.y[..2 * n * w]);
+            std::mem::swap(&mut wk.x, &mut wk.y);
+        }
+        let (top, dim) = (self.levels.len(), self.dim);
+        let n = segs.total(top);
+        let fa = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Fa };
+        self.final_a.run(ar, fa, segs, top, &wk.x[..n * w], false, &mut wk.win, &mut wk.y[..n * w]);
+        let fb = &mut Hist { ctxs, slot: Slot::Fb };
+        self.final_b.run(ar, fb, segs, top, &wk.y[..n * w], true, &mut wk.win, &mut wk.out[..n * dim]);
     }
 
-    /// Writes `s.out` into the component's channels of `out` (F x 335), contact as probability.
-    fn emit(&self, s: &CompState, frames: usize, out: &mut [f32]) {
+    /// Writes `rows` (`frames` x dim, raw) into the component's channels of `out` (F x
+    /// 335), contact as probability.
+    fn emit(&self, rows: &[f32], frames: usize, out: &mut [f32]) {
         for f in 0..frames {
             let dst = &mut out[f * FRAME_DIM + self.offset..f * FRAME_DIM + self.offset + self.dim];
-            dst.copy_from_slice(&s.out[f * self.dim..(f + 1) * self.dim]);
+            dst.copy_from_slice(&rows[f * self.dim..(f + 1) * self.dim]);
             for &c in &self.contact {
                 dst[c] = 1.0 / (1.0 + (-dst[c]).exp());
             }
@@ -411,12 +505,13 @@ impl NativeDecoder {
         let helper = start_helper(&comps, threads);
         arena.trim();
         let cost_ns = std::array::from_fn(|_| AtomicU64::new(0));
-        let mut dec =
-            NativeDecoder { comps, frames, initial: NativeState { comps: Vec::new() }, helper, arena, cost_ns };
+        let mut dec = NativeDecoder { comps, frames, initial: Vec::new(), helper, arena, cost_ns };
         // The context of a new sequence: zero histories, then the initial state's tokens.
-        let mut st = NativeState { comps: dec.comps.iter().map(|c| c.new_state(frames)).collect() };
         let init = d.initial_state.first().ok_or_else(|| Error::bundle(&dir, "decoder initial_state is empty"))?;
+        let mut initial = Vec::with_capacity(N_STREAMS);
         for (ci, c) in dec.comps.iter().enumerate() {
+            let mut ctx = c.new_ctx();
+            let mut work = Work::new(std::iter::once(c), frames, 1);
             let ids = init.get(ci).ok_or_else(|| Error::bundle(&dir, "decoder initial_state lacks a component"))?;
             for &id in ids {
                 let id =
@@ -425,25 +520,64 @@ impl NativeDecoder {
                     })?;
                 // timed: the first decodes' job order
                 let t = Instant::now();
-                c.run(&dec.arena, &mut st.comps[ci], &[id]);
+                c.run(&dec.arena, &mut One(&mut ctx), &Segs::new(&[1]), &|_, _| id, &mut work);
                 dec.note_cost(ci, t.elapsed().as_nanos() as u64);
             }
+            initial.push(ctx);
         }
-        dec.initial = st;
+        dec.initial = initial;
         Ok(dec)
     }
 
     /// A new sequence's state (allocates; `reset` does not).
     pub(crate) fn new_state(&self) -> NativeState {
-        let mut st = NativeState { comps: self.comps.iter().map(|c| c.new_state(self.frames)).collect() };
-        self.reset(&mut st);
-        st
+        let comps = self
+            .comps
+            .iter()
+            .zip(&self.initial)
+            .map(|(c, ctx)| CompState { ctx: ctx.clone(), work: Work::new(std::iter::once(c), self.frames, MAX_GROUP) })
+            .collect();
+        NativeState { comps }
     }
 
     /// Back to the start of a sequence, without allocating.
     pub(crate) fn reset(&self, st: &mut NativeState) {
-        for ((c, a), b) in self.comps.iter().zip(&mut st.comps).zip(&self.initial.comps) {
-            c.copy_context(a, b);
+        for (a, b) in st.comps.iter_mut().zip(&self.initial) {
+            a.ctx.copy_from(b);
+        }
+    }
+
+    /// Scratch for [`decode_batch`](Self::decode_batch) (allocated once per scheduler thread).
+    pub(crate) fn batch_work(&self) -> Work {
+        Work::new(self.comps.iter(), self.frames, MAX_BATCH * MAX_GROUP)
+    }
+
+    /// Decodes the tokens of up to [`MAX_BATCH`] streams at once on the calling thread:
+    /// each layer is one GEMM over the new positions of all of them (its weights read once
+    /// per call, not once per stream), with each stream's own context. Every stream gets
+    /// the bits of its own [`decode_with`](Self::decode_with). Allocation-free.
+    pub(crate) fn decode_batch(&self, b: &mut dyn Batch, wk: &mut Work) {
+        let n = b.count();
+        let mut g = [0; MAX_BATCH];
+        for (i, g) in g.iter_mut().enumerate().take(n) {
+            *g = b.ids(i).len();
+            assert!((1..=MAX_GROUP).contains(g), "decode of {g} tokens");
+            assert_eq!(b.state(i).comps.len(), self.comps.len(), "a NativeState of another decoder");
+        }
+        let segs = Segs::new(&g[..n]);
+        let top = self.frames.trailing_zeros() as usize;
+        for (ci, c) in self.comps.iter().enumerate() {
+            let mut ids = [[0; MAX_GROUP]; MAX_BATCH];
+            for (i, row) in ids.iter_mut().enumerate().take(n) {
+                for (d, t) in row.iter_mut().zip(b.ids(i)) {
+                    *d = t[ci];
+                }
+            }
+            c.run(&self.arena, &mut Comps { b: &mut *b, c: ci }, &segs, &|i, t| ids[i][t], wk);
+            for i in 0..n {
+                let (o, rows) = segs.at(i, top);
+                c.emit(&wk.out[o * c.dim..(o + rows) * c.dim], rows, b.out(i));
+            }
         }
     }
 
@@ -489,11 +623,9 @@ impl NativeDecoder {
                     match job {
                         DecodeJob::Extra(f) => f(),
                         DecodeJob::Component(c, cs) => {
-                            let mut col = [0; MAX_GROUP];
-                            for (d, t) in col.iter_mut().zip(ids) {
-                                *d = t[c];
-                            }
-                            self.comps[c].run(&self.arena, cs, &col[..ids.len()]);
+                            let segs = Segs::new(&[ids.len()]);
+                            let id = |_: usize, t: usize| ids[t][c];
+                            self.comps[c].run(&self.arena, &mut One(&mut cs.ctx), &segs, &id, &mut cs.work);
                         }
                     }
                     self.note_cost(i, t.elapsed().as_nanos() as u64);
@@ -508,8 +640,9 @@ impl NativeDecoder {
         if helper_panicked {
             return Err(Error::Panic("the native decoder's helper thread panicked".into()));
         }
+        let frames = ids.len() * self.frames;
         for (c, s) in self.comps.iter().zip(&st.comps) {
-            c.emit(s, ids.len() * self.frames, out);
+            c.emit(&s.work.out[..frames * c.dim], frames, out);
         }
         Ok(())
     }
@@ -530,6 +663,29 @@ impl NativeDecoder {
         let old = self.cost_ns[job].load(Relaxed);
         let new = if old == 0 { ns.max(1) } else { (3 * old + ns) / 4 };
         self.cost_ns[job].store(new, Relaxed);
+    }
+}
+
+/// The streams of a [`NativeDecoder::decode_batch`].
+pub(crate) trait Batch {
+    fn count(&self) -> usize;
+    /// Stream `i`'s tokens (1 to [`MAX_GROUP`], in order; one code per component each,
+    /// checked by the caller).
+    fn ids(&self, i: usize) -> &[[usize; N_STREAMS]];
+    fn state(&mut self, i: usize) -> &mut NativeState;
+    /// Where stream `i`'s frames go (`ids(i).len()` x F x 335).
+    fn out(&mut self, i: usize) -> &mut [f32];
+}
+
+/// Component `c`'s contexts in the streams of a batch.
+struct Comps<'a> {
+    b: &'a mut dyn Batch,
+    c: usize,
+}
+
+impl PerStream<CompCtx> for Comps<'_> {
+    fn get(&mut self, i: usize) -> &mut CompCtx {
+        &mut self.b.state(i).comps[self.c].ctx
     }
 }
 

@@ -1,11 +1,14 @@
 //! The decoder's token-rate `AttentionBlock(width, heads, window=W)` (models/layers.py), on
 //! the new positions only: pre-LN causal local attention over the last `W` positions
 //! (itself included) with a learned per-head relative-position bias, then a GELU MLP.
-//! The keys and values of the last `W` positions are kept in a ring; at the start of a
-//! sequence a position attends to the positions that exist (the graph's mask).
+//! The keys and values of the last `W` positions are kept in a ring per stream; at the start
+//! of a sequence a position attends to the positions that exist (the graph's mask). The
+//! matrix products take the stacked new positions of every stream of a decode at once
+//! (`decoder_conv::Segs`), the attention itself runs per stream.
 use std::path::Path;
 
 use super::arena::{Arena, Wm};
+use super::decoder_conv::{PerStream, Segs};
 use super::gemm::gemm;
 use super::kernels::{dot, gelu_erf, layer_norm, softmax};
 use super::weights::Tensors;
@@ -32,7 +35,7 @@ pub(crate) struct WindowAttention {
     rel_bias: Vec<f32>,
 }
 
-/// One stream's attention context and scratch.
+/// One stream's attention context.
 #[derive(Clone, Debug)]
 pub(crate) struct AttnState {
     /// Ring of the last `window` keys / values (`window x width`), slot = position % window.
@@ -40,6 +43,19 @@ pub(crate) struct AttnState {
     v: Vec<f32>,
     /// Positions seen.
     pos: usize,
+}
+
+impl AttnState {
+    pub(crate) fn copy_from(&mut self, o: &AttnState) {
+        self.k.copy_from_slice(&o.k);
+        self.v.copy_from_slice(&o.v);
+        self.pos = o.pos;
+    }
+}
+
+/// Scratch of a decode's attention, for up to its `max_pos` positions (all streams).
+#[derive(Clone, Debug)]
+pub(crate) struct AttnWork {
     ln: Vec<f32>,
     qkv: Vec<f32>,
     y: Vec<f32>,
@@ -48,11 +64,19 @@ pub(crate) struct AttnState {
     scores: Vec<f32>,
 }
 
-impl AttnState {
-    pub(crate) fn copy_from(&mut self, o: &AttnState) {
-        self.k.copy_from_slice(&o.k);
-        self.v.copy_from_slice(&o.v);
-        self.pos = o.pos;
+impl AttnWork {
+    /// Scratch for `max_pos` positions of blocks up to `width` wide with windows up to
+    /// `window`.
+    pub(crate) fn new(width: usize, window: usize, max_pos: usize) -> AttnWork {
+        let n = max_pos * width;
+        AttnWork {
+            ln: vec![0.0; n],
+            qkv: vec![0.0; 3 * n],
+            y: vec![0.0; n],
+            t: vec![0.0; n],
+            hid: vec![0.0; 2 * n],
+            scores: vec![0.0; window],
+        }
     }
 }
 
@@ -106,72 +130,79 @@ impl WindowAttention {
         self.window
     }
 
-    /// A new stream's context, with scratch for up to `max_pos` positions per call.
-    pub(crate) fn new_state(&self, max_pos: usize) -> AttnState {
-        let w = self.width;
-        AttnState {
-            k: vec![0.0; self.window * w],
-            v: vec![0.0; self.window * w],
-            pos: 0,
-            ln: vec![0.0; max_pos * w],
-            qkv: vec![0.0; max_pos * 3 * w],
-            y: vec![0.0; max_pos * w],
-            t: vec![0.0; max_pos * w],
-            hid: vec![0.0; max_pos * 2 * w],
-            scores: vec![0.0; self.window],
-        }
+    pub(crate) fn width(&self) -> usize {
+        self.width
     }
 
-    /// `h (n x width) <- block(h)` for the next `n` positions (at most the state's
-    /// `max_pos`). The matrix products take the `n` positions at once (each weight read
-    /// once); position `p` attends to the positions before it, in this call or earlier,
-    /// and gets the same bits as when the positions come one call at a time.
-    pub(crate) fn run(&self, a: &Arena, h: &mut [f32], n: usize, st: &mut AttnState) {
+    /// A new stream's context.
+    pub(crate) fn new_state(&self) -> AttnState {
+        let w = self.width;
+        AttnState { k: vec![0.0; self.window * w], v: vec![0.0; self.window * w], pos: 0 }
+    }
+
+    /// `h <- block(h)` for the stacked new positions of every stream (`segs` at the token
+    /// rate), at most the scratch's `max_pos`. The matrix products take all positions at
+    /// once (each weight read once); position `p` of a stream attends to that stream's
+    /// positions before it, in this call or earlier, and gets the same bits as when the
+    /// positions come one call at a time.
+    pub(crate) fn run(
+        &self,
+        a: &Arena,
+        h: &mut [f32],
+        segs: &Segs,
+        ctx: &mut dyn PerStream<AttnState>,
+        wk: &mut AttnWork,
+    ) {
         let (w, nh, win) = (self.width, self.heads, self.window);
         let dh = w / nh;
+        let n = segs.total(0);
         let nw = n * w;
-        for (x, o) in h[..nw].chunks_exact(w).zip(st.ln.chunks_exact_mut(w)) {
+        for (x, o) in h[..nw].chunks_exact(w).zip(wk.ln.chunks_exact_mut(w)) {
             layer_norm(x, &self.norm1.0, &self.norm1.1, LN_EPS, o);
         }
-        gemm(a.mat(&self.qkv), &st.ln, w, n, Some(&self.qkv_b), &mut st.qkv, 3 * w);
+        gemm(a.mat(&self.qkv), &wk.ln, w, n, Some(&self.qkv_b), &mut wk.qkv, 3 * w);
         let inv = 1.0 / (dh as f32).sqrt();
-        for p in 0..n {
-            let qkv = &st.qkv[p * 3 * w..(p + 1) * 3 * w];
-            let slot = st.pos % win;
-            st.k[slot * w..(slot + 1) * w].copy_from_slice(&qkv[w..2 * w]);
-            st.v[slot * w..(slot + 1) * w].copy_from_slice(&qkv[2 * w..3 * w]);
-            st.pos += 1;
-            let seen = st.pos.min(win);
-            for hh in 0..nh {
-                let q = &qkv[hh * dh..(hh + 1) * dh];
-                for o in 0..seen {
-                    let s = (st.pos - 1 - o) % win;
-                    let k = &st.k[s * w + hh * dh..s * w + (hh + 1) * dh];
-                    st.scores[o] = dot(q, k) * inv + self.rel_bias[hh * win + o];
-                }
-                softmax(&mut st.scores[..seen]);
-                let y = &mut st.y[p * w + hh * dh..p * w + (hh + 1) * dh];
-                y.fill(0.0);
-                for o in 0..seen {
-                    let s = (st.pos - 1 - o) % win;
-                    let pr = st.scores[o];
-                    for (a, b) in y.iter_mut().zip(&st.v[s * w + hh * dh..s * w + (hh + 1) * dh]) {
-                        *a += pr * b;
+        for i in 0..segs.count() {
+            let st = ctx.get(i);
+            let (o, g) = segs.at(i, 0);
+            for p in o..o + g {
+                let qkv = &wk.qkv[p * 3 * w..(p + 1) * 3 * w];
+                let slot = st.pos % win;
+                st.k[slot * w..(slot + 1) * w].copy_from_slice(&qkv[w..2 * w]);
+                st.v[slot * w..(slot + 1) * w].copy_from_slice(&qkv[2 * w..3 * w]);
+                st.pos += 1;
+                let seen = st.pos.min(win);
+                for hh in 0..nh {
+                    let q = &qkv[hh * dh..(hh + 1) * dh];
+                    for o in 0..seen {
+                        let s = (st.pos - 1 - o) % win;
+                        let k = &st.k[s * w + hh * dh..s * w + (hh + 1) * dh];
+                        wk.scores[o] = dot(q, k) * inv + self.rel_bias[hh * win + o];
+                    }
+                    softmax(&mut wk.scores[..seen]);
+                    let y = &mut wk.y[p * w + hh * dh..p * w + (hh + 1) * dh];
+                    y.fill(0.0);
+                    for o in 0..seen {
+                        let s = (st.pos - 1 - o) % win;
+                        let pr = wk.scores[o];
+                        for (a, b) in y.iter_mut().zip(&st.v[s * w + hh * dh..s * w + (hh + 1) * dh]) {
+                            *a += pr * b;
+                        }
                     }
                 }
             }
         }
-        gemm(a.mat(&self.out), &st.y, w, n, Some(&self.out_b), &mut st.t, w);
-        for (a, b) in h[..nw].iter_mut().zip(&st.t) {
+        gemm(a.mat(&self.out), &wk.y, w, n, Some(&self.out_b), &mut wk.t, w);
+        for (a, b) in h[..nw].iter_mut().zip(&wk.t) {
             *a += b;
         }
-        for (x, o) in h[..nw].chunks_exact(w).zip(st.ln.chunks_exact_mut(w)) {
+        for (x, o) in h[..nw].chunks_exact(w).zip(wk.ln.chunks_exact_mut(w)) {
             layer_norm(x, &self.norm2.0, &self.norm2.1, LN_EPS, o);
         }
-        gemm(a.mat(&self.mlp0), &st.ln, w, n, Some(&self.mlp0_b), &mut st.hid, 2 * w);
-        gelu_erf(&mut st.hid[..2 * nw]);
-        gemm(a.mat(&self.mlp2), &st.hid, 2 * w, n, Some(&self.mlp2_b), &mut st.t, w);
-        for (a, b) in h[..nw].iter_mut().zip(&st.t) {
+        gemm(a.mat(&self.mlp0), &wk.ln, w, n, Some(&self.mlp0_b), &mut wk.hid, 2 * w);
+        gelu_erf(&mut wk.hid[..2 * nw]);
+        gemm(a.mat(&self.mlp2), &wk.hid, 2 * w, n, Some(&self.mlp2_b), &mut wk.t, w);
+        for (a, b) in h[..nw].iter_mut().zip(&wk.t) {
             *a += b;
         }
     }

@@ -1,12 +1,16 @@
-//! The causal convolutions of the native decoder, computed on the new positions only.
+//! The causal convolutions of the native decoder, computed on the new positions only, for
+//! one stream or several at once.
 //!
-//! Buffers are time-major (`positions x channels`). A causal convolution of kernel `k` reads
-//! the `k - 1` previous input positions besides the current one; its input buffer keeps
-//! those as a *history* prefix, so the window of new position `p` is the contiguous slice
-//! `buf[p * cin .. (p + k) * cin]`, and the weights are stored tap-major (`(cout, k * cin)`,
-//! column `tap * cin + i`) to match. After a call the last `k - 1` positions become the
-//! history of the next call. A zero history is exactly `F.pad`'s left zeros at the start
-//! of a sequence.
+//! Buffers are time-major (`positions x channels`). The new positions of every stream in a
+//! decode are *stacked* in one buffer ([`Segs`]), so each layer is one GEMM over all of them
+//! and its weights are read once per decode, not once per stream. A causal convolution of
+//! kernel `k` reads the `k - 1` previous input positions besides the current one: each
+//! stream keeps those as its *history* (a zero history is exactly `F.pad`'s left zeros at
+//! the start of a sequence). The window of a new position (`k` rows, from the history or
+//! the stream's new rows) is gathered into one row of `k * cin` values (~1/cout of the
+//! multiply-adds), and the weights are stored tap-major (`(cout, k * cin)`, column
+//! `tap * cin + i`) to match. A position's result is the same bits whichever streams and
+//! how many positions are computed with it (`gemm` sums in a fixed order).
 //!
 //! The convolution after a nearest x2 upsampling ([`UpConv`]) reads every input value
 //! twice; it is computed per tap on the *un-upsampled* positions (`Z_tap = W_tap u`, half
@@ -59,6 +63,72 @@ fn taps_stacked(m: Matrix, cin: usize, k: usize) -> Matrix {
     }
 }
 
+/// Most streams one batched decode takes ([`Segs`]).
+pub(crate) const MAX_BATCH: usize = 16;
+
+/// Where each stream's new positions sit in the *stacked* work buffers of a decode: stream
+/// `i`'s tokens are rows `off[i] .. off[i] + g[i]` at the token rate, and every level `l`
+/// of upsampling scales both by `2^l`. One stream decoding alone is one segment.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Segs {
+    n: usize,
+    g: [usize; MAX_BATCH],
+    off: [usize; MAX_BATCH],
+    total: usize,
+}
+
+impl Segs {
+    /// Segments of `g[i]` tokens each (at most [`MAX_BATCH`] streams).
+    pub(crate) fn new(g: &[usize]) -> Segs {
+        assert!((1..=MAX_BATCH).contains(&g.len()), "a decode of {} streams", g.len());
+        let mut s = Segs { n: g.len(), g: [0; MAX_BATCH], off: [0; MAX_BATCH], total: 0 };
+        for (i, &n) in g.iter().enumerate() {
+            s.g[i] = n;
+            s.off[i] = s.total;
+            s.total += n;
+        }
+        s
+    }
+
+    pub(crate) fn count(&self) -> usize {
+        self.n
+    }
+
+    /// Stream `i`'s first row and rows at level `l` (positions `2^l` per token).
+    pub(crate) fn at(&self, i: usize, l: usize) -> (usize, usize) {
+        (self.off[i] << l, self.g[i] << l)
+    }
+
+    /// Rows of all streams at level `l`.
+    pub(crate) fn total(&self, l: usize) -> usize {
+        self.total << l
+    }
+}
+
+/// Each stream's part of a layer's context (its history), by stream index.
+pub(crate) trait PerStream<T: ?Sized> {
+    fn get(&mut self, i: usize) -> &mut T;
+}
+
+/// `hist` (rows of `w` values) becomes the last rows of `[hist | new]` (`new` ReLU'd
+/// first when `relu`): the context the next call continues from.
+fn roll(hist: &mut [f32], w: usize, new: &[f32], relu: bool) {
+    let (h, n) = (hist.len() / w, new.len() / w);
+    let keep = h.saturating_sub(n);
+    hist.copy_within((h - keep) * w.., 0);
+    let src = &new[(n - (h - keep)) * w..];
+    for (d, &s) in hist[keep * w..].iter_mut().zip(src) {
+        *d = if relu { s.max(0.0) } else { s };
+    }
+}
+
+/// Copies `src` into `dst`, ReLU'd when `relu`.
+fn put(dst: &mut [f32], src: &[f32], relu: bool) {
+    for (d, &v) in dst.iter_mut().zip(src) {
+        *d = if relu { v.max(0.0) } else { v };
+    }
+}
+
 pub(crate) fn relu(x: &mut [f32]) {
     for v in x {
         *v = v.max(0.0);
@@ -89,31 +159,48 @@ impl CausalConv {
         Ok(CausalConv { cin, cout, k, w, b })
     }
 
-    /// Values of an input buffer for `npos` new positions (history included).
-    pub(crate) fn buf_len(&self, npos: usize) -> usize {
-        (self.k - 1 + npos) * self.cin
+    /// Values of a stream's history (`k - 1` input positions).
+    pub(crate) fn hist_len(&self) -> usize {
+        (self.k - 1) * self.cin
     }
 
-    /// Where the caller writes the `npos` new input positions of `buf`.
-    pub(crate) fn input<'b>(&self, buf: &'b mut [f32], npos: usize) -> &'b mut [f32] {
-        &mut buf[(self.k - 1) * self.cin..(self.k - 1 + npos) * self.cin]
-    }
-
-    /// `y (npos x cout) = conv(buf)`, then the history moves to the front of `buf`.
-    pub(crate) fn run(&self, a: &Arena, buf: &mut [f32], npos: usize, y: &mut [f32]) {
-        gemm(a.mat(&self.w), buf, self.cin, npos, Some(&self.b), y, self.cout);
-        shift_history(buf, self.cin, self.k - 1, npos);
+    /// `y (rows x cout) = conv(x)` for the new rows `x` of every stream (`segs` at level
+    /// `l`, ReLU'd first when `relu_in`), each after its own history, which then moves on;
+    /// `win` is scratch of `rows x k cin`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn run(
+        &self,
+        a: &Arena,
+        hist: &mut dyn PerStream<[f32]>,
+        segs: &Segs,
+        l: usize,
+        x: &[f32],
+        relu_in: bool,
+        win: &mut [f32],
+        y: &mut [f32],
+    ) {
+        let (cin, k) = (self.cin, self.k);
+        let kc = k * cin;
+        for i in 0..segs.count() {
+            let (o, n) = segs.at(i, l);
+            let h = hist.get(i);
+            let xs = &x[o * cin..(o + n) * cin];
+            for p in 0..n {
+                for (tap, dst) in win[(o + p) * kc..(o + p + 1) * kc].chunks_exact_mut(cin).enumerate() {
+                    // input position p - (k - 1) + tap: the history's rows, then the new ones
+                    match (p + tap).checked_sub(k - 1) {
+                        None => dst.copy_from_slice(&h[(p + tap) * cin..(p + tap + 1) * cin]),
+                        Some(r) => put(dst, &xs[r * cin..(r + 1) * cin], relu_in),
+                    }
+                }
+            }
+            roll(h, cin, xs, relu_in);
+        }
+        gemm(a.mat(&self.w), win, kc, segs.total(l), Some(&self.b), y, self.cout);
     }
 
     pub(crate) fn matrices(&self) -> [Wm; 1] {
         [self.w]
-    }
-}
-
-/// Moves the last `hist` of `hist + npos` positions to the front.
-fn shift_history(buf: &mut [f32], c: usize, hist: usize, npos: usize) {
-    if hist > 0 {
-        buf.copy_within(npos * c..(npos + hist) * c, 0);
     }
 }
 
@@ -140,29 +227,49 @@ impl UpConv {
         self.k / 2
     }
 
-    /// Values of the `Z` buffer for `npos` input positions (history included).
-    pub(crate) fn z_len(&self, npos: usize) -> usize {
-        (self.hist() + npos) * self.k * self.c
+    /// Values of a stream's history (`Z` of its last `k / 2` input positions).
+    pub(crate) fn hist_len(&self) -> usize {
+        self.hist() * self.k * self.c
     }
 
-    /// `y (2 npos x c)` from `x (npos x c)`; `z` is this layer's `Z` buffer.
-    pub(crate) fn run(&self, a: &Arena, x: &[f32], npos: usize, z: &mut [f32], y: &mut [f32]) {
+    /// `y (2 rows x c)` from `x (rows x c)`, the stacked new rows of every stream (`segs`
+    /// at level `l`); `z` is scratch of `rows x k c`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn run(
+        &self,
+        a: &Arena,
+        hist: &mut dyn PerStream<[f32]>,
+        segs: &Segs,
+        l: usize,
+        x: &[f32],
+        z: &mut [f32],
+        y: &mut [f32],
+    ) {
         let (c, k, h) = (self.c, self.k, self.hist());
         let kc = k * c;
-        gemm(a.mat(&self.taps), x, c, npos, None, &mut z[h * kc..], kc);
-        for t in 0..2 * npos {
-            let yo = &mut y[t * c..(t + 1) * c];
-            yo.copy_from_slice(&self.b);
-            for tap in 0..k {
-                // upsampled position m = t - (k - 1) + tap >= -2h; its input row (+h)
-                let row = (t + tap + 2 * h - (k - 1)) / 2;
-                let zr = &z[row * kc + tap * c..row * kc + (tap + 1) * c];
-                for (o, v) in yo.iter_mut().zip(zr) {
-                    *o += v;
+        gemm(a.mat(&self.taps), x, c, segs.total(l), None, z, kc);
+        for i in 0..segs.count() {
+            let (o, n) = segs.at(i, l);
+            let zh = hist.get(i);
+            let zs = &z[o * kc..(o + n) * kc];
+            for t in 0..2 * n {
+                let yo = &mut y[(2 * o + t) * c..(2 * o + t + 1) * c];
+                yo.copy_from_slice(&self.b);
+                for tap in 0..k {
+                    // upsampled position m = t - (k - 1) + tap >= -2h; its input row, the
+                    // history's rows first
+                    let row = (t + tap + 2 * h - (k - 1)) / 2;
+                    let zr = match row.checked_sub(h) {
+                        None => &zh[row * kc + tap * c..row * kc + (tap + 1) * c],
+                        Some(r) => &zs[r * kc + tap * c..r * kc + (tap + 1) * c],
+                    };
+                    for (o, v) in yo.iter_mut().zip(zr) {
+                        *o += v;
+                    }
                 }
             }
+            roll(zh, kc, zs, false);
         }
-        shift_history(z, kc, h, npos);
     }
 
     pub(crate) fn matrices(&self) -> [Wm; 1] {
@@ -186,17 +293,25 @@ impl ResBlock {
         Ok(ResBlock { conv, proj, proj_b })
     }
 
-    /// In place on `x (npos x c)`; `buf` is the conv's input buffer, `a` and `b` scratch of
-    /// `npos x c`.
-    pub(crate) fn run(&self, ar: &Arena, x: &mut [f32], npos: usize, buf: &mut [f32], a: &mut [f32], b: &mut [f32]) {
-        let n = npos * self.conv.cin;
-        let inp = self.conv.input(buf, npos);
-        for (d, s) in inp.iter_mut().zip(&x[..n]) {
-            *d = s.max(0.0);
-        }
-        self.conv.run(ar, buf, npos, &mut a[..n]);
+    /// In place on `x` (the stacked new rows, `segs` at level `l`); `hist` is the conv's,
+    /// `win`, `a` and `b` scratch.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn run(
+        &self,
+        ar: &Arena,
+        hist: &mut dyn PerStream<[f32]>,
+        segs: &Segs,
+        l: usize,
+        x: &mut [f32],
+        win: &mut [f32],
+        a: &mut [f32],
+        b: &mut [f32],
+    ) {
+        let (c, rows) = (self.conv.cin, segs.total(l));
+        let n = rows * c;
+        self.conv.run(ar, hist, segs, l, &x[..n], true, win, &mut a[..n]);
         relu(&mut a[..n]);
-        gemm(ar.mat(&self.proj), &a[..n], self.conv.cin, npos, Some(&self.proj_b), &mut b[..n], self.conv.cin);
+        gemm(ar.mat(&self.proj), &a[..n], c, rows, Some(&self.proj_b), &mut b[..n], c);
         for (d, s) in x[..n].iter_mut().zip(&b[..n]) {
             *d += s;
         }

@@ -474,40 +474,63 @@ mod avx512 {
     /// `gemv_many_f32` / `gemv_many_i8`: `y[j * rows + r] = row r . x_j` for the `n` inputs
     /// of `x` (`cols` each), every value the bits `gemv_f32`/`gemv_i8` give for that input
     /// alone (lanes over 32 columns into two accumulators, a 16-column step into the first,
-    /// `reduce_add(a + b) + head`, the scalar tail); each weight row is loaded and widened
-    /// once per group of up to 6 inputs.
+    /// `reduce_add(a + b) + head`, the scalar tail). Tiles of 2 rows x up to 6 inputs: each
+    /// weight vector is loaded and widened once per 6 inputs and each input vector once per
+    /// 2 rows (one row per input vector left the kernel bound by loads).
     macro_rules! gemv_many {
         ($many:ident, $row:ident, $t:ty, $load:ident, $elem:expr) => {
             #[inline]
             #[target_feature(enable = "avx512f")]
-            unsafe fn $row<const K: usize>(p: *const $t, cols: usize, px: *const f32, out: *mut f32, stride: usize) {
+            unsafe fn $row<const R: usize, const K: usize>(
+                p: *const $t,
+                cols: usize,
+                px: *const f32,
+                out: *mut f32,
+                stride: usize,
+            ) {
                 const { assert!(super::HEAD == 0, "the batched GEMV assumes no head columns, as gemv_body") };
-                let mut a = [_mm512_setzero_ps(); K];
-                let mut b = [_mm512_setzero_ps(); K];
+                let mut a = [[_mm512_setzero_ps(); K]; R];
+                let mut b = [[_mm512_setzero_ps(); K]; R];
                 let mut c = 0;
                 while c + 32 <= cols {
-                    let (w0, w1) = ($load(p.add(c)), $load(p.add(c + 16)));
+                    let mut w0 = [_mm512_setzero_ps(); R];
+                    let mut w1 = [_mm512_setzero_ps(); R];
+                    for i in 0..R {
+                        w0[i] = $load(p.add(i * cols + c));
+                        w1[i] = $load(p.add(i * cols + c + 16));
+                    }
                     for j in 0..K {
                         let xj = px.add(j * cols + c);
-                        a[j] = _mm512_fmadd_ps(w0, _mm512_loadu_ps(xj), a[j]);
-                        b[j] = _mm512_fmadd_ps(w1, _mm512_loadu_ps(xj.add(16)), b[j]);
+                        let (x0, x1) = (_mm512_loadu_ps(xj), _mm512_loadu_ps(xj.add(16)));
+                        for i in 0..R {
+                            a[i][j] = _mm512_fmadd_ps(w0[i], x0, a[i][j]);
+                            b[i][j] = _mm512_fmadd_ps(w1[i], x1, b[i][j]);
+                        }
                     }
                     c += 32;
                 }
                 if c + 16 <= cols {
-                    let w0 = $load(p.add(c));
+                    let mut w0 = [_mm512_setzero_ps(); R];
+                    for i in 0..R {
+                        w0[i] = $load(p.add(i * cols + c));
+                    }
                     for j in 0..K {
-                        a[j] = _mm512_fmadd_ps(w0, _mm512_loadu_ps(px.add(j * cols + c)), a[j]);
+                        let x0 = _mm512_loadu_ps(px.add(j * cols + c));
+                        for i in 0..R {
+                            a[i][j] = _mm512_fmadd_ps(w0[i], x0, a[i][j]);
+                        }
                     }
                     c += 16;
                 }
                 let head = 0.0f32;
-                for j in 0..K {
-                    let mut s = _mm512_reduce_add_ps(_mm512_add_ps(a[j], b[j])) + head;
-                    for t in c..cols {
-                        s += ($elem)(*p.add(t)) * *px.add(j * cols + t);
+                for i in 0..R {
+                    for j in 0..K {
+                        let mut s = _mm512_reduce_add_ps(_mm512_add_ps(a[i][j], b[i][j])) + head;
+                        for t in c..cols {
+                            s += ($elem)(*p.add(i * cols + t)) * *px.add(j * cols + t);
+                        }
+                        *out.add(j * stride + i) = s;
                     }
-                    *out.add(j * stride) = s;
                 }
             }
 
@@ -515,11 +538,13 @@ mod avx512 {
             pub(super) unsafe fn $many(w: &[$t], cols: usize, x: &[f32], n: usize, y: &mut [f32]) {
                 let rows = y.len() / n;
                 let (px, py) = (x.as_ptr(), y.as_mut_ptr());
-                for r in 0..rows {
-                    let p = w.as_ptr().add(r * cols);
+                let mut r0 = 0;
+                while r0 < rows {
+                    // A block of rows (in L2) against each group of inputs in turn (in L1):
+                    // the inputs stream from L2 once per block, not once per row pair.
+                    let r1 = (r0 + MANY_ROW_BLOCK).min(rows);
                     let mut j = 0;
                     while j < n {
-                        let (xj, out) = (px.add(j * cols), py.add(j * rows + r));
                         let k = match n - j {
                             1 => 1,
                             2 => 2,
@@ -527,19 +552,34 @@ mod avx512 {
                             4 | 5 => 4,
                             _ => 6,
                         };
-                        match k {
-                            1 => $row::<1>(p, cols, xj, out, rows),
-                            2 => $row::<2>(p, cols, xj, out, rows),
-                            3 => $row::<3>(p, cols, xj, out, rows),
-                            4 => $row::<4>(p, cols, xj, out, rows),
-                            _ => $row::<6>(p, cols, xj, out, rows),
+                        let mut r = r0;
+                        while r < r1 {
+                            let two = r + 2 <= r1;
+                            let (p, xj, out) = (w.as_ptr().add(r * cols), px.add(j * cols), py.add(j * rows + r));
+                            match (two, k) {
+                                (true, 1) => $row::<2, 1>(p, cols, xj, out, rows),
+                                (true, 2) => $row::<2, 2>(p, cols, xj, out, rows),
+                                (true, 3) => $row::<2, 3>(p, cols, xj, out, rows),
+                                (true, 4) => $row::<2, 4>(p, cols, xj, out, rows),
+                                (true, _) => $row::<2, 6>(p, cols, xj, out, rows),
+                                (false, 1) => $row::<1, 1>(p, cols, xj, out, rows),
+                                (false, 2) => $row::<1, 2>(p, cols, xj, out, rows),
+                                (false, 3) => $row::<1, 3>(p, cols, xj, out, rows),
+                                (false, 4) => $row::<1, 4>(p, cols, xj, out, rows),
+                                (false, _) => $row::<1, 6>(p, cols, xj, out, rows),
+                            }
+                            r += if two { 2 } else { 1 };
                         }
                         j += k;
                     }
+                    r0 = r1;
                 }
             }
         };
     }
+
+    /// Rows of a block of `gemv_many_*`.
+    const MANY_ROW_BLOCK: usize = 32;
 
     #[inline]
     #[target_feature(enable = "avx512f")]
