@@ -32,7 +32,7 @@ use std::time::Instant;
 use super::arena::{Arena, Wm};
 use super::decoder_attention::{AttnState, AttnWork, WindowAttention};
 pub(crate) use super::decoder_conv::MAX_BATCH;
-use super::decoder_conv::{relu, CausalConv, PerStream, ResBlock, Segs, UpConv};
+use super::decoder_conv::{relu, CausalConv, Layer, PerStream, ResBlock, Segs, UpConv};
 use super::team::{Crew, Each, Helper, Order};
 use super::weights::Tensors;
 use crate::bundle::manifest::{Manifest, NativeSpec, CONTACT_CHANNELS, FRAME_DIM, N_STREAMS};
@@ -187,6 +187,11 @@ impl PerStream<[f32]> for Hist<'_> {
     fn get(&mut self, i: usize) -> &mut [f32] {
         self.ctxs.get(i).slot(self.slot)
     }
+}
+
+/// Layer `slot` of a decode at level `l`.
+fn layer<'a>(ctxs: &'a mut dyn PerStream<CompCtx>, slot: Slot, segs: &'a Segs, l: usize) -> Layer<'a, Hist<'a>> {
+    Layer { hist: Hist { ctxs, slot }, segs, l }
 }
 
 /// The attention block's contexts.
@@ -396,28 +401,26 @@ impl Component {
                 wk.e[(o + t) * d..(o + t + 1) * d].copy_from_slice(&self.table[id * d..(id + 1) * d]);
             }
         }
-        let emb = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Emb };
-        self.conv_in.run(ar, emb, segs, 0, &wk.e[..n * d], false, &mut wk.win, &mut wk.x[..n * w]);
+        self.conv_in.run(ar, layer(ctxs, Slot::Emb, segs, 0), &wk.e[..n * d], false, &mut wk.win, &mut wk.x[..n * w]);
         relu(&mut wk.x[..n * w]);
         if let (Some(a), Some(aw)) = (&self.attn, wk.attn.as_mut()) {
             a.run(ar, &mut wk.x[..n * w], segs, &mut Attns(&mut *ctxs), aw);
         }
         for (l, lev) in self.levels.iter().enumerate() {
             for (j, r) in lev.res.iter().enumerate() {
-                let h = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Res(l * self.depth + j) };
-                r.run(ar, h, segs, l, &mut wk.x, &mut wk.win, &mut wk.a, &mut wk.b);
+                let at = layer(ctxs, Slot::Res(l * self.depth + j), segs, l);
+                r.run(ar, at, &mut wk.x, &mut wk.win, &mut wk.a, &mut wk.b);
             }
             let n = segs.total(l);
-            let h = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Z(l) };
-            lev.up.run(ar, h, segs, l, &wk.x[..n * w], &mut wk.z, &mut wk.y[..2 * n * w]);
+            lev.up.run(ar, layer(ctxs, Slot::Z(l), segs, l), &wk.x[..n * w], &mut wk.z, &mut wk.y[..2 * n * w]);
             std::mem::swap(&mut wk.x, &mut wk.y);
         }
         let (top, dim) = (self.levels.len(), self.dim);
         let n = segs.total(top);
-        let fa = &mut Hist { ctxs: &mut *ctxs, slot: Slot::Fa };
-        self.final_a.run(ar, fa, segs, top, &wk.x[..n * w], false, &mut wk.win, &mut wk.y[..n * w]);
-        let fb = &mut Hist { ctxs, slot: Slot::Fb };
-        self.final_b.run(ar, fb, segs, top, &wk.y[..n * w], true, &mut wk.win, &mut wk.out[..n * dim]);
+        let fa = layer(ctxs, Slot::Fa, segs, top);
+        self.final_a.run(ar, fa, &wk.x[..n * w], false, &mut wk.win, &mut wk.y[..n * w]);
+        let fb = layer(ctxs, Slot::Fb, segs, top);
+        self.final_b.run(ar, fb, &wk.y[..n * w], true, &mut wk.win, &mut wk.out[..n * dim]);
     }
 
     /// Writes `rows` (`frames` x dim, raw) into the component's channels of `out` (F x

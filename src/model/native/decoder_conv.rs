@@ -105,6 +105,14 @@ impl Segs {
     }
 }
 
+/// One layer's share of a decode: each stream's history of the layer, where the streams'
+/// new rows are, and the level (`2^l` positions per token).
+pub(crate) struct Layer<'a, H> {
+    pub(crate) hist: H,
+    pub(crate) segs: &'a Segs,
+    pub(crate) l: usize,
+}
+
 /// Each stream's part of a layer's context (its history), by stream index.
 pub(crate) trait PerStream<T: ?Sized> {
     fn get(&mut self, i: usize) -> &mut T;
@@ -164,21 +172,19 @@ impl CausalConv {
         (self.k - 1) * self.cin
     }
 
-    /// `y (rows x cout) = conv(x)` for the new rows `x` of every stream (`segs` at level
-    /// `l`, ReLU'd first when `relu_in`), each after its own history, which then moves on;
-    /// `win` is scratch of `rows x k cin`.
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn run(
+    /// `y (rows x cout) = conv(x)` for the new rows `x` of every stream of `at` (ReLU'd
+    /// first when `relu_in`), each after its own history, which then moves on; `win` is
+    /// scratch of `rows x k cin`.
+    pub(crate) fn run<H: PerStream<[f32]>>(
         &self,
         a: &Arena,
-        hist: &mut dyn PerStream<[f32]>,
-        segs: &Segs,
-        l: usize,
+        at: Layer<H>,
         x: &[f32],
         relu_in: bool,
         win: &mut [f32],
         y: &mut [f32],
     ) {
+        let Layer { mut hist, segs, l } = at;
         let (cin, k) = (self.cin, self.k);
         let kc = k * cin;
         for i in 0..segs.count() {
@@ -232,19 +238,10 @@ impl UpConv {
         self.hist() * self.k * self.c
     }
 
-    /// `y (2 rows x c)` from `x (rows x c)`, the stacked new rows of every stream (`segs`
-    /// at level `l`); `z` is scratch of `rows x k c`.
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn run(
-        &self,
-        a: &Arena,
-        hist: &mut dyn PerStream<[f32]>,
-        segs: &Segs,
-        l: usize,
-        x: &[f32],
-        z: &mut [f32],
-        y: &mut [f32],
-    ) {
+    /// `y (2 rows x c)` from `x (rows x c)`, the stacked new rows of every stream of `at`;
+    /// `z` is scratch of `rows x k c`.
+    pub(crate) fn run<H: PerStream<[f32]>>(&self, a: &Arena, at: Layer<H>, x: &[f32], z: &mut [f32], y: &mut [f32]) {
+        let Layer { mut hist, segs, l } = at;
         let (c, k, h) = (self.c, self.k, self.hist());
         let kc = k * c;
         gemm(a.mat(&self.taps), x, c, segs.total(l), None, z, kc);
@@ -293,23 +290,20 @@ impl ResBlock {
         Ok(ResBlock { conv, proj, proj_b })
     }
 
-    /// In place on `x` (the stacked new rows, `segs` at level `l`); `hist` is the conv's,
-    /// `win`, `a` and `b` scratch.
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn run(
+    /// In place on `x` (the stacked new rows of `at`'s streams); `at` is the conv's, `win`,
+    /// `a` and `b` scratch.
+    pub(crate) fn run<H: PerStream<[f32]>>(
         &self,
         ar: &Arena,
-        hist: &mut dyn PerStream<[f32]>,
-        segs: &Segs,
-        l: usize,
+        at: Layer<H>,
         x: &mut [f32],
         win: &mut [f32],
         a: &mut [f32],
         b: &mut [f32],
     ) {
-        let (c, rows) = (self.conv.cin, segs.total(l));
+        let (c, rows) = (self.conv.cin, at.segs.total(at.l));
         let n = rows * c;
-        self.conv.run(ar, hist, segs, l, &x[..n], true, win, &mut a[..n]);
+        self.conv.run(ar, at, &x[..n], true, win, &mut a[..n]);
         relu(&mut a[..n]);
         gemm(ar.mat(&self.proj), &a[..n], c, rows, Some(&self.proj_b), &mut b[..n], c);
         for (d, s) in x[..n].iter_mut().zip(&b[..n]) {
