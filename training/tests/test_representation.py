@@ -114,3 +114,15 @@ def test_prepare_feature_set(grab_root, tmp_path):
     for a, b in zip(back.features, fs.features):
         np.testing.assert_array_equal(a, b)
     assert make_body_model().subject("male", None).rest_joints.shape == (55, 3)
+
+
+def test_spread_takes_the_subjects_in_turn():
+    """A limit on a split listed subject by subject covers every subject (evaluate --limit)."""
+    subjects = ["s9"] * 5 + ["s10"] * 2 + ["s11"] * 3
+    fs = FeatureSet(30.0, [np.full((4, 335), i, np.float32) for i in range(10)], [np.zeros((55, 3))] * 10,
+                    [[f"t{i}"] for i in range(10)], [{"subject": s, "i": i} for i, s in enumerate(subjects)])
+    five = fs.spread(5)
+    assert [m["i"] for m in five.meta] == [0, 1, 5, 6, 7]  # s9, s10, s11, then s9 and s10 again, in set order
+    assert [float(f[0, 0]) for f in five.features] == [0, 1, 5, 6, 7] and five.texts[2] == ["t5"]
+    assert [m["i"] for m in fs.spread(8).meta] == [0, 1, 2, 5, 6, 7, 8, 9]  # s10 runs out, the others go on
+    assert fs.spread(None) is fs and fs.spread(10) is fs and len(fs.spread(0)) == 0

@@ -187,3 +187,21 @@ def test_metric_suite_on_the_generated_batch(dataset):
     assert worst["penetration_max_mm"] < 10.0  # any body point, deepest over all frames
     assert mean["penetration_max_mm"] < 3.0
     assert mean["label_contact_f1"] > 0.9  # contact labels agree with geometric contact (5 mm)
+
+
+def test_held_out_subjects_lie_inside_the_training_subjects_range():
+    """A validation or test subject of the `synthgrasp` split is a new person of the training
+    population: every proportion inside the training subjects' range (one taller than all of
+    them made the VQ extrapolate the pelvis height: docs/training.md, "Held-out subjects")."""
+    from dataclasses import astuple
+
+    from comgrasp_train.grab.splits import get_split
+    from comgrasp_train.synth.subjects import SUBJECT
+
+    split = get_split("synthgrasp")
+    props = lambda ids: np.array([astuple(SUBJECT[s].proportions) for s in ids])  # noqa: E731
+    train = props(split.subjects("train"))
+    lo, hi = train.min(0), train.max(0)
+    for part in ("val", "test"):
+        for sid, p in zip(split.subjects(part), props(split.subjects(part))):
+            assert np.all((p >= lo) & (p <= hi)), f"{part} subject {sid}: {p} outside the training range {lo}..{hi}"

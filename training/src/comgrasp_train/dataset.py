@@ -38,6 +38,24 @@ class FeatureSet:
     def __len__(self) -> int:
         return len(self.features)
 
+    def spread(self, n: int | None) -> FeatureSet:
+        """At most ``n`` sequences, taken from each subject in turn (each subject's in order;
+        the set's order kept): a limit that covers every subject. A prepared split lists its
+        sequences subject by subject, so its first 100 were all one test subject's. The
+        whole set when ``n`` is None or not smaller."""
+        if n is None or n >= len(self):
+            return self
+        by_subject: dict[str, list[int]] = {}
+        for i, m in enumerate(self.meta):
+            by_subject.setdefault(str(m.get("subject")), []).append(i)
+        picked, turn = [], 0
+        while len(picked) < n:
+            picked += [ids[turn] for ids in by_subject.values() if turn < len(ids)][: n - len(picked)]
+            turn += 1
+        keep = sorted(picked)
+        return FeatureSet(self.fps, [self.features[i] for i in keep], [self.rest_joints[i] for i in keep],
+                          [self.texts[i] for i in keep], [self.meta[i] for i in keep])
+
     def save(self, path: str | Path) -> None:
         lengths = np.array([len(f) for f in self.features], dtype=np.int64)
         np.savez(

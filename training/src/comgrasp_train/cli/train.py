@@ -111,7 +111,8 @@ def cmd_evaluate(args) -> int:
     outputs = tuple(o for o in args.outputs.split(",") if o)
     if not outputs or set(outputs) - set(OUTPUTS):
         raise SystemExit(f"--outputs: a comma list of {', '.join(OUTPUTS)}, got {args.outputs!r}")
-    fs, _ = load_prepared(Path(args.data), args.part)
+    # --limit takes the subjects in turn (a split lists its sequences subject by subject)
+    fs = load_prepared(Path(args.data), args.part)[0].spread(args.limit)
     vq, _, _ = load_vq(Path(args.vq), _device(args))
     if args.int8_weights:
         from ..export.bundle import fake_quantize_bundle_int8
@@ -121,7 +122,7 @@ def cmd_evaluate(args) -> int:
     # One row per setting and output; the raw output keeps the setting's plain name.
     named = {"raw": "", "stage": ", contact stage"}
     rows, results = {}, {}
-    for o, r in evaluate_reconstruction(vq, norm, fs, limit=args.limit, outputs=outputs).items():
+    for o, r in evaluate_reconstruction(vq, norm, fs, outputs=outputs).items():
         rows[f"VQ reconstruction{named[o]}"] = r
         results[f"VQ reconstruction{named[o]}"] = summarize(r)
     if args.gpt:
@@ -130,13 +131,13 @@ def cmd_evaluate(args) -> int:
             fake_quantize_bundle_int8(model.vq, model.gpt)
         for prompts in args.prompts.split(","):
             by_output = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
-                                            limit=args.limit, prompts=prompts, outputs=outputs)
+                                            prompts=prompts, outputs=outputs)
             for o, reps in by_output.items():
                 name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
                 name += named[o]
                 rows[name] = reps
                 results[f"{name} ({args.repeats} repeats)"] = summarize_repeats(reps)
-        results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs, args.limit))
+        results["ground truth (prompt checks)"] = summarize(evaluate_ground_truth_intent(fs))
     write_report(results, Path(args.out))
     if args.rows:
         # per test sequence (generation: per repeat, then per sequence), for paired comparisons
@@ -230,7 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gpt", default=None)
     s.add_argument("--part", default="test")
     s.add_argument("--repeats", type=int, default=3)
-    s.add_argument("--limit", type=int, default=None)
+    s.add_argument("--limit", type=int, default=None,
+                   help="at most this many sequences, the subjects taken in turn (default: all)")
     s.add_argument("--int8-weights", action="store_true",
                    help="round the Transformer's and decoders' weights to int8 per row first, exactly as "
                         "`export --int8-weights` stores them (the model of the int8 bundle)")

@@ -42,17 +42,23 @@ def _p(height, arm, leg, shoulder, hip, hand, torso) -> sk.Proportions:
                           hand=hand, torso=torso)
 
 
+# Every proportion of a validation or test subject (s8; s9, s10 in the `synthgrasp` split)
+# lies inside the training subjects' range (s1-s7): a held-out subject is a new person of
+# the same population, not a taller one. When s8 and s10 were the two tallest, the VQ had to
+# extrapolate the absolute pelvis height it encodes: held-out reconstruction was ~35 mm worse
+# on s10 than on s9 (MPJPE 104 against 69 mm, its root height 44 against 21 mm off;
+# docs/training.md, "Held-out subjects").
 SUBJECTS: tuple[SubjectSpec, ...] = (
-    SubjectSpec("s1", "male", _p(1.03, 1.01, 1.02, 1.04, 0.98, 1.02, 1.01)),
-    SubjectSpec("s2", "male", _p(0.99, 0.98, 0.97, 1.02, 1.00, 0.99, 1.02)),
+    SubjectSpec("s1", "male", _p(1.08, 1.04, 1.05, 1.07, 1.00, 1.06, 1.02)),
+    SubjectSpec("s2", "male", _p(1.03, 1.01, 1.02, 1.04, 0.98, 1.02, 1.01)),
     SubjectSpec("s3", "female", _p(0.94, 0.97, 0.99, 0.93, 1.04, 0.93, 0.97)),
     SubjectSpec("s4", "female", _p(0.97, 1.01, 1.02, 0.95, 1.06, 0.95, 0.96)),
     SubjectSpec("s5", "female", _p(0.91, 0.96, 0.95, 0.92, 1.03, 0.92, 0.98)),
     SubjectSpec("s6", "female", _p(0.95, 0.99, 1.00, 0.94, 1.05, 0.94, 0.95)),
     SubjectSpec("s7", "female", _p(0.92, 1.02, 0.98, 0.91, 1.02, 0.91, 0.97)),
-    SubjectSpec("s8", "male", _p(1.06, 1.03, 1.04, 1.06, 0.99, 1.05, 1.00)),
-    SubjectSpec("s9", "male", _p(1.01, 0.97, 1.00, 1.03, 0.97, 1.00, 1.03)),
-    SubjectSpec("s10", "male", _p(1.08, 1.04, 1.05, 1.07, 1.00, 1.06, 1.02)),
+    SubjectSpec("s8", "male", _p(0.99, 0.98, 0.97, 1.02, 1.00, 0.99, 1.02)),
+    SubjectSpec("s9", "male", _p(1.01, 0.97, 1.00, 1.03, 0.98, 1.00, 1.02)),
+    SubjectSpec("s10", "male", _p(1.06, 1.03, 1.04, 1.06, 0.99, 1.05, 1.00)),
 )
 SUBJECT = {s.sbj_id: s for s in SUBJECTS}
 
