@@ -10,6 +10,7 @@ import comgrasp_train.evaluate as ev
 import comgrasp_train.inference as inference
 import comgrasp_train.train.vq_trainer as vq_trainer
 from comgrasp_train.cli.train import main
+from comgrasp_train.dataset import FeatureSet
 from comgrasp_train.export.bundle import DECODER_FILE, STEP_FILE, decoder_state_dict, fake_quantize_bundle_int8
 from comgrasp_train.export.native_weights import read_native_weights, write_native_weights
 from comgrasp_train.export.tiny import tiny_gpt, tiny_normalizer, tiny_vq
@@ -51,7 +52,7 @@ def _run_evaluate(tmp_path, monkeypatch, flags: list[str]) -> dict[str, dict[str
         seen["generation"] = {**model.gpt.state_dict(), **decoder_state_dict(model.vq)}
         return {o: [[{"mpjpe_mm": 1.0}]] for o in _k["outputs"]}
 
-    monkeypatch.setattr(vq_trainer, "load_prepared", lambda *_a, **_k: (None, None))
+    monkeypatch.setattr(vq_trainer, "load_prepared", lambda *_a, **_k: (FeatureSet(30.0), None))
     monkeypatch.setattr(vq_trainer, "load_vq", fresh_vq)
     monkeypatch.setattr(Normalizer, "load", staticmethod(lambda *_a: tiny_normalizer()))
     monkeypatch.setattr(inference.MotionModel, "load", staticmethod(fresh_model))
