@@ -291,12 +291,12 @@ impl DecoderModel {
         })
     }
 
-    /// [`decode_checked`](Self::decode_checked) of 1 to [`MAX_DECODE_BATCH`] streams whose
-    /// jobs passed [`check`](Self::check), on the calling thread. The native decoder runs
-    /// them as one decode (each layer one GEMM over all their new positions: its weights
-    /// read once, not once per stream), tract one after another; every stream gets the bits
-    /// of its own decode. Allocation-free. Fails on a job of another decoder (before
-    /// anything is decoded) or when `scratch` is not this decoder's.
+    /// [`decode_checked`](Self::decode_checked) of 1 to [`MAX_DECODE_BATCH`] streams, each
+    /// job [`check`](Self::check)ed first (a bad one fails the batch before anything is
+    /// decoded), on the calling thread. The native decoder runs them as one decode (each
+    /// layer one GEMM over all their new positions: its weights read once, not once per
+    /// stream), tract one after another; every stream gets the bits of its own decode.
+    /// Allocation-free. Also fails when `scratch` is not this decoder's.
     pub(crate) fn decode_batch_checked(&self, jobs: &mut dyn DecodeJobs, scratch: &mut DecodeScratch) -> Result<()> {
         let n = jobs.count();
         if !(1..=MAX_DECODE_BATCH).contains(&n) {
@@ -304,38 +304,34 @@ impl DecoderModel {
                 "a batched decode takes 1 to {MAX_DECODE_BATCH} streams, got {n}"
             )));
         }
-        #[allow(clippy::infallible_destructuring_match)] // (one variant without the onnx feature)
-        let model = match &self.imp {
-            Imp::Native(m) => m,
+        for i in 0..n {
+            let j = jobs.job(i);
+            self.check(j.state, j.tokens, j.out)?;
+        }
+        match (&self.imp, &mut scratch.0) {
+            (Imp::Native(model), Some(wk)) => {
+                let mut ids = [[[0; N_STREAMS]; MAX_GROUP]; MAX_BATCH];
+                let mut g = [0; MAX_BATCH];
+                for i in 0..n {
+                    let j = jobs.job(i);
+                    g[i] = j.tokens.len();
+                    for (d, t) in ids[i].iter_mut().zip(j.tokens) {
+                        *d = t.map(|c| c as usize);
+                    }
+                }
+                model.decode_batch(&mut NativeJobs { jobs: &mut *jobs, ids: &ids, g: &g[..n] }, wk);
+                for (i, &g) in g[..n].iter().enumerate() {
+                    jobs.job(i).state.decoded += g;
+                }
+            }
+            (Imp::Native(_), None) => return Err(Error::WrongState("decode scratch of another decoder".into())),
             #[cfg(feature = "onnx")]
-            Imp::Tract(_) => {
+            (Imp::Tract(_), _) => {
                 for i in 0..n {
                     let j = jobs.job(i);
                     self.decode_checked(j.state, j.tokens, j.out, None, false)?;
                 }
-                return Ok(());
             }
-        };
-        let wk = scratch.0.as_mut().ok_or_else(|| Error::WrongState("decode scratch of another decoder".into()))?;
-        let mut ids = [[[0; N_STREAMS]; MAX_GROUP]; MAX_BATCH];
-        let mut g = [0; MAX_BATCH];
-        for i in 0..n {
-            let j = jobs.job(i);
-            match &j.state.imp {
-                StateImp::Native { model: m, .. } if Arc::ptr_eq(m, model) => {}
-                _ => return Err(Error::WrongState("a DecoderState of another DecoderModel in a batch".into())),
-            }
-            g[i] = j.tokens.len();
-            if !(1..=MAX_GROUP).contains(&g[i]) {
-                return Err(Error::InvalidArgument(format!("a decode takes 1 to {MAX_GROUP} tokens, got {}", g[i])));
-            }
-            for (d, t) in ids[i].iter_mut().zip(j.tokens) {
-                *d = t.map(|c| c as usize);
-            }
-        }
-        model.decode_batch(&mut NativeJobs { jobs: &mut *jobs, ids: &ids, g: &g[..n] }, wk);
-        for (i, &g) in g[..n].iter().enumerate() {
-            jobs.job(i).state.decoded += g;
         }
         Ok(())
     }
@@ -429,7 +425,7 @@ impl Batch for NativeJobs<'_> {
         let st: &mut DecoderState = self.jobs.job(i).state;
         match &mut st.imp {
             StateImp::Native { state, .. } => state,
-            // (decode_batch_checked looked at every job's state first)
+            // (decode_batch_checked checked every job's state first)
             #[cfg(feature = "onnx")]
             StateImp::Tract { .. } => unreachable!("a tract state in a native batch"),
         }

@@ -124,10 +124,7 @@ fn roll(hist: &mut [f32], w: usize, new: &[f32], relu: bool) {
     let (h, n) = (hist.len() / w, new.len() / w);
     let keep = h.saturating_sub(n);
     hist.copy_within((h - keep) * w.., 0);
-    let src = &new[(n - (h - keep)) * w..];
-    for (d, &s) in hist[keep * w..].iter_mut().zip(src) {
-        *d = if relu { s.max(0.0) } else { s };
-    }
+    put(&mut hist[keep * w..], &new[(n - (h - keep)) * w..], relu);
 }
 
 /// Copies `src` into `dst`, ReLU'd when `relu`.
