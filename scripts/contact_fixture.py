@@ -46,7 +46,7 @@ CASES = (  # prompt, seed: together they make every rule in RULES fire
 )
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
          "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim", "place_frames",
-         "not_set_down_from_below")
+         "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted")
 
 
 def main() -> int:

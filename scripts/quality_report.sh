@@ -12,7 +12,9 @@
 #   4. $OUT/contact.md: issue 17's contact measurements on those frames, raw against the
 #      contact stage (scripts/contact_report.py).
 # Knobs: RUN (runs/default: vq/ and gpt/), DATA (data/sg3000_prep), BUNDLE (models/default),
-# LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality).
+# LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality),
+# ENGINE_ONLY (0; 1 skips step 1, for a bundle without its checkpoints or data: the bars
+# PyTorch measures then read "not measured").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 P=.venv/bin
@@ -26,7 +28,7 @@ SEEDS=${SEEDS:-2}
 OUT=${OUT:-out/quality}
 mkdir -p "$OUT/engine"
 [ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
-if [ ! -f "$OUT/table.json" ]; then
+if [ "${ENGINE_ONLY:-0}" = 0 ] && [ ! -f "$OUT/table.json" ]; then
   $P/comgrasp-train -q evaluate --data "$DATA" --vq "$RUN/vq" --gpt "$RUN/gpt" --out "$OUT/table.md" \
     --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out
 fi

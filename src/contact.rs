@@ -27,7 +27,8 @@
 //!
 //! The stage is causal (each frame is decided from the frames before it), allocation-free,
 //! and works in the native world before the basis change. Every field it writes agrees
-//! with the others: `contact` is the stage's holding state, the object centre follows the
+//! with the others: `contact` is the stage's holding state (on through the frame a hand lets
+//! go in, since the hand still moved the object in it), the object centre follows the
 //! object pose and the catalogue's centre offset, and `wrist_to_object` is the FK wrist
 //! minus that centre.
 
@@ -116,10 +117,15 @@ pub const PLACE_HEIGHT: f64 = 0.08;
 const PRESS_UP_SPEED: f64 = 0.6;
 /// Within this height above its support a held object is levelled onto a face, m.
 pub const LEVEL_HEIGHT: f64 = 0.1;
-/// Fastest a held object is levelled, rad/s.
+/// Speed at which a held object is levelled, rad/s (faster only where it must be level by
+/// the frame the hands let go in).
 const LEVEL_SPEED: f64 = 6.0;
 /// Speed at which an object let go tilted tips onto the box face nearest below it, rad/s.
 pub const TIP_SPEED: f64 = 3.0;
+/// A held object brought down onto the table is set down there only once it leans at most
+/// this far from the box face nearest below it (2°): one set down on an edge would tip over
+/// after the hands let go.
+const SET_DOWN_TILT: f64 = 2.0 * std::f64::consts::PI / 180.0;
 
 /// Collar, shoulder, elbow and wrist joints of the left and right arm (SMPL-X).
 const ARMS: [[usize; 4]; 2] = [[13, 16, 18, 20], [14, 17, 19, 21]];
@@ -479,6 +485,12 @@ pub struct ContactStage {
     released: bool,
     /// The object-frame box axis pointing most downward at the start: the face it stands on.
     base: Vec3,
+    /// The hands that carried the object this frame: the frame a hand lets go in still
+    /// shows its contact, since the hand moved the object in it.
+    carried_by: [bool; 2],
+    /// Last frame a lifted object brought down onto the table still leaned off its face, so
+    /// the hands held it up on the top while levelling it (it is set down once level).
+    pressing: bool,
 }
 
 impl ContactStage {
@@ -500,6 +512,8 @@ impl ContactStage {
             limited: None,
             released: false,
             base: [0.0, 0.0, -1.0],
+            carried_by: [false; 2],
+            pressing: false,
         }
     }
 
@@ -660,10 +674,12 @@ impl ContactStage {
         // The object: carried by the holding hands, else resting or falling. A hand that
         // presses a held object into the table before lifting it is held up by its
         // correction (IK), so the object slides on the top instead of sinking into it.
+        self.carried_by = self.holding();
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
-                // Where it was: only an object coming down from above the top is set down on it.
-                let above_before = self.shape.bottom_at(&self.rot, &self.pos) >= self.table.height;
+                // Where it was: only an object coming down from above the top (or held up on it
+                // while levelled) is set down on it.
+                let above_before = self.pressing || self.shape.bottom_at(&self.rot, &self.pos) >= self.table.height;
                 // Levelling is for setting down: while the object sinks or the hands let go (a
                 // pour low over the table keeps its tilt).
                 let sinking = pos[2] < self.pos[2];
@@ -671,7 +687,10 @@ impl ContactStage {
                 // At most PRESS_UP_SPEED: a hand that turns the object deep into the table (a
                 // token seam) lets it sink for a few frames rather than throwing the arm up.
                 let depth = (self.table.height - self.shape.bottom_at(&rot, &pos)).min(PRESS_UP_SPEED * self.dt);
-                if !self.lifted && depth > 0.0 && self.table.over(&self.shape.centre_at(&rot, &pos)) {
+                // Before the lift, and after it while an object coming down leans off its face
+                // (it is set down only once level).
+                let tilted = leans(&rot) && above_before;
+                if (!self.lifted || tilted) && depth > 0.0 && self.table.over(&self.shape.centre_at(&rot, &pos)) {
                     for h in 0..2 {
                         if self.hands[h].phase == Phase::Holding {
                             let hand = &mut self.hands[h];
@@ -686,12 +705,18 @@ impl ContactStage {
                         (self.rot, self.pos) = (rot, pos);
                     }
                 }
-                // The last frame held before the hands let go (every holding hand's flag off for
-                // OFF_FRAMES - 1 frames) just above the support: levelled all the way, then put
-                // down on it below, so the object rests there when they let go.
+                // While the hands let go (every holding hand's flag off) just above the support:
+                // levelled all the way by the last frame they hold it (OFF_FRAMES - 1 frames off,
+                // `letting_go`), then put down on it below, so it rests there when they let go.
                 let letting_go = self.hands.iter().all(|h| h.phase != Phase::Holding || h.off + 1 >= OFF_FRAMES);
-                let setting_down = sinking || self.hands.iter().any(|h| h.phase == Phase::Holding && h.off > 0);
-                if setting_down && self.level_near_support(both, letting_go) && !both {
+                // Frames until every holding hand lets go, when all their flags are off.
+                let holding = || self.hands.iter().filter(|h| h.phase == Phase::Holding);
+                let left = holding()
+                    .all(|h| h.off > 0)
+                    .then(|| OFF_FRAMES.saturating_sub(holding().map(|h| h.off).max().unwrap_or(OFF_FRAMES)).max(1));
+                let touching = self.lifted && tilted && depth > 0.0;
+                let setting_down = sinking || touching || left.is_some();
+                if setting_down && self.level_near_support(both, left) && !both {
                     // One hand: it turns with the object it levels (its turn fades once it lets go).
                     let h = usize::from(self.hands[1].phase == Phase::Holding);
                     self.turn_onto_grasp(h, &mut pose.local, &global, &model_wrist[h]);
@@ -700,7 +725,7 @@ impl ContactStage {
                 // Letting go just above the support: the hands put the object down on it by the
                 // last frame they hold it (their flags have been off since), not drop it there.
                 let holding = || self.hands.iter().filter(|h| h.phase == Phase::Holding);
-                if holding().all(|h| h.off > 0) {
+                if left.is_some() {
                     let (bottom, floor) = self.floor();
                     let above = bottom - floor;
                     if above > 0.0 && above <= PLACE_HEIGHT {
@@ -745,7 +770,10 @@ impl ContactStage {
                 }
                 self.set_down_on_table(above_before);
             }
-            None => self.settle(),
+            None => {
+                self.pressing = false;
+                self.settle()
+            }
         }
 
         // Let go, complete reaches (capture against this frame's object pose).
@@ -882,7 +910,7 @@ impl ContactStage {
         pose.object_centre = self.shape.centre_at(&self.rot, &self.pos);
         for h in 0..2 {
             pose.wrist_to_object[h] = sub(&joints[ARMS[h][3]], &pose.object_centre);
-            pose.contact[h] = self.hands[h].phase == Phase::Holding;
+            pose.contact[h] = self.hands[h].phase == Phase::Holding || self.carried_by[h];
         }
     }
 
@@ -947,7 +975,10 @@ impl ContactStage {
             self.lifted = true;
         }
         let over = self.table.over(&self.shape.centre_at(&self.rot, &self.pos));
-        if !(self.lifted && above_before && bottom < self.table.height && over) {
+        let down = self.lifted && above_before && bottom < self.table.height && over;
+        // Still leaning off its face: held up on the top while it is levelled.
+        self.pressing = down && leans(&self.rot);
+        if !down || self.pressing {
             return;
         }
         self.pos[2] += self.table.height - bottom;
@@ -996,17 +1027,20 @@ impl ContactStage {
     /// while that points down at all, else the one nearest below), so it reaches the support
     /// on that face and is let go resting, not on an edge: it turns about the holding wrist
     /// (the two wrists' midpoint) by what it leans beyond that, at most [`LEVEL_SPEED`];
-    /// on the last frame before the hands let go within [`PLACE_HEIGHT`] of it, all the way.
-    /// Whether it turned; the caller turns the hands with it.
-    fn level_near_support(&mut self, both: bool, letting_go: bool) -> bool {
+    /// While the hands let go (`left`: frames until they do) within [`PLACE_HEIGHT`] of it,
+    /// all the way by their last frame, at least [`LEVEL_SPEED`]. Whether it turned; the
+    /// caller turns the hands with it.
+    fn level_near_support(&mut self, both: bool, left: Option<u32>) -> bool {
         let (bottom, floor) = self.floor();
         // A hand sets an object down on the face it stood on (its base) while that points
         // down at all; otherwise on the face nearest below.
         let base = if mat_vec(&self.rot, &self.base)[2] < 0.0 { self.base } else { lowest_axis(&self.rot) };
         let Some((axis, tilt)) = face_toward(&self.rot, &base) else { return false };
         let above = (bottom - floor).max(0.0);
-        let allowed =
-            if letting_go && above <= PLACE_HEIGHT { 0.0 } else { std::f64::consts::FRAC_PI_2 * above / LEVEL_HEIGHT };
+        let (allowed, frames) = match left {
+            Some(n) if above <= PLACE_HEIGHT => (0.0, f64::from(n)),
+            _ => (std::f64::consts::FRAC_PI_2 * above / LEVEL_HEIGHT, f64::INFINITY),
+        };
         if tilt <= allowed || allowed.is_nan() {
             return false;
         }
@@ -1015,7 +1049,7 @@ impl ContactStage {
             (false, true) => self.wrist_of(0),
             (false, false) => self.wrist_of(1),
         };
-        let q = axis_angle(&axis, (tilt - allowed).min(LEVEL_SPEED * self.dt));
+        let q = axis_angle(&axis, (tilt - allowed).min((LEVEL_SPEED * self.dt).max((tilt - allowed) / frames)));
         self.rot = mat_mul(&q, &self.rot);
         self.pos = add(&pivot, &mat_vec(&q, &sub(&self.pos, &pivot)));
         true
@@ -1051,6 +1085,12 @@ impl ContactStage {
             self.table.over(&self.shape.centre_at(&self.rot, &self.pos)) && bottom >= self.table.height - SUPPORT_DEPTH;
         (bottom, if on_table { self.table.height } else { GROUND_Z })
     }
+}
+
+/// Whether an object turned by `r` leans more than [`SET_DOWN_TILT`] off the box face
+/// nearest below it (set down so, it would tip over).
+fn leans(r: &Mat3) -> bool {
+    face_down(r).is_some_and(|(_, tilt)| tilt > SET_DOWN_TILT)
 }
 
 /// For an object turned by `r`: the unit horizontal axis about which its box axis pointing
@@ -1395,13 +1435,15 @@ mod tests {
     }
 
     fn run(script: &Script, left_wrist: Option<&dyn Fn(usize) -> Vec3>) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
-        run_twisted(script, left_wrist, &|_| 0.0)
+        run_twisted(script, left_wrist, 20, &|_| 0.0)
     }
 
-    /// [`run`], the raw left hand turned by `twist(t)` radians about its forearm's axis.
+    /// [`run`], the raw hand of wrist joint `wrist` (20 left, 21 right) turned by `twist(t)`
+    /// radians about its forearm's axis.
     fn run_twisted(
         script: &Script,
         left_wrist: Option<&dyn Fn(usize) -> Vec3>,
+        wrist: usize,
         twist: &dyn Fn(usize) -> f64,
     ) -> Vec<(Pose, [Vec3; CG_NUM_JOINTS])> {
         let s = skeleton();
@@ -1419,7 +1461,7 @@ mod tests {
                 let (g, p) = fk(&s, &pose);
                 arm_ik(&mut pose.local, &g, &p, 0, &lw(t));
             }
-            pose.local[20] = mat_mul(&pose.local[20], &axis_angle(&[1.0, 0.0, 0.0], twist(t)));
+            pose.local[wrist] = mat_mul(&pose.local[wrist], &axis_angle(&[1.0, 0.0, 0.0], twist(t)));
             pose.object_translation = (script.object)(t);
             pose.object_centre = add(&pose.object_translation, &[0.0, 0.0, 0.01]);
             pose.wrist_to_object = [[0.08, -0.02, 0.02], [0.0, -0.08, 0.02]];
@@ -1545,6 +1587,47 @@ mod tests {
     }
 
     #[test]
+    fn brought_down_tilted_it_is_levelled_before_it_is_set_down() {
+        // As above, the model's hand turning the object 0.7 rad about the forearm on the way
+        // down: it reaches the table on an edge. The hand holds it up on the top and levels
+        // it before setting it down, so nothing moves once the hand shows no contact.
+        let mut s = grasp_and_lift();
+        s.frames = 160;
+        s.wrist = Box::new(|t| {
+            let t = t as f64;
+            let z = if t < 60.0 {
+                0.0
+            } else if t < 80.0 {
+                0.2 * (t - 60.0) / 20.0
+            } else if t < 120.0 {
+                0.2 - 0.35 * (t - 80.0) / 40.0
+            } else {
+                -0.15
+            };
+            [-0.3, 0.27, 0.9 + z]
+        });
+        s.contact = Box::new(|t| [false, t >= 30]);
+        let twist = |t: usize| 0.7 * ((t.clamp(80, 100) - 80) as f64 / 20.0);
+        let frames = run_twisted(&s, None, 21, &twist);
+        let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
+        let (first, last) = (held[0], *held.last().unwrap());
+        assert_eq!(held.len(), last - first + 1, "one grasp, never re-grasped");
+        let tilt = |f: &Pose| face_down(&f.object_rotation).map_or(0.0, |(_, a)| a);
+        let most = frames[first..last].iter().map(|(f, _)| tilt(f)).fold(0.0, f64::max);
+        assert!(most > 0.5, "it came down tilted ({most} rad)");
+        // Set down level, on the top, and still from the first frame the hand shows no contact.
+        let (rest, _) = &frames[last];
+        assert!(tilt(rest) <= SET_DOWN_TILT, "set down leaning {} rad", tilt(rest));
+        let shape = ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05], surface: None };
+        let bottom = |f: &Pose| shape.bottom_at(&f.object_rotation, &f.object_translation);
+        assert!((bottom(rest) - bottom(&frames[0].0)).abs() < 1e-9, "on the table: {:?}", rest.object_translation);
+        for (pose, _) in &frames[last + 1..] {
+            assert_eq!(pose.object_translation, rest.object_translation);
+            assert_eq!(pose.object_rotation, rest.object_rotation);
+        }
+    }
+
+    #[test]
     fn out_of_reach_is_not_grasped_and_the_arm_is_not_torn() {
         let mut s = grasp_and_lift();
         s.object = Box::new(|_| [-0.3, 1.4, 0.84]);
@@ -1601,7 +1684,7 @@ mod tests {
         let s = hand_over();
         let left = |_: usize| -> Vec3 { [0.08, 0.37, 0.92] };
         let twist = |t: usize| 0.02 * (t.clamp(40, 80) - 40) as f64;
-        let frames = run_twisted(&s, Some(&left), &twist);
+        let frames = run_twisted(&s, Some(&left), 20, &twist);
         let sk = skeleton();
         let grasp = |f: &Pose, w: usize| mat_mul(&transpose(&fk(&sk, f).0[w]), &f.object_rotation);
         let both: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact == [true, true]).collect();

@@ -88,8 +88,9 @@ def test_staged_frames_keep_their_promises(fixture):
                     turn = math.acos(min(max((np.trace(a.object_rotation.T @ b.object_rotation) - 1) / 2, -1), 1))
                     assert turn <= cs.TIP_SPEED / fps + 1e-6, (case["prompt"], t)
             for h, w in ((0, 20), (1, 21)):
-                if held[t, h] and held[t + 1, h] and not held[t:t + 2, 1 - h].any():
-                    # one hand holds: the object is rigid in its frame
+                if held[t, h] and held[t + 1, h] and held[t + 2:t + 3, h].all() and not held[t:t + 2, 1 - h].any():
+                    # one hand holds: the object is rigid in its frame (but for the frame it lets
+                    # go in, which still shows contact: the hand may put the object down then)
                     da = np.linalg.norm(joints[t, w] - a.object_centre)
                     db = np.linalg.norm(joints[t + 1, w] - b.object_centre)
                     assert abs(da - db) < 1e-4, (case["prompt"], t)
@@ -195,8 +196,9 @@ def test_a_grasp_reaches_holds_rigidly_and_lets_go_onto_the_support(rest):
     wrists = _right_wrist(rest, y)
     centre = y[:, FIELD["object_centre"].slice]
     d = np.linalg.norm(wrists - centre, axis=1)
-    # rigid; on the last frame held it may slip onto the support it is put down on
-    assert d[held][:-1].max() - d[held][:-1].min() < 1e-4
+    # rigid; on the last frame before the hands let go, and the one they let go in (which
+    # still shows contact), it may slip onto the support it is put down on
+    assert d[held][:-2].max() - d[held][:-2].min() < 1e-4
     assert abs(d[held][-1] - d[held][0]) <= 0.5 * cs.MAX_SPEED / 30.0 + 1e-9
     assert d[held].max() < 0.03 + 0.12  # the wrist came to the object
     # it started on a support at its first height (a table top); let go near there, it

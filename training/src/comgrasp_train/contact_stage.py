@@ -64,6 +64,7 @@ PRESS_UP_SPEED = 0.6
 LEVEL_HEIGHT = 0.1
 LEVEL_SPEED = 6.0
 PLACE_HEIGHT = 0.08
+SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
 NORM_EPS = 1e-12
 
@@ -424,6 +425,8 @@ class ContactStage:
         self.limited: _Limited | None = None
         self.released = False
         self.base = np.array([0.0, 0.0, -1.0])
+        self.carried_by = [False, False]  # hands that moved the object this frame (contact shows)
+        self.pressing = False  # a lifted object held up on the top while levelled
         # How often each rule fired (the reference only: tests check what a fixture covers).
         self.events: Counter[str] = Counter()
 
@@ -514,15 +517,18 @@ class ContactStage:
         if moved:
             glob, joints = skel.forward(pose.local, pose.pelvis)
 
+        self.carried_by = self.holding()
         carried = self._carried(glob, joints)
         if carried is not None:
-            # where it was: only an object coming down from above the top is set down on it
-            above_before = self.shape.bottom_at(self.rot, self.pos) >= self.table.height
+            # where it was: only an object coming down from above the top (or held up on it
+            # while levelled) is set down on it
+            above_before = self.pressing or self.shape.bottom_at(self.rot, self.pos) >= self.table.height
             sinking = carried[1][2] < self.pos[2]  # levelling is for setting down
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
             depth = min(self.table.height - self.shape.bottom_at(*carried), PRESS_UP_SPEED * self.dt)
-            if not self.lifted and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
-                self.events["press_up"] += 1
+            tilted = leans(carried[0]) and above_before  # coming down off its face: level first
+            if (not self.lifted or tilted) and depth > 0.0 and self.table.over(self.shape.centre_at(*carried)):
+                self.events["press_up" if not self.lifted else "press_up_levelling"] += 1
                 for h in range(2):
                     if self.hands[h].phase == "holding":
                         self.hands[h].correction[2] += depth
@@ -532,13 +538,17 @@ class ContactStage:
                 if again is not None:
                     self.rot, self.pos = again
             letting_go = all(hd.phase != "holding" or hd.off + 1 >= OFF_FRAMES for hd in self.hands)
-            setting_down = sinking or any(hd.phase == "holding" and hd.off > 0 for hd in self.hands)
-            if setting_down and self._level_near_support(both, letting_go) and not both:
+            holding = [hd for hd in self.hands if hd.phase == "holding"]
+            # frames until every holding hand lets go, when all their flags are off
+            left = max(OFF_FRAMES - min(max(hd.off for hd in holding), OFF_FRAMES), 1) \
+                if all(hd.off > 0 for hd in holding) else None
+            touching = self.lifted and tilted and depth > 0.0
+            setting_down = sinking or touching or left is not None
+            if setting_down and self._level_near_support(both, left) and not both:
                 h = 1 if self.hands[1].phase == "holding" else 0
                 self._turn_onto_grasp(h, pose.local, glob, model_wrist[h])
                 glob, joints = skel.forward(pose.local, pose.pelvis)
-            holding = [hd for hd in self.hands if hd.phase == "holding"]
-            if all(hd.off > 0 for hd in holding):
+            if left is not None:
                 # letting go just above the support: put it down by the frame they let go
                 bottom, floor = self._floor()
                 above = bottom - floor
@@ -573,6 +583,7 @@ class ContactStage:
                 glob, joints = skel.forward(pose.local, pose.pelvis)
             self._set_down_on_table(above_before)
         else:
+            self.pressing = False
             self._settle()
 
         for h in range(2):
@@ -622,7 +633,7 @@ class ContactStage:
         pose.object_translation = self.pos.copy()
         pose.object_centre = self.shape.centre_at(self.rot, self.pos)
         pose.wrist_to_object = np.stack([joints[ARMS[h][3]] - pose.object_centre for h in range(2)])
-        pose.contact = np.array(self.holding())
+        pose.contact = np.array(self.holding()) | np.array(self.carried_by)
 
     def _carried(self, glob: np.ndarray, joints: np.ndarray):
         carried = [(glob[ARMS[h][3]] @ hand.rel_rot, joints[ARMS[h][3]] + glob[ARMS[h][3]] @ hand.rel_pos)
@@ -649,7 +660,11 @@ class ContactStage:
         over = self.table.over(self.shape.centre_at(self.rot, self.pos))
         if self.lifted and not above_before and bottom < self.table.height and over:
             self.events["not_set_down_from_below"] += 1
-        if not (self.lifted and above_before and bottom < self.table.height and over):
+        down = self.lifted and above_before and bottom < self.table.height and over
+        self.pressing = down and leans(self.rot)  # still off its face: held up while levelled
+        if self.pressing:
+            self.events["not_set_down_tilted"] += 1
+        if not down or self.pressing:
             return
         self.pos = self.pos + np.array([0.0, 0.0, self.table.height - bottom])
         self.lifted = False
@@ -701,7 +716,7 @@ class ContactStage:
         frames = min(max(math.ceil(gap / (REACH_SPEED * self.dt)), MIN_REACH_FRAMES), MAX_REACH_FRAMES)
         return _Reach(0, frames, start - wrist, self.bow, grip, again)
 
-    def _level_near_support(self, both: bool, letting_go: bool) -> bool:
+    def _level_near_support(self, both: bool, left: int | None) -> bool:
         """``ContactStage::level_near_support``."""
         bottom, floor = self._floor()
         base = self.base if (self.rot @ self.base)[2] < 0.0 else lowest_axis(self.rot)
@@ -710,14 +725,17 @@ class ContactStage:
             return False
         axis, tilt = face
         above = max(bottom - floor, 0.0)
-        allowed = 0.0 if letting_go and above <= PLACE_HEIGHT else math.pi / 2 * above / LEVEL_HEIGHT
+        if left is not None and above <= PLACE_HEIGHT:  # all the way by the frame the hands let go
+            allowed, frames = 0.0, float(left)
+        else:
+            allowed, frames = math.pi / 2 * above / LEVEL_HEIGHT, math.inf
         if not tilt > allowed:
             return False
         if both:
             pivot = (self._wrist_of(0) + self._wrist_of(1)) * 0.5
         else:
             pivot = self._wrist_of(0 if self.hands[0].phase == "holding" else 1)
-        q = axis_angle(axis, min(tilt - allowed, LEVEL_SPEED * self.dt))
+        q = axis_angle(axis, min(tilt - allowed, max(LEVEL_SPEED * self.dt, (tilt - allowed) / frames)))
         self.rot = q @ self.rot
         self.pos = pivot + q @ (self.pos - pivot)
         self.events["level_frames"] += 1
@@ -875,6 +893,12 @@ def lowest_axis(r: np.ndarray) -> np.ndarray:
     a = np.zeros(3)
     a[k] = -1.0 if r[2, k] > 0.0 else 1.0
     return a
+
+
+def leans(r: np.ndarray) -> bool:
+    """``leans``: more than SET_DOWN_TILT off the box face nearest below (it would tip)."""
+    face = face_toward(r, lowest_axis(r))
+    return face is not None and face[1] > SET_DOWN_TILT
 
 
 def face_toward(r: np.ndarray, local: np.ndarray):

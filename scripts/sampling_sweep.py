@@ -1,0 +1,118 @@
+"""How the sampler's temperature and top-k change what a bundle's motions do, on the engine's
+own frames.
+
+    python scripts/sampling_sweep.py --bundle models/default --configs 1.0:0,0.8:0,0.6:10 \
+        --prompts 24 --seeds 1,2,3,4 --out out/sweep
+
+For every ``T:K`` config, every prompt of ``quality_report.py prompts N`` (every SynthGrasp
+intent and hand mode) and its held-out wording (``grab.paraphrase.one(..., held_out=True)``:
+verbs, subjects and hand phrases the training texts never use), and every seed, it runs
+``comgrasp generate --fk`` (the default output, contact stage on) and checks the frames with
+the quality report's checker against the prompt's meaning. Writes OUT/sweep.json (every
+sample) and OUT/sweep.md (rates per config and prompt set, plus how often two seeds of the
+same prompt give the same motion, so that a low temperature's loss of variety shows).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from comgrasp_train.grab.paraphrase import Meaning, one
+from comgrasp_train.grab.text_parse import Intent, parse_prompt
+from comgrasp_train.intent_check import check_motion, object_sdf_for, track_from_engine
+from quality_report import prompts
+
+RATES = ("intent_ok", "intent_grasp", "intent_unheld_still", "intent_lift", "intent_drink", "intent_pour",
+         "intent_pass", "intent_inspect", "intent_offhand")
+
+
+def held_out_wording(k: int, meaning: str) -> str:
+    """A held-out wording of the k-th canonical prompt's meaning ("intent object mode")."""
+    intent, obj, mode = meaning.split()
+    gender = ("female", "male")[k % 2]  # as quality_report.prompts alternates
+    if ">" in mode:
+        first, last = mode.split(">")
+        m = Meaning(gender, intent, obj, None, first, last)
+    else:
+        m = Meaning(gender, intent, obj, mode)
+    return one(m, random.Random(f"held-out {k}"), held_out=True)
+
+
+def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, out: Path, intent: Intent) -> dict:
+    if not out.exists():
+        subprocess.run([binary, "generate", "--bundle", bundle, "--text", text, "--seed", str(seed), "--fk",
+                        "--temperature", str(t), "--top-k", str(k), "--out", str(out)],
+                       check=True, stdout=subprocess.DEVNULL)
+    with np.load(out) as frames:
+        frames = dict(frames)
+    r = check_motion(track_from_engine(frames, object_sdf_for({"object": intent.object})), intent)
+    return {"ok": r.ok, "reason": r.reason, **r.row(), "frames": len(frames["object_translation"]),
+            "object_path": frames["object_translation"][::8].round(3).tolist()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bundle", default="models/default")
+    ap.add_argument("--binary", default="target/release/comgrasp")
+    ap.add_argument("--configs", default="1.0:0,0.8:0,0.6:0,0.8:20,0.6:10,0.4:5",
+                    help="comma-separated TEMPERATURE:TOP_K")
+    ap.add_argument("--prompts", type=int, default=24)
+    ap.add_argument("--seeds", default="1,2,3,4")
+    ap.add_argument("--sets", default="template,held_out")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--out", default="out/sweep")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    (out / "npz").mkdir(parents=True, exist_ok=True)
+    configs = [(float(c.split(":")[0]), int(c.split(":")[1])) for c in a.configs.split(",")]
+    seeds = [int(s) for s in a.seeds.split(",")]
+    cases = []  # (set, prompt index, text, intent)
+    for k, (text, meaning) in enumerate(prompts(a.prompts)):
+        intent_name, obj, mode = meaning.split()
+        intent = Intent(intent_name, mode, obj)
+        parsed = parse_prompt(text)
+        if (parsed.intent, parsed.hands, parsed.object) != (intent.intent, intent.hands, intent.object):
+            raise SystemExit(f"the checker reads {text!r} as {parsed}, not {intent}")
+        for s in a.sets.split(","):
+            cases.append((s, k, text if s == "template" else held_out_wording(k, meaning), intent))
+    jobs = [(c, t, k, seed) for (t, k) in configs for c in cases for seed in seeds]
+
+    def work(job):
+        (s, i, text, intent), t, k, seed = job
+        f = out / "npz" / f"t{t}_k{k}_{s}_p{i}_s{seed}.npz"
+        row = run_one(a.binary, a.bundle, text, seed, t, k, f, intent)
+        return {"temperature": t, "top_k": k, "set": s, "prompt": i, "text": text, "seed": seed, **row}
+
+    with ThreadPoolExecutor(a.jobs) as pool:
+        rows = list(pool.map(work, jobs))
+    (out / "sweep.json").write_text(json.dumps(rows, indent=0))
+    lines = ["| T | top-k | prompts | n | " + " | ".join(r.removeprefix("intent_") for r in RATES)
+             + " | same motion across seeds | frames |",
+             "|---" * (len(RATES) + 6) + "|"]
+    for t, k in configs:
+        for s in a.sets.split(","):
+            sel = [r for r in rows if r["temperature"] == t and r["top_k"] == k and r["set"] == s]
+            rates = [np.mean([r[x] for r in sel if x in r]) if any(x in r for r in sel) else float("nan")
+                     for x in RATES]
+            same = []  # pairs of seeds of one prompt whose object paths agree to 1 cm
+            for i in {r["prompt"] for r in sel}:
+                paths = [np.array(r["object_path"]) for r in sel if r["prompt"] == i]
+                same += [p.shape == q.shape and float(np.abs(p - q).max()) < 0.01
+                         for n, p in enumerate(paths) for q in paths[n + 1:]]
+            lines.append(f"| {t} | {k} | {s} | {len(sel)} | " + " | ".join(f"{v:.2f}" for v in rates)
+                         + f" | {np.mean(same):.2f} | {np.mean([r['frames'] for r in sel]):.0f} |")
+    table = "\n".join(lines) + "\n"
+    (out / "sweep.md").write_text(table)
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
