@@ -1550,10 +1550,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn brought_back_down_onto_the_table_it_is_set_down() {
-        // The model's hand lifts the object 20 cm and then goes 15 cm below where it took it,
-        // its flag on throughout: the object stays on the table, the hand lets go for good.
+    /// The model's hand lifts the object 20 cm and then goes 15 cm below where it took it,
+    /// its flag on from frame 30 to the end.
+    fn lift_and_bring_down() -> Script {
         let mut s = grasp_and_lift();
         s.frames = 160;
         s.wrist = Box::new(|t| {
@@ -1570,6 +1569,14 @@ mod tests {
             [-0.3, 0.27, 0.9 + z]
         });
         s.contact = Box::new(|t| [false, t >= 30]);
+        s
+    }
+
+    #[test]
+    fn brought_back_down_onto_the_table_it_is_set_down() {
+        // Brought down below the top, its flag on throughout: the object stays on the table,
+        // the hand lets go for good.
+        let s = lift_and_bring_down();
         let frames = run(&s, None);
         let start = frames[0].0.object_translation;
         let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
@@ -1591,22 +1598,7 @@ mod tests {
         // As above, the model's hand turning the object 0.7 rad about the forearm on the way
         // down: it reaches the table on an edge. The hand holds it up on the top and levels
         // it before setting it down, so nothing moves once the hand shows no contact.
-        let mut s = grasp_and_lift();
-        s.frames = 160;
-        s.wrist = Box::new(|t| {
-            let t = t as f64;
-            let z = if t < 60.0 {
-                0.0
-            } else if t < 80.0 {
-                0.2 * (t - 60.0) / 20.0
-            } else if t < 120.0 {
-                0.2 - 0.35 * (t - 80.0) / 40.0
-            } else {
-                -0.15
-            };
-            [-0.3, 0.27, 0.9 + z]
-        });
-        s.contact = Box::new(|t| [false, t >= 30]);
+        let s = lift_and_bring_down();
         let twist = |t: usize| 0.7 * ((t.clamp(80, 100) - 80) as f64 / 20.0);
         let frames = run_twisted(&s, None, 21, &twist);
         let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
