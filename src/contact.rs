@@ -724,13 +724,11 @@ impl ContactStage {
                 }
                 // Letting go just above the support: the hands put the object down on it by the
                 // last frame they hold it (their flags have been off since), not drop it there.
-                let holding = || self.hands.iter().filter(|h| h.phase == Phase::Holding);
-                if left.is_some() {
+                if let Some(left) = left {
                     let (bottom, floor) = self.floor();
                     let above = bottom - floor;
                     if above > 0.0 && above <= PLACE_HEIGHT {
-                        let off = holding().map(|h| h.off).max().unwrap_or(OFF_FRAMES).min(OFF_FRAMES);
-                        let down = above / f64::from((OFF_FRAMES - off).max(1));
+                        let down = above / f64::from(left);
                         for h in 0..2 {
                             if self.hands[h].phase == Phase::Holding {
                                 self.hands[h].correction[2] -= down;

@@ -553,8 +553,7 @@ class ContactStage:
                 bottom, floor = self._floor()
                 above = bottom - floor
                 if 0.0 < above <= PLACE_HEIGHT:
-                    off = min(max(hd.off for hd in holding), OFF_FRAMES)
-                    down = above / max(OFF_FRAMES - off, 1)
+                    down = above / left
                     for h in range(2):
                         if self.hands[h].phase == "holding":
                             self.hands[h].correction[2] -= down
