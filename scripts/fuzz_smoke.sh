@@ -7,6 +7,7 @@
 #   bash scripts/fuzz_smoke.sh 600        # a long run
 #   TARGETS="manifest npy" bash scripts/fuzz_smoke.sh 60
 #   FUZZ_SANITIZER=none bash scripts/fuzz_smoke.sh     # if ASan is unavailable
+#   JOBS=1 bash scripts/fuzz_smoke.sh     # one target at a time (default: as many as cores)
 # libFuzzer's closing statistics (execs, cov, ft, corpus) are printed per target and kept in
 # target/fuzz-logs/<target>.log.
 #
@@ -40,15 +41,16 @@ echo "   built in $((SECONDS - t0)) s"
 
 logs=target/fuzz-logs
 mkdir -p "$logs"
-status=0
-for t in $targets; do
+# Each target is one single-threaded process: up to JOBS (default: the cores) run at once.
+jobs_max=${JOBS:-$(nproc)}
+run_target() {  # target -> $logs/<target>.log, and its report in $logs/<target>.result
+    local t=$1 scratch result
     scratch=$(mktemp -d)
-    extra=()
+    local extra=()
     [ -f "fuzz/$t.dict" ] && extra+=("-dict=fuzz/$t.dict")
     # Call sequences need room for many operations (libFuzzer would otherwise start at the
     # seeds' length and grow slowly).
     [ "$t" = abi_sequence ] && extra+=("-max_len=1024")
-    echo "== $t: ${secs}s from fuzz/corpus/$t ($(ls "fuzz/corpus/$t" | wc -l) seeds)"
     # The scratch corpus comes first, so libFuzzer writes its finds there and the committed
     # seeds stay as they are. -timeout: one input running over 30 s is reported as a hang.
     if "${nice_cmd[@]}" cargo fuzz run "${build_flags[@]}" "$t" "$scratch" "fuzz/corpus/$t" -- \
@@ -57,20 +59,34 @@ for t in $targets; do
         result=ok
     else
         result="FAILED (see $logs/$t.log and fuzz/artifacts/$t/)"
-        status=1
     fi
+    rm -rf "$scratch"
     # The last status line (#N DONE/pulse cov: .. ft: .. corp: ..) and the final stats.
+    local done_line execs rate
     done_line=$(grep -E '^#[0-9]+' "$logs/$t.log" | tail -1 || true)
     execs=$(awk '/stat::number_of_executed_units/ {print $2}' "$logs/$t.log")
     rate=$(awk '/stat::average_exec_per_sec/ {print $2}' "$logs/$t.log")
-    echo "   $result: ${execs:-?} execs (${rate:-?}/s); $done_line"
-    if [ "$result" != ok ]; then
-        grep -E 'ERROR|panicked|SUMMARY|deadly signal|Test unit written' "$logs/$t.log" | head -20 || true
-    fi
-    rm -rf "$scratch"
+    {
+        echo "== $t: ${secs}s from fuzz/corpus/$t ($(ls "fuzz/corpus/$t" | wc -l) seeds)"
+        echo "   $result: ${execs:-?} execs (${rate:-?}/s); $done_line"
+        if [ "$result" != ok ]; then
+            grep -E 'ERROR|panicked|SUMMARY|deadly signal|Test unit written' "$logs/$t.log" | head -20 || true
+        fi
+    } >"$logs/$t.result"
+}
+for t in $targets; do
+    rm -f "$logs/$t.result"
+    while [ "$(jobs -rp | wc -l)" -ge "$jobs_max" ]; do wait -n || true; done
+    run_target "$t" &
+done
+wait || true
+status=0
+for t in $targets; do
+    if [ -f "$logs/$t.result" ]; then cat "$logs/$t.result"; else echo "== $t: no result (killed?)"; fi
+    grep -q '^   ok: ' "$logs/$t.result" 2>/dev/null || status=1
 done
 if [ $status = 0 ]; then
-    echo "fuzz smoke: OK ($(wc -w <<<"$targets") targets, ${secs} s each)"
+    echo "fuzz smoke: OK ($(wc -w <<<"$targets") targets, ${secs} s each, $jobs_max at a time)"
 else
     echo "fuzz smoke: FAILED"
 fi

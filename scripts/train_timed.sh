@@ -4,7 +4,7 @@
 # enough to carry home; `comgrasp-train export` makes the bundle from them anywhere.
 #
 # The allowance is spent in overlapping phases, because SynthGrasp generation is CPU work
-# (~1 core-second per sequence) and training is GPU work:
+# (~1 core-second per sequence there before it got 1.3x faster, docs/data.md) and training is GPU work:
 #   1. SEQS_VQ sequences (seed 2), prepared without paraphrases: the VQ's data;
 #   2. train-vq on them for VQ_SECONDS (--time-budget fits the run and its lr drop to it),
 #      while the other cores make the SEQS sequences (seed 1, the recipe's set) with their

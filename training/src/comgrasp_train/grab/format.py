@@ -9,6 +9,7 @@ read by exactly the reader that reads a user's GRAB download.
 
 from __future__ import annotations
 
+import io
 import zipfile
 from pathlib import Path
 
@@ -111,12 +112,16 @@ def write_grab_npz(
 
 def _savez_reproducible(path: Path, entries: dict, compress: bool) -> None:
     """``np.savez(_compressed)`` with a fixed zip timestamp per entry, so that equal content
-    gives byte-identical files (numpy stamps each entry with the current time)."""
+    gives byte-identical files (numpy stamps each entry with the current time). Deflate
+    level 1: the (T, points) contact arrays are mostly zeros, so it is ~1.5x faster than
+    the default level for files ~25% larger, and compressing was a quarter of SynthGrasp's
+    generation time."""
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with zipfile.ZipFile(path, "w", compression=method, allowZip64=True) as zf:
         for key, value in entries.items():
             info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = method
             info.external_attr = 0o600 << 16
-            with zf.open(info, "w", force_zip64=True) as fid:
-                np.lib.format.write_array(fid, np.asanyarray(value), allow_pickle=True)
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=True)
+            zf.writestr(info, buf.getbuffer(), compresslevel=1 if compress else None)

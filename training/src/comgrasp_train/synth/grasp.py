@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from .. import skeleton as sk
@@ -71,7 +70,11 @@ class Hand:
         # Points grouped by the joint that carries them: (joint, hand point indices, offsets).
         joint, pts = proxy.joint[self.index], proxy.rest_points[self.index]
         self._groups = [(j, np.nonzero(joint == j)[0], pts[joint == j] - self.rest[j]) for j in np.unique(joint)]
-        self._rest_t = torch.from_numpy(self.rest)
+        # Finger FK (``_fk``) walks each finger's 3-joint chain from the wrist directly.
+        assert all(sk.PARENTS[f[0]] == self.wrist and sk.PARENTS[f[1]] == f[0] and sk.PARENTS[f[2]] == f[1]
+                   for f in self.fingers)
+        self._bone = np.stack([self.rest[self.fingers[:, k + 1]] - self.rest[self.fingers[:, k]] for k in (0, 1)])
+        self._rest_wrist_frame = self.rest - self.rest[self.wrist]
 
     def finger_locals(self, curls: np.ndarray) -> np.ndarray:
         """(..., 5) curls in [0, 1] -> (..., 5, 3, 3, 3) local rotations of the finger joints."""
@@ -79,12 +82,21 @@ class Hand:
         return axis_angle(self.axes[:, None, :], angles)
 
     def _fk(self, curls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Global rotations and positions (wrist frame) of all joints for curls (B, 5)."""
+        """Global rotations and positions (wrist frame) of all joints for curls (B, 5), every
+        joint but the fingers at rest. Only the 5 finger chains move, so they are walked on
+        their own (3 steps of (B, 5) products) instead of the whole 55-joint tree: the grasp
+        search calls this thousands of times per sequence."""
         curls = np.atleast_2d(curls)
-        rot = np.tile(np.eye(3), (len(curls), sk.NUM_JOINTS, 1, 1))
-        rot[:, self.fingers] = self.finger_locals(curls)
-        g, j = (x.numpy() for x in sk.forward_kinematics(torch.from_numpy(rot), self._rest_t))
-        return g, j - self.rest[self.wrist]
+        local = self.finger_locals(curls)  # (B, 5, 3, 3, 3)
+        g = np.tile(np.eye(3), (len(curls), sk.NUM_JOINTS, 1, 1))
+        j = np.tile(self._rest_wrist_frame, (len(curls), 1, 1))
+        g1 = local[:, :, 0]
+        g2 = g1 @ local[:, :, 1]
+        g[:, self.fingers[:, 0]], g[:, self.fingers[:, 1]], g[:, self.fingers[:, 2]] = g1, g2, g2 @ local[:, :, 2]
+        j2 = j[:, self.fingers[:, 0]] + (g1 @ self._bone[0][..., None])[..., 0]
+        j[:, self.fingers[:, 1]] = j2
+        j[:, self.fingers[:, 2]] = j2 + (g2 @ self._bone[1][..., None])[..., 0]
+        return g, j
 
     def points(self, curls: np.ndarray) -> np.ndarray:
         """Hand proxy points (B, Ph, 3) in the wrist frame (wrist at the origin, rotation
