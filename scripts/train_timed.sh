@@ -9,15 +9,16 @@
 #   2. train-vq on them for VQ_SECONDS (--time-budget fits the run and its lr drop to it),
 #      while the other cores make the SEQS sequences (seed 1, the recipe's set) with their
 #      paraphrases;
-#   3. train-gpt on those for whatever the DEADLINE leaves (the VQ's own normalization
-#      encodes them), keeping the lowest validation NLL;
+#   3. train-gpt on those until the DEADLINE (`--deadline`: its loading, i.e. coding the
+#      sequences with the VQ's own normalization and embedding their texts, counts against
+#      it), keeping the lowest validation NLL;
 #   4. the runs without optimizer state (best.pt in fp16, config, stats, logs) ->
 #      $PACK/runs.tgz.part-aa, -ab, ... (15 MiB pieces; `cat` joins them), also when a phase
 #      failed (the script then exits non-zero).
 # Env (defaults are the sizes of the shipped model's run, see docs/training.md):
 #   PY=python3 with torch and this package importable; WORK=scratch folder; PACK=output folder
 #   SEQS_VQ=800 SEQS=1600 PARAPHRASES=16 WORKERS=$(nproc) WIDTH=0.5
-#   VQ_SECONDS=210 VQ_BATCH=256 VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520 RESERVE=40
+#   VQ_SECONDS=210 VQ_BATCH=256 VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520
 #   bash scripts/train_timed.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -36,7 +37,6 @@ VQ_LR=${VQ_LR:-1e-3}
 GPT_BATCH=${GPT_BATCH:-128}
 GPT_LR=${GPT_LR:-4e-4}
 DEADLINE=${DEADLINE:-520}   # seconds after START by which the GPT has stopped
-RESERVE=${RESERVE:-40}      # seconds the GPT's loading (data, codes, text embeddings) is given
 DATA="$PY -m comgrasp_train.cli.data -q"
 TRAIN="$PY -m comgrasp_train.cli.train -q"
 stamp() { echo "[$(($(date +%s) - START)) s] $*"; }
@@ -61,11 +61,9 @@ RC=0
 wait "$VQ_PID" || RC=$?
 stamp "VQ done (rc $RC): $(tail -n 1 "$WORK/vq.out")"
 if [ "$RC" = 0 ]; then
-  GPT_SECONDS=$((DEADLINE - ($(date +%s) - START) - RESERVE))
-  [ "$GPT_SECONDS" -gt 20 ] || GPT_SECONDS=20
-  stamp "train-gpt for $GPT_SECONDS s"
+  stamp "train-gpt until $DEADLINE s"
   $TRAIN train-gpt --data "$WORK/data_prep" --vq "$WORK/vq" --out "$WORK/gpt" --preset small --batch "$GPT_BATCH" \
-    --lr "$GPT_LR" --text-weights int8 --time-budget "$GPT_SECONDS" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
+    --lr "$GPT_LR" --text-weights int8 --deadline "$((START + DEADLINE))" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
     || RC=$?
   stamp "GPT done (rc $RC): $(tail -n 1 "$WORK/gpt.out")"
 fi

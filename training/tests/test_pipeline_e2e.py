@@ -125,6 +125,22 @@ def test_time_budgeted_vq_run_records_its_fitted_length_and_resumes_to_it(prepar
     assert torch.load(run / "ckpt.pt", weights_only=False)["step"] == ckpt["step"]
 
 
+def test_a_deadline_that_passes_while_train_gpt_loads_is_a_clear_error(prepared, tmp_path, capsys):
+    """--deadline (a lent machine's wall-clock allowance) counts train-gpt's loading (VQ codes,
+    text embeddings): one that passes meanwhile stops it with an error before any step, rather
+    than a run past it. (How the loop fits what is left: test_runtime.py.)"""
+    import time
+
+    vq = tmp_path / "vq"
+    assert train_main(["-q", "train-vq", "--data", str(prepared), "--preset", "tiny", "--batch", "4", "--iters", "1",
+                       "--device", "cpu", "--out", str(vq)]) == 0
+    assert train_main(["-q", "train-gpt", "--data", str(prepared), "--vq", str(vq), "--preset", "tiny", "--batch", "4",
+                       "--device", "cpu", "--text-weights", "int8", "--out", str(tmp_path / "gpt"),
+                       "--deadline", str(time.time() + 0.01)]) == 2
+    assert "deadline passed" in capsys.readouterr().err
+    assert not (tmp_path / "gpt" / "ckpt.pt").exists()
+
+
 def test_gpt_codes_use_the_normalization_the_vq_was_trained_with(prepared, tmp_path, monkeypatch):
     """A data folder whose statistics differ from the VQ's (other or more sequences) must
     still be encoded with the VQ's own, or the codes are not the ones it learned."""

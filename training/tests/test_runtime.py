@@ -1,4 +1,4 @@
-"""The training loop's time budget (BudgetFit) and the schedule it refits (StepDrop)."""
+"""The training loop's time budget (BudgetFit, TimeLimit) and the schedule it refits (StepDrop)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from comgrasp_train.models.vq_losses import StepDrop
-from comgrasp_train.train.runtime import BudgetFit, Runtime, run_training
+from comgrasp_train.train.runtime import BudgetFit, Runtime, TimeLimit, run_training
 
 
 class FakeClock:
@@ -57,7 +57,11 @@ def test_step_drop_total_travels_with_the_scheduler_state():
     assert sched2.lr_lambdas[0](59) == 1.0 and sched2.lr_lambdas[0](60) == 0.05  # drop at 2/3 of 90
 
 
-def test_run_training_fits_its_length_schedule_and_config_to_the_budget(tmp_path):
+@pytest.mark.parametrize("limit", ["seconds", "deadline"])
+def test_run_training_fits_its_length_schedule_and_config_to_the_budget(tmp_path, limit):
+    import time
+
+    time_limit = TimeLimit(seconds=0.5) if limit == "seconds" else TimeLimit(deadline=time.time() + 0.5)
     model = torch.nn.Linear(2, 1)
     opt = torch.optim.SGD(model.parameters(), lr=0.1)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, StepDrop(1000, 10**6))
@@ -72,11 +76,24 @@ def test_run_training_fits_its_length_schedule_and_config_to_the_budget(tmp_path
 
     run_training(Runtime(torch.device("cpu")), step=0, end=10**6, total=10**6, desc="t", step_fn=step_fn,
                  out_dir=tmp_path, model=model, optimizer=opt, scheduler=sched, config=config,
-                 gen=torch.Generator(), log_every=10**6, ckpt_every=10**6, progress=False, time_budget=0.5)
+                 gen=torch.Generator(), log_every=10**6, ckpt_every=10**6, progress=False, time_limit=time_limit)
     n = len(steps)
     assert BudgetFit.WARM + BudgetFit.CALIBRATE < n < 10**6
     # the schedule, the config beside the checkpoint and the checkpoint agree on the length
     assert sched.lr_lambdas[0].total == n == config["train"]["total_iters"]
     assert sched.lr_lambdas[0].warmup == min(1000, max(1, n // 10)) == config["train"]["warmup_iters"]
-    assert json.loads((tmp_path / "config.json").read_text())["train"]["total_iters"] == n
+    saved = json.loads((tmp_path / "config.json").read_text())
+    assert saved["train"]["total_iters"] == n
+    # what the loop was given: the seconds, or what was left of the deadline when it started
+    assert saved["time_budget_s"] == 0.5 if limit == "seconds" else 0 < saved["time_budget_s"] < 0.5
     assert torch.load(tmp_path / "ckpt.pt", weights_only=False)["step"] == n
+
+
+def test_time_limit_by_deadline_counts_the_loading_before_the_loop():
+    assert TimeLimit(seconds=30.0).budget(now=1e9) == 30.0
+    assert TimeLimit(deadline=1000.0).budget(now=940.0) == 60.0  # the loop gets what loading left
+    with pytest.raises(ValueError, match="deadline passed 5 s before training started"):
+        TimeLimit(deadline=1000.0).budget(now=1005.0)
+    for bad in ({}, {"seconds": 1.0, "deadline": 2.0}):
+        with pytest.raises(ValueError, match="exactly one"):
+            TimeLimit(**bad)

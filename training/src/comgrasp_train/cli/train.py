@@ -32,6 +32,14 @@ def _sampling(args):
     return SamplingParams(temperature=args.temperature, top_k=args.top_k, min_len=args.min_len, max_len=args.max_len)
 
 
+def _time_limit(args):
+    from ..train.runtime import TimeLimit
+
+    if args.time_budget is None and args.deadline is None:
+        return None
+    return TimeLimit(seconds=args.time_budget, deadline=args.deadline)
+
+
 def cmd_train_vq(args) -> int:
     from ..models.configs import make_config
     from ..models.vq_losses import capped_warmup
@@ -48,7 +56,7 @@ def cmd_train_vq(args) -> int:
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
                  ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after,
-                 time_budget=args.time_budget)
+                 time_limit=_time_limit(args))
     print(json.dumps(m))
     return 0
 
@@ -68,7 +76,7 @@ def cmd_train_gpt(args) -> int:
                            warmup_iters=capped_warmup(GPTTrainConfig.warmup_iters, args.iters))
     m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
                   device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet,
-                  stop_after=args.stop_after, time_budget=args.time_budget)
+                  stop_after=args.stop_after, time_limit=_time_limit(args))
     print(json.dumps(m))
     return 0
 
@@ -170,9 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--ckpt-every", type=int, default=500)
         sp.add_argument("--stop-after", type=int, default=None,
                         help="checkpoint and stop at this step (rerun without it to continue)")
-        sp.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                        help="fit the run's length (and its learning-rate drop) to this many seconds of "
-                             "training, measured on the first steps; replaces --iters")
+        limit = sp.add_mutually_exclusive_group()
+        limit.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                           help="fit the run's length (and its learning-rate drop) to this many seconds of "
+                                "training, measured on the first steps; replaces --iters")
+        limit.add_argument("--deadline", type=float, default=None, metavar="UNIX_SECONDS",
+                           help="as --time-budget, with the seconds left at this wall-clock time (`date +%%s`) "
+                                "once loading is done: loading counts against it")
 
     def sampling(sp):
         sp.add_argument("--temperature", type=float, default=1.0)

@@ -21,7 +21,7 @@ from ..models.transformer import ComGraspTransformer, stream_nll
 from ..models.vq_losses import make_scheduler
 from ..normalization import Normalizer
 from ..text_encoder import load_text_encoder
-from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
+from .runtime import TimeLimit, load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .tokens import TokenBatcher, encode_feature_set
 from .vq_trainer import load_prepared, load_vq
 
@@ -69,7 +69,7 @@ def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, t
 def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfig, train: GPTTrainConfig,
               text: TextConfig = TextConfig(), *, seed: int = 0, device: str | None = None, resume: bool = True,
               log_every: int = 50, ckpt_every: int = 1000, progress: bool = True,
-              stop_after: int | None = None, time_budget: float | None = None) -> dict:
+              stop_after: int | None = None, time_limit: TimeLimit | None = None) -> dict:
     rt = setup_runtime(device)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -106,7 +106,7 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         if TransformerConfig.from_dict(ckpt["config"]["transformer"]) != cfg:
             raise ValueError(f"{ckpt_path} was trained with a different transformer config; use a new --out")
         step = restore(ckpt, model=model, optimizer=opt, scheduler=sched)
-        if time_budget is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
+        if time_limit is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
             train = replace(train, total_iters=ckpt["config"]["train"]["total_iters"])
         gen.set_state(ckpt["extra"]["sampler_rng"])
         best_val = ckpt["extra"].get("best_val", best_val)
@@ -116,8 +116,6 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
 
     config = {"transformer": cfg.to_dict(), "train": asdict(train), "text": asdict(text), "vq_dir": str(vq_dir),
               "data": str(data_dir), "seed": seed, "fps": fs.fps}
-    if time_budget is not None:
-        config["time_budget_s"] = time_budget
 
     names = ("global", "body", "lhand", "rhand")
 
@@ -156,7 +154,7 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
         desc="train-gpt", step_fn=one_step, out_dir=out_dir, model=model, optimizer=opt, scheduler=sched,
         config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every, progress=progress,
         validate=validate if val_batcher is not None else None, val_every=train.val_every, best_val=best_val,
-        time_budget=time_budget)
+        time_limit=time_limit)
 
 
 def load_gpt(run_dir: Path, device="cpu", which: str = "best"):

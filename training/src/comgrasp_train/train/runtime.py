@@ -133,10 +133,33 @@ def restore(ckpt: dict, *, model: torch.nn.Module, optimizer=None, scheduler=Non
     return int(ckpt["step"])
 
 
+@dataclass(frozen=True)
+class TimeLimit:
+    """How long a run may train: ``seconds`` of its training loop, or until ``deadline`` (Unix
+    time), which also counts what the trainer spends loading before its loop (data, codes,
+    text embeddings): a script with a fixed allowance then needs no guess of that time."""
+
+    seconds: float | None = None
+    deadline: float | None = None
+
+    def __post_init__(self):
+        if (self.seconds is None) == (self.deadline is None):
+            raise ValueError("a time limit is a number of seconds or a deadline, exactly one of them")
+
+    def budget(self, now: float) -> float:
+        """Seconds of training left at ``now``, when the loop starts."""
+        if self.seconds is not None:
+            return self.seconds
+        left = self.deadline - now
+        if not left > 0:
+            raise ValueError(f"the deadline passed {-left:.0f} s before training started (loading took that long)")
+        return left
+
+
 def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, step_fn, out_dir: Path,
                  model, optimizer, scheduler, config: dict, gen: torch.Generator, log_every: int,
                  ckpt_every: int, progress: bool, postfix=None, validate=None, val_every: int = 0,
-                 best_val: float = float("inf"), time_budget: float | None = None) -> dict:
+                 best_val: float = float("inf"), time_limit: TimeLimit | None = None) -> dict:
     """The loop both trainers share: ``step_fn()`` runs one optimisation step and returns its
     metrics (floats or 0-d tensors); every ``log_every`` steps they go to ``log.jsonl`` and the
     progress bar, every ``ckpt_every`` steps and at ``end`` a resumable checkpoint is written
@@ -145,12 +168,12 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
     logged with the step's and the weights go to ``best.pt`` when ``val_loss`` is the lowest
     so far (``best_val``, carried in the checkpoint across resumes).
 
-    With ``time_budget`` (seconds of this loop), the run's length is fitted to it: after a few
-    timed steps the remaining steps are set from the measured step time, and ``end``, the
-    schedule's ``total`` (its drop lands at two thirds of the fitted run) and the saved
-    config's ``total_iters`` change to match; the loop also stops, checkpointed, once the
-    budget is spent. For a lent machine with a fixed allowance. Returns the last logged
-    metrics."""
+    With ``time_limit`` (seconds of this loop, or a deadline), the run's length is fitted to it:
+    after a few timed steps the remaining steps are set from the measured step time, and
+    ``end``, the schedule's ``total`` (its drop lands at two thirds of the fitted run) and the
+    saved config's ``total_iters`` change to match (the config also gets ``time_budget_s``,
+    the seconds the loop was given); the loop also stops, checkpointed, once the budget is
+    spent. For a lent machine with a fixed allowance. Returns the last logged metrics."""
     import time
 
     log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
@@ -162,11 +185,12 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
     metrics: dict = {}
     t0 = time.time()
     fit = None
-    if time_budget is not None:
+    if time_limit is not None:
         if rt.distributed:  # each rank would fit its own length, and the collectives would hang
             raise ValueError("a time budget is for single-process training, not torchrun")
         sync = (lambda: torch.cuda.synchronize(rt.device)) if rt.device.type == "cuda" else (lambda: None)
-        fit = BudgetFit(time_budget, step, sync)
+        config["time_budget_s"] = time_limit.budget(time.time())
+        fit = BudgetFit(config["time_budget_s"], step, sync)
     try:
         while step < end:
             m = step_fn()

@@ -22,7 +22,7 @@ from ..models.vq_losses import compute_loss, make_optimizer, make_scheduler, vq_
 from ..models.vqvae import build_vq
 from ..normalization import Normalizer
 from ..representation import features_to_joints
-from .runtime import load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
+from .runtime import TimeLimit, load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .windows import WindowSampler
 
 REST_JOINTS_FILE = "rest_joints.npy"
@@ -38,9 +38,9 @@ def load_prepared(data_dir: Path, part: str) -> tuple[FeatureSet, Normalizer]:
 
 def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, device: str | None = None,
              resume: bool = True, log_every: int = 50, ckpt_every: int = 1000, progress: bool = True,
-             stop_after: int | None = None, time_budget: float | None = None) -> dict:
+             stop_after: int | None = None, time_limit: TimeLimit | None = None) -> dict:
     """Run (or resume) VQ training to ``cfg.train.total_iters`` (or pause at ``stop_after``,
-    checkpointed, as an interruption would; or fit the run to ``time_budget`` seconds, see
+    checkpointed, as an interruption would; or fit the run to ``time_limit``, see
     ``run_training``); returns the last metrics."""
     rt = setup_runtime(device)
     out_dir = Path(out_dir)
@@ -60,7 +60,7 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         if replace(saved.model, ema_warmup=cfg.model.ema_warmup) != cfg.model:
             raise ValueError(f"{ckpt_path} was trained with a different model config; use a new --out")
         cfg = replace(cfg, model=saved.model)
-        if time_budget is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
+        if time_limit is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
             cfg = replace(cfg, train=replace(cfg.train, total_iters=saved.train.total_iters))
     model = build_vq(cfg.model, rt.device)
     opt = make_optimizer(model, cfg)
@@ -81,8 +81,6 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         return x * std + mean
 
     config = {"vq": cfg.to_dict(), "data": str(data_dir), "seed": seed, "fps": fs.fps}
-    if time_budget is not None:
-        config["time_budget_s"] = time_budget
     out_dir.mkdir(parents=True, exist_ok=True)
     if rt.is_main:  # the run is self-contained: its statistics travel with its checkpoint
         norm.save(out_dir / "stats.npz")
@@ -122,7 +120,7 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         total=cfg.train.total_iters, desc="train-vq", step_fn=one_step, out_dir=out_dir, model=model,
         optimizer=opt, scheduler=sched, config=config, gen=gen, log_every=log_every, ckpt_every=ckpt_every,
         progress=progress, validate=validate, val_every=cfg.train.val_every, best_val=best_val,
-        time_budget=time_budget,
+        time_limit=time_limit,
         postfix=lambda m: {"loss": f"{m['loss']:.3f}", "joint_mm": f"{1000 * m['joint'] / n_comp:.1f}"})
 
 
