@@ -138,7 +138,7 @@ def test_a_deadline_that_passes_while_train_gpt_loads_is_a_clear_error(prepared,
                        "--device", "cpu", "--text-weights", "int8", "--out", str(tmp_path / "gpt"),
                        "--deadline", str(time.time() + 0.01)]) == 2
     assert "deadline passed" in capsys.readouterr().err
-    assert not (tmp_path / "gpt" / "ckpt.pt").exists()
+    assert not (tmp_path / "gpt" / "ckpt.pt").exists() and not (tmp_path / "gpt" / "log.jsonl").exists()
 
 
 def test_gpt_codes_use_the_normalization_the_vq_was_trained_with(prepared, tmp_path, monkeypatch):

@@ -85,7 +85,7 @@ def test_run_training_fits_its_length_schedule_and_config_to_the_budget(tmp_path
     saved = json.loads((tmp_path / "config.json").read_text())
     assert saved["train"]["total_iters"] == n
     # what the loop was given: the seconds, or what was left of the deadline when it started
-    assert saved["time_budget_s"] == 0.5 if limit == "seconds" else 0 < saved["time_budget_s"] < 0.5
+    assert (saved["time_budget_s"] == 0.5) if limit == "seconds" else (0 < saved["time_budget_s"] < 0.5)
     assert torch.load(tmp_path / "ckpt.pt", weights_only=False)["step"] == n
 
 

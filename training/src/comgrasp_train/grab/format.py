@@ -114,7 +114,7 @@ def _savez_reproducible(path: Path, entries: dict, compress: bool) -> None:
     """``np.savez(_compressed)`` with a fixed zip timestamp per entry, so that equal content
     gives byte-identical files (numpy stamps each entry with the current time). Deflate
     level 1: the (T, points) contact arrays are mostly zeros, so it is ~1.5x faster than
-    the default level for files ~25% larger, and compressing was a quarter of SynthGrasp's
+    the default level for files ~29% larger, and compressing was a quarter of SynthGrasp's
     generation time."""
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with zipfile.ZipFile(path, "w", compression=method, allowZip64=True) as zf:

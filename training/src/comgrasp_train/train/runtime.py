@@ -176,6 +176,14 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
     spent. For a lent machine with a fixed allowance. Returns the last logged metrics."""
     import time
 
+    # The limit first: a run that cannot start (a passed deadline, torchrun) opens no log.
+    fit = None
+    if time_limit is not None:
+        if rt.distributed:  # each rank would fit its own length, and the collectives would hang
+            raise ValueError("a time budget is for single-process training, not torchrun")
+        sync = (lambda: torch.cuda.synchronize(rt.device)) if rt.device.type == "cuda" else (lambda: None)
+        config["time_budget_s"] = time_limit.budget(time.time())
+        fit = BudgetFit(config["time_budget_s"], step, sync)
     log = (out_dir / "log.jsonl").open("a") if rt.is_main else None
     bar = None
     if progress and rt.is_main:
@@ -184,13 +192,6 @@ def run_training(rt: Runtime, *, step: int, end: int, total: int, desc: str, ste
         bar = tqdm(total=total, initial=step, desc=desc, unit="it")
     metrics: dict = {}
     t0 = time.time()
-    fit = None
-    if time_limit is not None:
-        if rt.distributed:  # each rank would fit its own length, and the collectives would hang
-            raise ValueError("a time budget is for single-process training, not torchrun")
-        sync = (lambda: torch.cuda.synchronize(rt.device)) if rt.device.type == "cuda" else (lambda: None)
-        config["time_budget_s"] = time_limit.budget(time.time())
-        fit = BudgetFit(config["time_budget_s"], step, sync)
     try:
         while step < end:
             m = step_fn()
