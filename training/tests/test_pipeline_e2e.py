@@ -30,7 +30,8 @@ def test_train_generate_evaluate(prepared, tmp_path):
     assert json.loads((vq / "config.json").read_text())["vq"]["preset"] == "tiny"
     assert train_main(["-q", "train-gpt", "--data", str(prepared), "--vq", str(vq), "--out", str(gpt),
                        "--preset", "tiny", "--iters", "6", "--batch", "4", "--device", "cpu",
-                       "--text-weights", "int8"]) == 0
+                       "--text-weights", "int8", "--text-dropout", "0.25"]) == 0
+    assert json.loads((gpt / "config.json").read_text())["train"]["text_dropout"] == 0.25
     log = [json.loads(line) for line in (gpt / "log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 6 and np.isfinite(log[-1]["loss"])
     # The split has a val subject (s9): both runs validate at their end and keep best.pt,
@@ -44,7 +45,7 @@ def test_train_generate_evaluate(prepared, tmp_path):
         assert "optimizer" not in best and best["step"] == 6 and best["metrics"]["val_loss"] == best["metrics"]["val_loss"]
     motion = tmp_path / "m.npz"
     assert train_main(["generate", "--vq", str(vq), "--gpt", str(gpt), "--text", "A man lifts the mug.",
-                       "--out", str(motion), "--max-len", "3", "--min-len", "1", "--seed", "3"]) == 0
+                       "--out", str(motion), "--max-len", "3", "--min-len", "1", "--seed", "3", "--guidance", "2"]) == 0
     m = np.load(motion)
     assert m["features"].shape[1] == 335 and m["features"].shape[0] in (16, 32, 48)
     assert m["fullpose"].shape == (len(m["features"]), 165)

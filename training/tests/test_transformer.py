@@ -8,6 +8,7 @@ import torch
 
 from comgrasp_train.models.gpt_configs import PRESETS, TransformerConfig, preset
 from comgrasp_train.models.transformer import ComGraspTransformer, count_parameters
+from comgrasp_train.train.gpt_trainer import GPTTrainConfig, drop_text
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -123,3 +124,18 @@ def test_trains_on_a_fixed_batch():
         loss.backward()
         opt.step()
     assert loss.item() < 0.5 * first
+
+
+def test_text_dropout_zeroes_whole_rows_at_its_rate():
+    """The null condition classifier-free guidance needs: rows zeroed whole at rate p, the
+    others untouched; p = 0 leaves the generator's stream alone."""
+    emb = torch.randn(4000, 8) + 3.0  # no row is zero by chance
+    gen = torch.Generator().manual_seed(0)
+    out = drop_text(emb, 0.1, gen)
+    zero = (out == 0).all(dim=1)
+    assert torch.equal(out[~zero], emb[~zero]) and 0.08 < zero.float().mean() < 0.12
+    g1, g2 = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    assert drop_text(emb, 0.0, g1) is emb and torch.equal(torch.rand(3, generator=g1), torch.rand(3, generator=g2))
+    with pytest.raises(ValueError, match="text_dropout"):
+        GPTTrainConfig(text_dropout=1.0)
+    assert GPTTrainConfig.from_dict({"batch_size": 8}).text_dropout == 0.0  # configs saved before it

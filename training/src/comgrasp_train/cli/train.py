@@ -73,7 +73,8 @@ def cmd_train_gpt(args) -> int:
     dim = load_text_encoder(text.backend, checkpoint=text.checkpoint).dim
     cfg = preset(args.preset, codebook_sizes=tuple(c.codebook_size for c in vq_cfg.model.components), d_text=dim)
     train = GPTTrainConfig(total_iters=args.iters, batch_size=args.batch, lr=args.lr or GPTTrainConfig.lr,
-                           warmup_iters=capped_warmup(GPTTrainConfig.warmup_iters, args.iters))
+                           warmup_iters=capped_warmup(GPTTrainConfig.warmup_iters, args.iters),
+                           text_dropout=args.text_dropout)
     m = train_gpt(Path(args.data), Path(args.vq), Path(args.out), cfg, train, text, seed=args.seed,
                   device=args.device, ckpt_every=args.ckpt_every, progress=not args.quiet,
                   stop_after=args.stop_after, time_limit=_time_limit(args))
@@ -90,7 +91,7 @@ def cmd_generate(args) -> int:
     from ..skeleton import DEFAULT_REST_JOINTS
 
     model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
-    frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed)
+    frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed, guidance=args.guidance)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rest = torch.from_numpy(DEFAULT_REST_JOINTS)
@@ -139,7 +140,7 @@ def cmd_evaluate(args) -> int:
             fake_quantize_bundle_int8(model.vq, model.gpt)
         for prompts in args.prompts.split(","):
             by_output = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
-                                            prompts=prompts, outputs=outputs)
+                                            prompts=prompts, outputs=outputs, guidance=args.guidance)
             for o, reps in by_output.items():
                 name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
                 name += named[o]
@@ -186,6 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
                            help="as --time-budget, with the seconds left at this wall-clock time (`date +%%s`) "
                                 "once loading is done: loading counts against it")
 
+    def guidance(sp):
+        sp.add_argument("--guidance", type=float, default=1.0,
+                        help="classifier-free guidance scale (1: off); for a GPT trained with --text-dropout; "
+                             "PyTorch only, the engine does not run it yet")
+
     def sampling(sp):
         sp.add_argument("--temperature", type=float, default=1.0)
         sp.add_argument("--top-k", type=int, default=0)
@@ -223,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--iters", type=int, default=20000)
     s.add_argument("--batch", type=int, default=64)
     s.add_argument("--lr", type=float, default=None)
+    s.add_argument("--text-dropout", type=float, default=0.0,
+                   help="share of training sequences conditioned on a zero text embedding (the null condition "
+                        "of classifier-free guidance, --guidance of generate and evaluate); 0.1 is usual")
     pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_gpt)
@@ -233,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--text", required=True)
     s.add_argument("--out", required=True)
     s.add_argument("--n", type=int, default=1)
+    guidance(s)
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_generate)
@@ -257,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rows", action="store_true",
                    help="also write every sequence's metrics to OUT's stem + .rows.json (same order, same seeds)")
     s.add_argument("--out", required=True)
+    guidance(s)
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_evaluate)

@@ -43,6 +43,12 @@ exp_det(d) for d <= 0 (d = z - m):
 with the constants below (repr round-trips, so Rust float literals give the same bits).
 exp_det(0) == 1.0 exactly, so total >= 1. Relative error vs exp is ~1e-16.
 
+Classifier-free guidance (`generate(..., guidance=s)`, s != 1; PyTorch only so far, the
+engine and the bundle do not carry it yet): every step also runs the model on the null
+condition (a zero text embedding, what `train-gpt --text-dropout` trains on) with its own
+cache and the same tokens, and the logits handed to rule 1 are, per element in float32,
+u + s * (c - u) (c: with the text, u: null; each operation rounded, no fused multiply-add).
+
 Sequence end (in `generate`): all four streams share one length; generation stops for
 a sequence at the first step k where any stream samples End; its length is k (the
 codes of steps 0..k-1) and the other streams' tokens of step k are discarded. At
@@ -248,31 +254,45 @@ def run_sampling_loop(step_fn: StepFn, cfg: TransformerConfig, batch: int,
     return Generation(torch.from_numpy(np.ascontiguousarray(seq)), torch.from_numpy(lengths))
 
 
+def guide_logits(cond: np.ndarray, uncond: np.ndarray, scale: float) -> np.ndarray:
+    """Classifier-free guidance, float32 elementwise: uncond + scale * (cond - uncond)."""
+    c, u = np.asarray(cond, dtype=np.float32), np.asarray(uncond, dtype=np.float32)
+    return u + np.float32(scale) * (c - u)
+
+
 @torch.no_grad()
 def generate(model, text_emb: torch.Tensor, params: SamplingParams = SamplingParams(),
-             seed: int | Sequence[int] = 0, use_cache: bool = True) -> Generation:
+             seed: int | Sequence[int] = 0, use_cache: bool = True, guidance: float = 1.0) -> Generation:
     """Batched generation from text embeddings (B, d_text) on the model's device.
 
     use_cache=False re-runs the full forward pass over the prefix at every step (the
     benchmark's no-cache reference); both paths feed the same sampler and loop.
+    guidance: classifier-free guidance scale (module docstring); 1 = the text alone.
     """
+    if not (np.isfinite(guidance) and guidance >= 0.0):
+        raise ValueError(f"guidance must be finite and >= 0, got {guidance}")
     cfg = model.cfg
     batch, device = text_emb.shape[0], text_emb.device
+    guided = guidance != 1.0
+    if guided:  # elements B..2B-1: the same sequences on the null condition
+        text_emb = torch.cat([text_emb, torch.zeros_like(text_emb)])
+    rows = text_emb.shape[0]
     was_training = model.training
     model.eval()
-    cache = model.new_cache(batch) if use_cache else None
+    cache = model.new_cache(rows) if use_cache else None
     prefix: list[torch.Tensor] = []
 
     def to_np(logits):
-        return [lg.float().cpu().numpy() for lg in logits]
+        out = [lg.float().cpu().numpy() for lg in logits]
+        return [guide_logits(lg[:batch], lg[batch:], guidance) for lg in out] if guided else out
 
     def step_fn(tokens: np.ndarray, k: int):
-        t = torch.from_numpy(tokens).to(device)
+        t = torch.from_numpy(np.concatenate([tokens, tokens]) if guided else tokens).to(device)
         if use_cache:
             return to_np(model.decode_step(t, k, text_emb, cache))
         if k > 0:
             prefix.append(t)
-        seq = torch.stack(prefix, 1) if prefix else t.new_zeros((batch, 0, t.shape[1]))
+        seq = torch.stack(prefix, 1) if prefix else t.new_zeros((rows, 0, t.shape[1]))
         return to_np(lg[:, -1] for lg in model(text_emb, seq))
 
     try:

@@ -36,6 +36,13 @@ class GPTTrainConfig:
     total_iters: int = 100_000
     grad_clip: float = 1.0
     val_every: int = 250  # validation NLL on the prepared val part, when there is one (0 = off)
+    # Share of training sequences whose text embedding is replaced by zeros, the null
+    # condition that classifier-free guidance contrasts the text with (sampling.generate).
+    text_dropout: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.text_dropout < 1.0:
+            raise ValueError(f"text_dropout must be in [0, 1), got {self.text_dropout}")
 
     @staticmethod
     def from_dict(d: dict) -> GPTTrainConfig:
@@ -64,6 +71,14 @@ def embed_texts(encoder, texts: list[list[str]], batch: int = 64) -> dict[str, t
         for t, e in zip(chunk, encoder.encode(chunk)):
             out[t] = e.float().cpu()
     return out
+
+
+def drop_text(emb: torch.Tensor, p: float, gen: torch.Generator) -> torch.Tensor:
+    """Each row of (B, d_text) replaced by zeros (the null condition) with probability p.
+    Draws from ``gen`` only when p > 0, so runs without it keep their random stream."""
+    if p <= 0:
+        return emb
+    return emb * (torch.rand(len(emb), generator=gen) >= p)[:, None]
 
 
 def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfig, train: GPTTrainConfig,
@@ -121,6 +136,7 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
 
     def one_step():
         emb, codes = batcher.batch(train.batch_size, gen)
+        emb = drop_text(emb, train.text_dropout, gen)
         net.train()
         opt.zero_grad(set_to_none=True)
         codes = codes.to(rt.device)
