@@ -111,8 +111,12 @@
 // Set in `cg_stream_config.use_defaults`: ignore `max_len`.
 #define CG_USE_DEFAULT_MAX_LEN (1 << 4)
 
+// Set in `cg_stream_config.use_defaults`: ignore `guidance` (version 3 of the struct; a
+// shorter struct always takes the default).
+#define CG_USE_DEFAULT_GUIDANCE (1 << 5)
+
 // All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
-#define CG_USE_DEFAULT_ALL 31
+#define CG_USE_DEFAULT_ALL 63
 
 // Set in `cg_stream_config.flags`: frames are the model's raw output, without the
 // contact-consistency stage (the object may float or drift, a hand may hold empty air).
@@ -360,6 +364,10 @@ typedef struct cg_stream_config {
   // heading and last pose, blended from over 15 frames; its object, resting or held).
   // Excludes `anchor`.
   uint64_t continue_from;
+  // Classifier-free guidance scale (version 3), finite and >= 0: how far each token's
+  // logits are pushed from the null condition's towards the prompt's; 1 = the prompt
+  // alone. For bundles trained with text dropout; costs a second token step per step.
+  double guidance;
 } cg_stream_config;
 
 // One frame of generated motion. All positions in the engine's coordinate system

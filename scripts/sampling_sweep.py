@@ -1,10 +1,10 @@
-"""How the sampler's temperature and top-k change what a bundle's motions do, on the engine's
-own frames.
+"""How the sampler's temperature, top-k and classifier-free guidance change what a bundle's
+motions do, on the engine's own frames.
 
-    python scripts/sampling_sweep.py --bundle models/default --configs 1.0:0,0.8:0,0.6:10 \
+    python scripts/sampling_sweep.py --bundle models/default --configs 1.0:0,0.8:0,0.6:10,1.0:0:2 \
         --prompts 24 --seeds 1,2,3,4 --out out/sweep
 
-For every ``T:K`` config, every prompt of ``quality_report.py prompts N`` (every SynthGrasp
+For every ``T:K`` or ``T:K:G`` config (G: the guidance scale, default the bundle's), every prompt of ``quality_report.py prompts N`` (every SynthGrasp
 intent and hand mode) and its held-out wording (``grab.paraphrase.one(..., held_out=True)``:
 verbs, subjects and hand phrases the training texts never use), and every seed, it runs
 ``comgrasp generate --fk`` (the default output, contact stage on) and checks the frames with
@@ -45,10 +45,12 @@ def held_out_wording(k: int, meaning: str) -> str:
     return one(m, random.Random(f"held-out {k}"), held_out=True)
 
 
-def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, out: Path, intent: Intent) -> dict:
+def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, g: float | None, out: Path,
+            intent: Intent) -> dict:
     if not out.exists():
         subprocess.run([binary, "generate", "--bundle", bundle, "--text", text, "--seed", str(seed), "--fk",
-                        "--temperature", str(t), "--top-k", str(k), "--out", str(out)],
+                        "--temperature", str(t), "--top-k", str(k), *(["--guidance", str(g)] if g is not None else []),
+                        "--out", str(out)],
                        check=True, stdout=subprocess.DEVNULL)
     with np.load(out) as frames:
         frames = dict(frames)
@@ -57,12 +59,20 @@ def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, ou
             "object_path": frames["object_translation"][::8].round(3).tolist()}
 
 
+def parse_config(c: str) -> tuple[float, int, float | None]:
+    """``T:K`` or ``T:K:G`` -> (temperature, top-k, guidance or None for the bundle's)."""
+    parts = c.split(":")
+    if len(parts) not in (2, 3):
+        raise SystemExit(f"--configs: {c!r} is not TEMPERATURE:TOP_K[:GUIDANCE]")
+    return float(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bundle", default="models/default")
     ap.add_argument("--binary", default="target/release/comgrasp")
     ap.add_argument("--configs", default="1.0:0,0.8:0,0.6:0,0.8:20,0.6:10,0.4:5",
-                    help="comma-separated TEMPERATURE:TOP_K")
+                    help="comma-separated TEMPERATURE:TOP_K[:GUIDANCE]")
     ap.add_argument("--prompts", type=int, default=24)
     ap.add_argument("--seeds", default="1,2,3,4")
     ap.add_argument("--sets", default="template,held_out")
@@ -71,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     out = Path(a.out)
     (out / "npz").mkdir(parents=True, exist_ok=True)
-    configs = [(float(c.split(":")[0]), int(c.split(":")[1])) for c in a.configs.split(",")]
+    configs = [parse_config(c) for c in a.configs.split(",")]
     seeds = [int(s) for s in a.seeds.split(",")]
     cases = []  # (set, prompt index, text, intent)
     for k, (text, meaning) in enumerate(prompts(a.prompts)):
@@ -82,23 +92,23 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"the checker reads {text!r} as {parsed}, not {intent}")
         for s in a.sets.split(","):
             cases.append((s, k, text if s == "template" else held_out_wording(k, meaning), intent))
-    jobs = [(c, t, k, seed) for (t, k) in configs for c in cases for seed in seeds]
+    jobs = [(c, t, k, g, seed) for (t, k, g) in configs for c in cases for seed in seeds]
 
     def work(job):
-        (s, i, text, intent), t, k, seed = job
-        f = out / "npz" / f"t{t}_k{k}_{s}_p{i}_s{seed}.npz"
-        row = run_one(a.binary, a.bundle, text, seed, t, k, f, intent)
-        return {"temperature": t, "top_k": k, "set": s, "prompt": i, "text": text, "seed": seed, **row}
+        (s, i, text, intent), t, k, g, seed = job
+        f = out / "npz" / f"t{t}_k{k}{'' if g is None else f'_g{g}'}_{s}_p{i}_s{seed}.npz"
+        row = run_one(a.binary, a.bundle, text, seed, t, k, g, f, intent)
+        return {"temperature": t, "top_k": k, "guidance": g, "set": s, "prompt": i, "text": text, "seed": seed, **row}
 
     with ThreadPoolExecutor(a.jobs) as pool:
         rows = list(pool.map(work, jobs))
     (out / "sweep.json").write_text(json.dumps(rows, indent=0))
-    lines = ["| T | top-k | prompts | n | " + " | ".join(r.removeprefix("intent_") for r in RATES)
+    lines = ["| T | top-k | guidance | prompts | n | " + " | ".join(r.removeprefix("intent_") for r in RATES)
              + " | same motion across seeds | frames |",
-             "|---" * (len(RATES) + 6) + "|"]
-    for t, k in configs:
+             "|---" * (len(RATES) + 7) + "|"]
+    for t, k, g in configs:
         for s in a.sets.split(","):
-            sel = [r for r in rows if r["temperature"] == t and r["top_k"] == k and r["set"] == s]
+            sel = [r for r in rows if (r["temperature"], r["top_k"], r["guidance"]) == (t, k, g) and r["set"] == s]
             rates = [np.mean([r[x] for r in sel if x in r]) if any(x in r for r in sel) else float("nan")
                      for x in RATES]
             same = []  # pairs of seeds of one prompt whose object paths agree to 1 cm
@@ -106,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                 paths = [np.array(r["object_path"]) for r in sel if r["prompt"] == i]
                 same += [p.shape == q.shape and float(np.abs(p - q).max()) < 0.01
                          for n, p in enumerate(paths) for q in paths[n + 1:]]
-            lines.append(f"| {t} | {k} | {s} | {len(sel)} | " + " | ".join(f"{v:.2f}" for v in rates)
+            lines.append(f"| {t} | {k} | {'bundle' if g is None else g} | {s} | {len(sel)} | " + " | ".join(f"{v:.2f}" for v in rates)
                          + f" | {np.mean(same):.2f} | {np.mean([r['frames'] for r in sel]):.0f} |")
     table = "\n".join(lines) + "\n"
     (out / "sweep.md").write_text(table)

@@ -364,6 +364,10 @@ pub struct StreamConfig {
     pub min_len: Option<u32>,
     /// End is forced at this many token steps (each step = 16 frames).
     pub max_len: Option<u32>,
+    /// Classifier-free guidance scale, finite and >= 0: how far the logits are pushed from
+    /// the null condition's towards the prompt's (1 = the prompt alone; unset = the
+    /// bundle's default). Costs a second token step per step.
+    pub guidance: Option<f64>,
     /// `Some(true)`: frames are the model's raw output, without the contact-consistency
     /// stage (`crate::contact`). Unset = false: the stage is on.
     pub raw_output: Option<bool>,
@@ -446,6 +450,7 @@ impl StreamConfig {
             top_k: self.top_k.or(fallback.top_k),
             min_len: self.min_len.or(fallback.min_len),
             max_len: self.max_len.or(fallback.max_len),
+            guidance: self.guidance.or(fallback.guidance),
             raw_output: self.raw_output.or(fallback.raw_output),
             anchor: self.anchor.or(fallback.anchor),
             continue_from: self.continue_from.or(fallback.continue_from),
@@ -459,6 +464,9 @@ impl StreamConfig {
             if !t.is_finite() || t < 0.0 {
                 return Err(Error::InvalidArgument(format!("temperature must be finite and >= 0, got {t}")));
             }
+        }
+        if let Some(g) = self.guidance {
+            crate::sampler::guidance_scale(g)?;
         }
         if let Some(m) = self.max_len {
             if m == 0 {

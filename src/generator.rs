@@ -54,7 +54,7 @@ use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurfa
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecodeJob, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
-use crate::sampler::{SamplingParams, TokenSampler};
+use crate::sampler::{guidance_scale, SamplingParams, TokenSampler};
 use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 
 /// Where a stream's frames come from. The real implementation is
@@ -295,6 +295,8 @@ pub struct Generator {
     /// Computed on the worker by the first `next_chunk`.
     text_emb: Option<Arc<[f32]>>,
     sampler: TokenSampler,
+    /// Classifier-free guidance scale (1 = the prompt alone).
+    guidance: f32,
     max_len: usize,
     /// KV cache, decoder context and the decode buffer: made by the first `next_chunk`,
     /// on the worker, so `cg_start` never pays for allocating and zeroing them.
@@ -346,6 +348,7 @@ impl Generator {
         if params.max_len == 0 {
             return Err(Error::InvalidArgument("max_len must be at least 1".into()));
         }
+        let guidance = guidance_scale(c.guidance.unwrap_or(d.guidance))?;
         let pad_usize = pipe.pad_ids.map(|p| p as usize);
         let continuation = match c.continue_from {
             None => None,
@@ -394,6 +397,7 @@ impl Generator {
             text: req.text.to_owned(),
             text_emb: None,
             max_len: params.max_len as usize,
+            guidance,
             state: None,
             k: 0,
             prev: pipe.pad_ids,
@@ -429,7 +433,7 @@ impl Generator {
         self.encode_text()?;
         let b = &self.pipe.bundle;
         let emb = self.text_emb.as_deref().unwrap_or_default();
-        let state = self.state.get_or_insert_with(|| State::new(b));
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
         let logits = b.step.step(&mut state.step, prev, k, emb)?;
         let codes = self.sampler.sample_step(k, logits)?;
         if self.pipe.ends(&codes) {
@@ -491,9 +495,9 @@ struct State {
 }
 
 impl State {
-    fn new(b: &Bundle) -> State {
+    fn new(b: &Bundle, guidance: f32) -> State {
         let normalized = vec![0.0; MAX_DECODE_GROUP * b.decoder.chunk_len()];
-        State { step: b.step.new_state(), decoder: b.decoder.new_state(), normalized }
+        State { step: b.step.new_guided_state(guidance), decoder: b.decoder.new_state(), normalized }
     }
 }
 
@@ -546,7 +550,7 @@ impl ChunkSource for Generator {
         let next = self.k + g;
         ended |= next >= self.max_len;
         let b = &self.pipe.bundle;
-        let state = self.state.get_or_insert_with(|| State::new(b));
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
         let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
         // Whether the group's last chunk ends the sequence: known now if End was sampled or
         // the step limit forces it, or once the steps after the group ran with the decode
@@ -726,7 +730,7 @@ impl Generator {
         let pos = self.k + self.ahead_n;
         let tokens = if self.ahead_n > 0 { self.ahead[self.ahead_n - 1] } else { self.prev };
         let text_emb = self.text_emb.as_deref().unwrap_or_default();
-        let state = &mut self.state.get_or_insert_with(|| State::new(b)).step;
+        let state = &mut self.state.get_or_insert_with(|| State::new(b, self.guidance)).step;
         StepJob { state, tokens, pos, text_emb }
     }
 
@@ -779,7 +783,7 @@ impl Generator {
     /// [`decode_job`](Self::decode_job) again, once it passed.
     pub(crate) fn decode_job_unchecked(&mut self) -> DecodeJob<'_> {
         let b = &self.pipe.bundle;
-        let state = self.state.get_or_insert_with(|| State::new(b));
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
         let g = self.ahead_n;
         let out = &mut state.normalized[..g * b.decoder.chunk_len()];
         DecodeJob { state: &mut state.decoder, tokens: &self.ahead[..g], out }

@@ -20,8 +20,15 @@ fn engine(bundle: Option<std::path::PathBuf>, scheduling: Scheduling, threads: O
     Engine::new(EngineConfig { bundle_path: bundle, max_streams: 64, runtime, ..Default::default() }).unwrap()
 }
 
+/// Odd streams are guided (classifier-free guidance: a second, null-condition member in
+/// every batched step).
 fn opts(i: usize) -> StreamConfig {
-    StreamConfig { seed: Some(100 + i as u64), max_len: Some(6 + (i % 3) as u32), ..Default::default() }
+    StreamConfig {
+        seed: Some(100 + i as u64),
+        max_len: Some(6 + (i % 3) as u32),
+        guidance: (i % 2 == 1).then_some(2.0),
+        ..Default::default()
+    }
 }
 
 /// Every frame of a stream, polled until it ends.
@@ -113,6 +120,8 @@ fn tiny_bundle_and_a_lone_stream() {
     let e = engine(dir, Scheduling::Auto, None);
     assert!(e.scheduler_threads().is_some(), "the crowd scheduler is the default");
     assert_eq!(bits(&drain(&mut e.start(PROMPTS[0], opts(0)).unwrap())), reference[0]);
+    let unguided = StreamConfig { guidance: None, ..opts(1) };
+    assert_ne!(bits(&drain(&mut e.start(PROMPTS[1], unguided).unwrap())), reference[1], "guidance changed nothing");
 }
 
 /// A cancelled stream, one nobody polls (a ring of 8 frames, full at once), one dropped

@@ -9,8 +9,8 @@ use std::sync::Arc;
 
 use bundle_support::*;
 use comgrasp::bundle::{N_STREAMS, STREAMS};
-use comgrasp::Bundle;
-use comgrasp::Error;
+use comgrasp::model::StepState;
+use comgrasp::{Bundle, BundleSource, Error, RuntimeOptions, StepBackend};
 
 fn bundle() -> Arc<Bundle> {
     Bundle::load(&tiny_dir()).unwrap_or_else(|e| panic!("loading models/tiny: {e}"))
@@ -145,47 +145,109 @@ fn step_logits_match_pytorch_teacher_forced() {
     }
 }
 
-/// Greedy decoding through the tract step graph gives PyTorch's greedy tokens over the
-/// whole sequence (every cache slot but the last is written). Rule: Pad never, End not
-/// before min_len and forced at max_len, arg max with the lowest id on ties.
-#[test]
-fn step_greedy_tokens_match_pytorch() {
-    let b = bundle();
+/// Greedy decoding from `state` (reset first) over the whole sequence. Rule: Pad never,
+/// End not before min_len and forced at max_len, arg max with the lowest id on ties.
+fn greedy_run(b: &Bundle, state: &mut StepState, text_emb: &[f32]) -> Vec<[i64; N_STREAMS]> {
     let m = &b.manifest;
     let (end, pad) = (m.end_ids(), m.pad_ids());
     let (min_len, max_len) = (m.sampling.min_len, m.sampling.max_len);
+    state.reset().unwrap();
+    let mut tokens = pad;
+    let mut out: Vec<[i64; N_STREAMS]> = Vec::new();
+    for k in 0..=max_len {
+        let logits = b.step.step(state, tokens, k, text_emb).unwrap();
+        let mut next = [0i64; N_STREAMS];
+        for s in 0..N_STREAMS {
+            let allowed = |i: usize| {
+                if k >= max_len {
+                    i == end[s]
+                } else {
+                    i as i64 != pad[s] && !(k < min_len && i == end[s])
+                }
+            };
+            let mut best: Option<(usize, f32)> = None;
+            for (i, &x) in logits[s].iter().enumerate() {
+                if allowed(i) && best.is_none_or(|(_, bx)| x > bx) {
+                    best = Some((i, x));
+                }
+            }
+            next[s] = best.unwrap().0 as i64;
+        }
+        if (0..N_STREAMS).any(|s| next[s] == end[s] as i64) {
+            break;
+        }
+        out.push(next);
+        tokens = next;
+    }
+    out
+}
+
+/// Greedy decoding through the tract step graph gives PyTorch's greedy tokens over the
+/// whole sequence (every cache slot but the last is written).
+#[test]
+fn step_greedy_tokens_match_pytorch() {
+    let b = bundle();
     let mut state = b.step.new_state();
     for (ci, case) in step_cases().iter().enumerate() {
-        state.reset().unwrap();
-        let mut tokens = pad;
-        let mut out: Vec<[i64; N_STREAMS]> = Vec::new();
-        for k in 0..=max_len {
-            let logits = b.step.step(&mut state, tokens, k, &case.text_emb).unwrap();
-            let mut next = [0i64; N_STREAMS];
-            for s in 0..N_STREAMS {
-                let allowed = |i: usize| {
-                    if k >= max_len {
-                        i == end[s]
-                    } else {
-                        i as i64 != pad[s] && !(k < min_len && i == end[s])
-                    }
-                };
-                let mut best: Option<(usize, f32)> = None;
-                for (i, &x) in logits[s].iter().enumerate() {
-                    if allowed(i) && best.is_none_or(|(_, bx)| x > bx) {
-                        best = Some((i, x));
-                    }
-                }
-                next[s] = best.unwrap().0 as i64;
-            }
-            if (0..N_STREAMS).any(|s| next[s] == end[s] as i64) {
-                break;
-            }
-            out.push(next);
-            tokens = next;
-        }
+        let out = greedy_run(&b, &mut state, &case.text_emb);
         println!("step case {ci}: greedy length {} (PyTorch {})", out.len(), case.greedy.len());
         assert_eq!(out, case.greedy, "step case {ci}: greedy tokens differ from PyTorch");
+    }
+}
+
+/// Classifier-free guidance (DESIGN §4): greedy decoding from a guided state gives
+/// PyTorch's guided greedy tokens over the whole sequence, on both step backends.
+#[test]
+fn step_guided_greedy_tokens_match_pytorch() {
+    let dir = tiny_dir();
+    let index = parity_index(&dir);
+    for backend in [StepBackend::Tract, StepBackend::Native] {
+        let opts = RuntimeOptions { step_backend: backend, ..RuntimeOptions::default() };
+        let b = Bundle::load_with(BundleSource::dir(&dir), &opts).unwrap();
+        assert_eq!(b.step.backend(), backend);
+        for (ci, case) in step_cases().iter().enumerate() {
+            let entry = &index["step"][ci];
+            let scale = entry["guided"]["scale"].as_f64().unwrap();
+            let want = rows(load_i64(&dir, entry["files"]["guided_greedy_tokens"].as_str().unwrap()));
+            assert_eq!(want.len() as u64, entry["guided"]["length"].as_u64().unwrap());
+            let mut state = b.step.new_guided_state(scale as f32);
+            assert_eq!(state.guidance(), scale as f32);
+            let out = greedy_run(&b, &mut state, &case.text_emb);
+            println!("{backend:?} step case {ci}: guided greedy length {} (PyTorch {})", out.len(), want.len());
+            assert_eq!(out, want, "{backend:?} step case {ci}: guided greedy tokens differ from PyTorch");
+            let unguided = greedy_run(&b, &mut b.step.new_state(), &case.text_emb);
+            assert_ne!(out, unguided, "step case {ci}: guidance {scale} changed nothing");
+        }
+    }
+}
+
+/// Guidance 0 is the null condition alone: the logits of a plain state fed a zero text
+/// embedding, bit for bit; guidance 1 is a plain state.
+#[test]
+fn guidance_zero_is_the_null_condition_and_one_is_plain() {
+    let b = bundle();
+    let case = &step_cases()[0];
+    let pad = b.manifest.pad_ids();
+    let zeros = vec![0.0f32; case.text_emb.len()];
+    let (mut guided, mut null) = (b.step.new_guided_state(0.0), b.step.new_state());
+    assert_eq!(b.step.new_guided_state(1.0).guidance(), 1.0);
+    for pos in 0..4 {
+        let tokens = if pos == 0 { pad } else { case.tokens[pos - 1] };
+        let g: Vec<Vec<u32>> = b
+            .step
+            .step(&mut guided, tokens, pos, &case.text_emb)
+            .unwrap()
+            .iter()
+            .map(|l| l.iter().map(|x| x.to_bits()).collect())
+            .collect();
+        let n: Vec<Vec<u32>> = b
+            .step
+            .step(&mut null, tokens, pos, &zeros)
+            .unwrap()
+            .iter()
+            .map(|l| l.iter().map(|x| x.to_bits()).collect())
+            .collect();
+        assert_eq!(g, n, "step {pos}");
     }
 }
 

@@ -167,6 +167,8 @@ public:
     StreamConfig &top_k(uint32_t v) { raw_.top_k = v; return use(CG_USE_DEFAULT_TOP_K); }
     StreamConfig &min_len(uint32_t v) { raw_.min_len = v; return use(CG_USE_DEFAULT_MIN_LEN); }
     StreamConfig &max_len(uint32_t v) { raw_.max_len = v; return use(CG_USE_DEFAULT_MAX_LEN); }
+    /// Classifier-free guidance scale, >= 0 (1: the prompt alone).
+    StreamConfig &guidance(double v) { raw_.guidance = v; return use(CG_USE_DEFAULT_GUIDANCE); }
     /// Scene anchoring (engine coordinates): the character's ground point and heading.
     StreamConfig &character(const float (&position)[3], const float (&rotation)[4]) {
         std::copy(position, position + 3, raw_.character_position);

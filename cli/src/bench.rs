@@ -576,6 +576,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         top_k: Some(top_k),
         min_len: Some(steps as u32),
         max_len: Some(steps as u32),
+        guidance: None,
         raw_output: None,
         anchor: None,
         continue_from: None,

@@ -56,6 +56,10 @@ pub struct Args {
     /// End at N token steps at the latest (default: the bundle's).
     #[arg(long, value_name = "N")]
     max_len: Option<u32>,
+    /// Classifier-free guidance scale, >= 0; 1 = the prompt alone (default: the bundle's).
+    /// For a model trained with `train-gpt --text-dropout`; costs a second step per step.
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    guidance: Option<f64>,
     /// Coordinate system of the frames: native (z up, metres), gltf (y up), unity (y up,
     /// left-handed) or unreal (z up, left-handed, centimetres); default native, and gltf with
     /// --glb (another system conflicts with --glb).
@@ -304,6 +308,7 @@ fn options(a: Args) -> Result<Options, String> {
         top_k: a.top_k,
         min_len: a.min_len,
         max_len: a.max_len,
+        guidance: a.guidance,
         raw_output: a.raw.then_some(true),
         anchor: None,
         continue_from: None,

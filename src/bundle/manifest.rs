@@ -351,6 +351,14 @@ pub struct SamplingDefaults {
     /// "splitmix64".
     pub rng: String,
     pub stop: String,
+    /// Classifier-free guidance scale (DESIGN §4); 1 = the prompt alone, also for bundles
+    /// exported before guidance existed.
+    #[serde(default = "unguided")]
+    pub guidance: f64,
+}
+
+fn unguided() -> f64 {
+    1.0
 }
 
 /// Where the parity vectors are and how well onnxruntime matched PyTorch at export.

@@ -135,8 +135,11 @@ pub const CG_USE_DEFAULT_TOP_K: u32 = 1 << 2;
 pub const CG_USE_DEFAULT_MIN_LEN: u32 = 1 << 3;
 /// Set in `cg_stream_config.use_defaults`: ignore `max_len`.
 pub const CG_USE_DEFAULT_MAX_LEN: u32 = 1 << 4;
+/// Set in `cg_stream_config.use_defaults`: ignore `guidance` (version 3 of the struct; a
+/// shorter struct always takes the default).
+pub const CG_USE_DEFAULT_GUIDANCE: u32 = 1 << 5;
 /// All `CG_USE_DEFAULT_*` bits: every field takes the bundle's default.
-pub const CG_USE_DEFAULT_ALL: u32 = 0x1f;
+pub const CG_USE_DEFAULT_ALL: u32 = 0x3f;
 /// Set in `cg_stream_config.flags`: frames are the model's raw output, without the
 /// contact-consistency stage (the object may float or drift, a hand may hold empty air).
 pub const CG_STREAM_RAW_OUTPUT: u32 = 1 << 0;
@@ -202,6 +205,10 @@ pub struct cg_stream_config {
     /// heading and last pose, blended from over 15 frames; its object, resting or held).
     /// Excludes `anchor`.
     pub continue_from: u64,
+    /// Classifier-free guidance scale (version 3), finite and >= 0: how far each token's
+    /// logits are pushed from the null condition's towards the prompt's; 1 = the prompt
+    /// alone. For bundles trained with text dropout; costs a second token step per step.
+    pub guidance: f64,
 }
 
 /// Size of the first published version of each struct: the smallest `struct_size`
@@ -254,6 +261,7 @@ impl Default for cg_stream_config {
             object_position: [0.0; 3],
             object_rotation: [0.0, 0.0, 0.0, 1.0],
             continue_from: 0,
+            guidance: 1.0,
         }
     }
 }
@@ -465,12 +473,15 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
         ));
     }
     let set = |bit: u32| c.use_defaults & bit == 0;
+    // a host whose struct ends before `guidance` never set it, whatever its bits say
+    let has_guidance = c.struct_size as usize >= std::mem::offset_of!(cg_stream_config, guidance) + size_of::<f64>();
     Ok(StreamConfig {
         seed: set(CG_USE_DEFAULT_SEED).then_some(c.seed),
         temperature: set(CG_USE_DEFAULT_TEMPERATURE).then_some(c.temperature),
         top_k: set(CG_USE_DEFAULT_TOP_K).then_some(c.top_k),
         min_len: set(CG_USE_DEFAULT_MIN_LEN).then_some(c.min_len),
         max_len: set(CG_USE_DEFAULT_MAX_LEN).then_some(c.max_len),
+        guidance: (has_guidance && set(CG_USE_DEFAULT_GUIDANCE)).then_some(c.guidance),
         raw_output: (c.flags & CG_STREAM_RAW_OUTPUT != 0).then_some(true),
         anchor: anchor_from_c(&c)?,
         continue_from: (c.continue_from != 0).then_some(c.continue_from),
@@ -602,6 +613,14 @@ mod tests {
         assert_eq!(a.object.unwrap().position, [1.0, 2.0, 0.8]);
         c.struct_size = STREAM_CONFIG_V1_SIZE as u32;
         assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap().anchor, None);
+        // Version 3: guidance, taken only when its bit is clear and the struct reaches it.
+        c.struct_size = size_of::<cg_stream_config>() as u32;
+        c.guidance = 2.5;
+        assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap().guidance, None);
+        c.use_defaults &= !CG_USE_DEFAULT_GUIDANCE;
+        assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap().guidance, Some(2.5));
+        c.struct_size = std::mem::offset_of!(cg_stream_config, guidance) as u32;
+        assert_eq!(unsafe { stream_config_from_c(&c) }.unwrap().guidance, None);
         c.struct_size = size_of::<cg_stream_config>() as u32;
         for (anchor, reserved) in [(1 << 3, 0), (CG_ANCHOR_OBJECT, 1)] {
             (c.anchor, c.reserved) = (anchor, reserved);

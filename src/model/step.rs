@@ -20,6 +20,12 @@
 //! `RuntimeOptions::step_backend` (default `Auto` = native when the bundle has native
 //! weights) forces one, e.g. to benchmark both; [`StepModel::load_with`] takes just the
 //! backend.
+//!
+//! **Classifier-free guidance** ([`StepModel::new_guided_state`], DESIGN §4): a guided
+//! state runs every step twice, on the prompt and on the null condition (a zero text
+//! embedding, which `train-gpt --text-dropout` trains the model on), each with its own
+//! cache, and its logits are `u + scale * (c - u)` per element in f32. In a batch the null
+//! steps are members of their own, so their weights stream once with the others'.
 use std::sync::Arc;
 
 #[cfg(feature = "onnx")]
@@ -68,6 +74,8 @@ pub struct StepModel {
     head_dims: [usize; N_STREAMS],
     vocab: [usize; N_STREAMS],
     d_text: usize,
+    /// The null condition of classifier-free guidance: d_text zeros.
+    null_text: Vec<f32>,
 }
 
 // One per loaded model: a couple of hundred bytes inline is nothing, and boxing the tract
@@ -96,6 +104,15 @@ pub struct StepState {
     logits: [Vec<f32>; N_STREAMS],
     /// Slots 0..filled hold k/v rows.
     filled: usize,
+    /// Classifier-free guidance: the null condition's state (None: the prompt alone).
+    guide: Option<Box<Guide>>,
+}
+
+/// The second half of a guided state: the same steps on the null condition.
+struct Guide {
+    scale: f32,
+    imp: StateImp,
+    logits: [Vec<f32>; N_STREAMS],
 }
 
 // One per stream, made once (see `Imp`).
@@ -177,6 +194,7 @@ impl StepModel {
             head_dims: std::array::from_fn(|i| t.head_dims[i]),
             vocab: m.vocab_sizes(),
             d_text: t.d_text,
+            null_text: vec![0.0; t.d_text],
         })
     }
 
@@ -220,20 +238,39 @@ impl StepModel {
 
     /// A fresh state: zero cache, nothing filled.
     pub fn new_state(&self) -> StepState {
-        let imp = match &self.imp {
+        StepState {
+            owner: Arc::clone(&self.owner),
+            imp: self.new_imp(),
+            logits: self.zero_logits(),
+            filled: 0,
+            guide: None,
+        }
+    }
+
+    /// A fresh state whose steps are guided with `scale` (classifier-free guidance, see the
+    /// module doc; `SamplingParams::guidance` validates it): 1 is the prompt alone (a plain
+    /// state), 0 the null condition alone.
+    pub fn new_guided_state(&self, scale: f32) -> StepState {
+        let mut state = self.new_state();
+        if scale != 1.0 {
+            state.guide = Some(Box::new(Guide { scale, imp: self.new_imp(), logits: self.zero_logits() }));
+        }
+        state
+    }
+
+    fn new_imp(&self) -> StateImp {
+        match &self.imp {
             #[cfg(feature = "onnx")]
             Imp::Tract(t) => StateImp::Tract {
                 run: t.template_run.lock().clone(),
                 inputs: t.template_inputs.iter().map(|t| Arc::new(Tensor::clone(t))).collect(),
             },
             Imp::Native(n) => StateImp::Native(Box::new(n.new_state())),
-        };
-        StepState {
-            owner: Arc::clone(&self.owner),
-            imp,
-            logits: std::array::from_fn(|i| vec![0.0; self.vocab[i]]),
-            filled: 0,
         }
+    }
+
+    fn zero_logits(&self) -> [Vec<f32>; N_STREAMS] {
+        std::array::from_fn(|i| vec![0.0; self.vocab[i]])
     }
 
     /// Runs one step at position `pos` and returns the four logits vectors (global, body,
@@ -303,18 +340,35 @@ impl StepModel {
         text_emb: &[f32],
         solo: bool,
     ) -> Result<()> {
-        match (&self.imp, &mut state.imp) {
-            (Imp::Native(n), StateImp::Native(st)) if solo => n.step_solo(st, tokens, pos, text_emb, &mut state.logits),
-            (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, &mut state.logits),
+        self.run_imp(&mut state.imp, &mut state.logits, tokens, pos, text_emb, solo)?;
+        if let Some(g) = &mut state.guide {
+            self.run_imp(&mut g.imp, &mut g.logits, tokens, pos, &self.null_text, solo)?;
+            guide_logits(&mut state.logits, &g.logits, g.scale);
+        }
+        // Rows after `pos` (from an earlier, longer run) are stale now.
+        state.filled = pos + 1;
+        Ok(())
+    }
+
+    fn run_imp(
+        &self,
+        imp: &mut StateImp,
+        logits: &mut [Vec<f32>; N_STREAMS],
+        tokens: [i64; N_STREAMS],
+        pos: usize,
+        text_emb: &[f32],
+        solo: bool,
+    ) -> Result<()> {
+        match (&self.imp, imp) {
+            (Imp::Native(n), StateImp::Native(st)) if solo => n.step_solo(st, tokens, pos, text_emb, logits),
+            (Imp::Native(n), StateImp::Native(st)) => n.step(st, tokens, pos, text_emb, logits),
             #[cfg(feature = "onnx")]
             (Imp::Tract(t), StateImp::Tract { run, inputs }) => {
-                self.tract_step(t, run, inputs, &mut state.logits, tokens, pos, text_emb)?
+                self.tract_step(t, run, inputs, logits, tokens, pos, text_emb)?
             }
             #[cfg(feature = "onnx")]
             _ => return Err(Error::WrongState("this StepState belongs to another implementation".into())),
         }
-        // Rows after `pos` (from an earlier, longer run) are stale now.
-        state.filled = pos + 1;
         Ok(())
     }
 
@@ -324,13 +378,20 @@ impl StepModel {
     /// block read once for all jobs (`model::native::step::batch`); tract: one after the other.
     /// `scratch`: from [`batch_scratch`](Self::batch_scratch), for at least `jobs.count()`.
     pub(crate) fn step_batch_checked(&self, jobs: &mut dyn StepJobs, scratch: &mut StepScratch) -> Result<()> {
-        match (&self.imp, &mut scratch.0) {
+        match (&self.imp, &mut scratch.native) {
             (Imp::Native(n), Some(sc)) => {
-                n.step_batch(&mut NativeJobs(jobs), sc);
+                // guided jobs' null steps are members after the jobs (the scratch has room)
+                let guided = &mut scratch.guided;
+                guided.clear();
+                guided.extend((0..jobs.count()).filter(|&i| jobs.job(i).state.guide.is_some()));
+                n.step_batch(&mut NativeJobs { jobs: &mut *jobs, guided, null_text: &self.null_text }, sc);
                 for i in 0..jobs.count() {
                     let j = jobs.job(i);
                     // Rows after `pos` (from an earlier, longer run) are stale now.
                     j.state.filled = j.pos + 1;
+                    if let Some(g) = &j.state.guide {
+                        guide_logits(&mut j.state.logits, &g.logits, g.scale);
+                    }
                 }
             }
             (Imp::Native(_), None) => return Err(Error::WrongState("step scratch of another model".into())),
@@ -346,13 +407,17 @@ impl StepModel {
         Ok(())
     }
 
-    /// Scratch for batched steps of up to `cap` jobs (allocated here, once).
+    /// Scratch for batched steps of up to `cap` jobs, guided or not (allocated here, once).
     pub(crate) fn batch_scratch(&self, cap: usize) -> StepScratch {
-        StepScratch(match &self.imp {
-            Imp::Native(n) => Some(n.batch_scratch(cap)),
-            #[cfg(feature = "onnx")]
-            Imp::Tract(_) => None,
-        })
+        StepScratch {
+            native: match &self.imp {
+                // a guided job is two members
+                Imp::Native(n) => Some(n.batch_scratch(2 * cap)),
+                #[cfg(feature = "onnx")]
+                Imp::Tract(_) => None,
+            },
+            guided: Vec::with_capacity(cap),
+        }
     }
 
     #[cfg(feature = "onnx")]
@@ -410,8 +475,22 @@ pub(crate) struct StepJob<'a> {
     pub(crate) text_emb: &'a [f32],
 }
 
-/// A batched step's buffers ([`StepModel::batch_scratch`]; none on tract).
-pub(crate) struct StepScratch(Option<BatchScratch>);
+/// A batched step's buffers ([`StepModel::batch_scratch`]; none on tract) and the indices
+/// of its guided jobs.
+pub(crate) struct StepScratch {
+    native: Option<BatchScratch>,
+    guided: Vec<usize>,
+}
+
+/// Classifier-free guidance: `cond <- u + scale * (cond - u)` per element in f32, each
+/// operation rounded (Rust contracts no multiply-add), as `sampling.guide_logits`.
+fn guide_logits(cond: &mut [Vec<f32>; N_STREAMS], null: &[Vec<f32>; N_STREAMS], scale: f32) {
+    for (c, u) in cond.iter_mut().zip(null) {
+        for (c, &u) in c.iter_mut().zip(u) {
+            *c = u + scale * (*c - u);
+        }
+    }
+}
 
 /// The jobs of a batched step, by index (the caller keeps them in its own structures).
 pub(crate) trait StepJobs {
@@ -419,17 +498,29 @@ pub(crate) trait StepJobs {
     fn job(&mut self, i: usize) -> StepJob<'_>;
 }
 
-/// Checked jobs of a native model as the native batch's members.
-struct NativeJobs<'j>(&'j mut dyn StepJobs);
+/// Checked jobs of a native model as the native batch's members: the jobs, then the null
+/// steps of the guided ones (`guided`: their job indices).
+struct NativeJobs<'j> {
+    jobs: &'j mut dyn StepJobs,
+    guided: &'j [usize],
+    null_text: &'j [f32],
+}
 
 impl Members for NativeJobs<'_> {
     fn count(&self) -> usize {
-        self.0.count()
+        self.jobs.count() + self.guided.len()
     }
 
     fn member(&mut self, i: usize) -> Member<'_> {
-        let StepJob { state, tokens, pos, text_emb } = self.0.job(i);
-        let StepState { imp, logits, .. } = state;
+        let n = self.jobs.count();
+        let null = i >= n;
+        let StepJob { state, tokens, pos, text_emb } = self.jobs.job(if null { self.guided[i - n] } else { i });
+        let (imp, logits, text_emb) = match (null, &mut state.guide) {
+            (true, Some(g)) => (&mut g.imp, &mut g.logits, self.null_text),
+            // `guided` lists only jobs with a guide
+            (true, None) => unreachable!("a null member of an unguided job"),
+            (false, _) => (&mut state.imp, &mut state.logits, text_emb),
+        };
         match imp {
             StateImp::Native(st) => Member { st, logits, tokens, pos, text_emb },
             // `check` (the same model made the state) rules this out
@@ -442,17 +533,17 @@ impl Members for NativeJobs<'_> {
 impl StepState {
     /// Starts a new generation: zero cache, nothing filled (no allocation).
     pub fn reset(&mut self) -> Result<()> {
-        match &mut self.imp {
-            #[cfg(feature = "onnx")]
-            StateImp::Tract { inputs, .. } => {
-                for t in inputs.iter_mut() {
-                    graph::fill_zero(t)?;
-                }
-            }
-            StateImp::Native(st) => st.reset(),
+        reset_imp(&mut self.imp)?;
+        if let Some(g) = &mut self.guide {
+            reset_imp(&mut g.imp)?;
         }
         self.filled = 0;
         Ok(())
+    }
+
+    /// The classifier-free guidance scale of this state (1 = unguided).
+    pub fn guidance(&self) -> f32 {
+        self.guide.as_ref().map_or(1.0, |g| g.scale)
     }
 
     /// The logits of the last step (zeros before the first).
@@ -464,6 +555,19 @@ impl StepState {
     pub fn filled(&self) -> usize {
         self.filled
     }
+}
+
+fn reset_imp(imp: &mut StateImp) -> Result<()> {
+    match imp {
+        #[cfg(feature = "onnx")]
+        StateImp::Tract { inputs, .. } => {
+            for t in inputs.iter_mut() {
+                graph::fill_zero(t)?;
+            }
+        }
+        StateImp::Native(st) => st.reset(),
+    }
+    Ok(())
 }
 
 #[allow(dead_code)]

@@ -95,6 +95,7 @@ int main(void) {
     OFF(cg_stream_config, object_position);
     OFF(cg_stream_config, object_rotation);
     OFF(cg_stream_config, continue_from);
+    OFF(cg_stream_config, guidance);
 
     SIZE(cg_stream_info);
     OFF(cg_stream_info, stream_id);

@@ -2,6 +2,7 @@
 batched generation loop."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -219,16 +220,16 @@ def test_guidance_combines_conditioned_and_null_logits(tiny_model):
     text = torch.randn(3, CFG.d_text, generator=torch.Generator().manual_seed(4))
     params = SamplingParams(temperature=1.0, min_len=4, max_len=12)
     null = generate(tiny_model, torch.zeros_like(text), params, seed=5)
-    zero = generate(tiny_model, text, params, seed=5, guidance=0.0)
+    zero = generate(tiny_model, text, replace(params, guidance=0.0), seed=5)
     assert torch.equal(zero.tokens, null.tokens) and torch.equal(zero.lengths, null.lengths)
     plain = generate(tiny_model, text, params, seed=5)
-    strong = generate(tiny_model, text, params, seed=5, guidance=3.0)
+    strong = generate(tiny_model, text, replace(params, guidance=3.0), seed=5)
     assert not torch.equal(strong.tokens[:, :4], plain.tokens[:, :4])
-    nocache = generate(tiny_model, text, params, seed=5, guidance=3.0, use_cache=False)
+    nocache = generate(tiny_model, text, replace(params, guidance=3.0), seed=5, use_cache=False)
     assert torch.equal(strong.tokens, nocache.tokens)
 
-    greedy = SamplingParams(temperature=0.0, min_len=6, max_len=6)
-    got = generate(tiny_model, text[:1], greedy, guidance=2.5).tokens[0]
+    greedy = SamplingParams(temperature=0.0, min_len=6, max_len=6, guidance=2.5)
+    got = generate(tiny_model, text[:1], greedy).tokens[0]
     seq = torch.zeros((1, 0, 4), dtype=torch.long)
     for _ in range(6):
         with torch.no_grad():
@@ -250,6 +251,6 @@ def test_guide_logits_rules():
     assert guide_logits(c, u, 0.0).tolist() == u.tolist()
     g = guide_logits(c, u, 3.0)
     assert g.dtype == np.float32 and g.tolist() == [[2.0, -8.0, 0.5]]
-    for bad in (-1.0, float("nan"), float("inf")):
+    for bad in (-1.0, float("nan"), float("inf"), 1e39):
         with pytest.raises(ValueError, match="guidance"):
-            generate(ComGraspTransformer(CFG), torch.zeros(1, CFG.d_text), SamplingParams(), guidance=bad)
+            SamplingParams(guidance=bad)

@@ -78,7 +78,8 @@ USE_DEFAULT_TEMPERATURE = 1 << 1
 USE_DEFAULT_TOP_K = 1 << 2
 USE_DEFAULT_MIN_LEN = 1 << 3
 USE_DEFAULT_MAX_LEN = 1 << 4
-USE_DEFAULT_ALL = 31
+USE_DEFAULT_GUIDANCE = 1 << 5
+USE_DEFAULT_ALL = 63
 # cg_stream_config.flags
 STREAM_RAW_OUTPUT = 1 << 0
 #: A position (x, y, z) and a unit quaternion (x, y, z, w) for scene anchoring.
@@ -217,6 +218,7 @@ class CgStreamConfig(ctypes.Structure):
         ("object_position", ctypes.c_float * 3),
         ("object_rotation", ctypes.c_float * 4),
         ("continue_from", ctypes.c_uint64),
+        ("guidance", ctypes.c_double),
     ]
 
 
@@ -654,19 +656,21 @@ class Engine(_Owned):
               temperature: Optional[float] = None, top_k: Optional[int] = None,
               min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False,
               character: Optional[Placement] = None, object: Optional[Placement] = None,
-              place_character: bool = False, continue_from: Optional[int] = None) -> Stream:
+              place_character: bool = False, continue_from: Optional[int] = None,
+              guidance: Optional[float] = None) -> Stream:
         """Starts a stream for ``text`` (str, or UTF-8 bytes) and returns at once. Unset
         sampling options keep the bundle's defaults. ``None`` text is passed as NULL.
         ``raw_output``: the model's frames without the contact-consistency stage.
         Scene anchoring, each a ``(position xyz, rotation xyzw)`` pair in the engine's
         coordinate system: ``character`` (ground point and heading), ``object`` (start pose;
         reached for), ``place_character`` (with ``object`` only: the character comes to it).
-        ``continue_from``: the id of an ended stream to continue from (its pose, place and object)."""
+        ``continue_from``: the id of an ended stream to continue from (its pose, place and object).
+        ``guidance``: classifier-free guidance scale (1: the prompt alone)."""
         cfg = CgStreamConfig()
         self._lib.cg_stream_config_init_sized(ctypes.byref(cfg), ctypes.sizeof(cfg))
         for name, value, bit in (("seed", seed, USE_DEFAULT_SEED), ("temperature", temperature, USE_DEFAULT_TEMPERATURE),
                                  ("top_k", top_k, USE_DEFAULT_TOP_K), ("min_len", min_len, USE_DEFAULT_MIN_LEN),
-                                 ("max_len", max_len, USE_DEFAULT_MAX_LEN)):
+                                 ("max_len", max_len, USE_DEFAULT_MAX_LEN), ("guidance", guidance, USE_DEFAULT_GUIDANCE)):
             if value is not None:
                 setattr(cfg, name, value)
                 cfg.use_defaults &= ~bit

@@ -246,7 +246,8 @@ namespace ComGrasp
         public const uint UseDefaultTopK = 1u << 2;
         public const uint UseDefaultMinLen = 1u << 3;
         public const uint UseDefaultMaxLen = 1u << 4;
-        public const uint UseDefaultAll = 31;
+        public const uint UseDefaultGuidance = 1u << 5;
+        public const uint UseDefaultAll = 63;
 
         public uint StructSize;
         public uint UseDefaults;
@@ -275,6 +276,8 @@ namespace ComGrasp
         public fixed float ObjectRotation[4];
         /// <summary>Non-zero: continue the ended stream with this id (its pose, place and object).</summary>
         public ulong ContinueFrom;
+        /// <summary>Classifier-free guidance scale, >= 0 (1: the prompt alone).</summary>
+        public double Guidance;
     }
 
     /// <summary>struct cg_subscriber_config. Fill with cg_subscriber_config_init before changing fields.</summary>
@@ -693,6 +696,8 @@ namespace ComGrasp
         public bool PlaceCharacter;
         /// <summary>Continue from the ended stream with this id (ComGraspStream.Id): its pose, place and object.</summary>
         public ulong? ContinueFrom;
+        /// <summary>Classifier-free guidance scale, >= 0 (1: the prompt alone). Null: the bundle's default.</summary>
+        public double? Guidance;
     }
 
     /// <summary>A loaded model bundle (cg_engine). Create once (it takes a fraction of a second),
@@ -780,6 +785,7 @@ namespace ComGrasp
             if (options.TopK.HasValue) { cfg.TopK = options.TopK.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultTopK; }
             if (options.MinLen.HasValue) { cfg.MinLen = options.MinLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMinLen; }
             if (options.MaxLen.HasValue) { cfg.MaxLen = options.MaxLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMaxLen; }
+            if (options.Guidance.HasValue) { cfg.Guidance = options.Guidance.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultGuidance; }
             if (options.RawOutput) { cfg.Flags |= CgStreamConfig.FlagRawOutput; }
             if (options.CharacterPosition.HasValue)
             {

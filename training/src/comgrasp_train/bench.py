@@ -128,7 +128,8 @@ def sampling(manifest: dict, steps: int, temperature: float | None, top_k: int |
 
     d = manifest["sampling"]
     return SamplingParams(temperature=d["temperature"] if temperature is None else temperature,
-                          top_k=d["top_k"] if top_k is None else top_k, min_len=steps, max_len=steps)
+                          top_k=d["top_k"] if top_k is None else top_k, min_len=steps, max_len=steps,
+                          guidance=d.get("guidance", 1.0))
 
 
 class _WarmupDone(Exception):

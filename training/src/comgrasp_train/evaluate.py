@@ -97,8 +97,7 @@ def prompt_for(fs: FeatureSet, i: int, prompts: str = "template") -> str:
 
 def evaluate_generation(model, fs: FeatureSet, repeats: int = 3, params: SamplingParams = SamplingParams(),
                         seed: int = 0, body=None, cfg=MetricConfig(), limit: int | None = None,
-                        batch: int = 32, prompts: str = "template", outputs=("raw",),
-                        guidance: float = 1.0) -> dict[str, list[list[dict]]]:
+                        batch: int = 32, prompts: str = "template", outputs=("raw",)) -> dict[str, list[list[dict]]]:
     """Generation from each test sequence's prompt (``prompt_for``), ``repeats`` seeds; the
     prompt checks read the sequence's own intent, hand(s) and object (``intent_of``). Rows
     per output (the same samples), then per repeat."""
@@ -110,7 +109,7 @@ def evaluate_generation(model, fs: FeatureSet, repeats: int = 3, params: Samplin
         rows = {o: [] for o in outputs}
         for a in range(0, n, batch):
             idx = range(a, min(n, a + batch))
-            preds = model.generate([texts[i] for i in idx], params, seed=seed + 100_003 * r + a, guidance=guidance)
+            preds = model.generate([texts[i] for i in idx], params, seed=seed + 100_003 * r + a)
             for p, i in zip(preds, idx):
                 meta, rest = fs.meta[i], fs.rest_joints[i]
                 for o, pred in outputs_of(p, meta, rest, fs.fps, outputs).items():

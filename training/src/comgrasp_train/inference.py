@@ -51,8 +51,7 @@ class MotionModel:
         return self.normalizer.denormalize(x.cpu().numpy().astype(np.float32))
 
     @torch.no_grad()
-    def generate(self, texts: list[str], params: SamplingParams = SamplingParams(), seed: int = 0,
-                 guidance: float = 1.0) -> list[np.ndarray]:
+    def generate(self, texts: list[str], params: SamplingParams = SamplingParams(), seed: int = 0) -> list[np.ndarray]:
         emb = self.encoder.encode(texts).to(self.device)
-        out = generate(self.gpt, emb, params, seed, guidance=guidance)
+        out = generate(self.gpt, emb, params, seed)
         return [self.decode(out.tokens[b], int(out.lengths[b])) for b in range(len(texts))]

@@ -29,7 +29,8 @@ def _device(args) -> str:
 def _sampling(args):
     from ..models.sampling import SamplingParams
 
-    return SamplingParams(temperature=args.temperature, top_k=args.top_k, min_len=args.min_len, max_len=args.max_len)
+    return SamplingParams(temperature=args.temperature, top_k=args.top_k, min_len=args.min_len, max_len=args.max_len,
+                          guidance=args.guidance)
 
 
 def _time_limit(args):
@@ -91,7 +92,7 @@ def cmd_generate(args) -> int:
     from ..skeleton import DEFAULT_REST_JOINTS
 
     model = MotionModel.load(Path(args.vq), Path(args.gpt), _device(args))
-    frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed, guidance=args.guidance)
+    frames = model.generate([args.text] * args.n, _sampling(args), seed=args.seed)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rest = torch.from_numpy(DEFAULT_REST_JOINTS)
@@ -140,7 +141,7 @@ def cmd_evaluate(args) -> int:
             fake_quantize_bundle_int8(model.vq, model.gpt)
         for prompts in args.prompts.split(","):
             by_output = evaluate_generation(model, fs, repeats=args.repeats, params=_sampling(args), seed=args.seed,
-                                            prompts=prompts, outputs=outputs, guidance=args.guidance)
+                                            prompts=prompts, outputs=outputs)
             for o, reps in by_output.items():
                 name = "generation" if prompts == "template" else f"generation, {prompts.replace('_', '-')} prompts"
                 name += named[o]
@@ -187,12 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
                            help="as --time-budget, with the seconds left at this wall-clock time (`date +%%s`) "
                                 "once loading is done: loading counts against it")
 
-    def guidance(sp):
-        sp.add_argument("--guidance", type=float, default=1.0,
-                        help="classifier-free guidance scale (1: off); for a GPT trained with --text-dropout; "
-                             "PyTorch only, the engine does not run it yet")
-
     def sampling(sp):
+        sp.add_argument("--guidance", type=float, default=1.0,
+                        help="classifier-free guidance scale (1: off), for a GPT trained with --text-dropout; "
+                             "export writes it as the bundle's default")
         sp.add_argument("--temperature", type=float, default=1.0)
         sp.add_argument("--top-k", type=int, default=0)
         sp.add_argument("--min-len", type=int, default=2)
@@ -242,7 +241,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--text", required=True)
     s.add_argument("--out", required=True)
     s.add_argument("--n", type=int, default=1)
-    guidance(s)
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_generate)
@@ -267,7 +265,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rows", action="store_true",
                    help="also write every sequence's metrics to OUT's stem + .rows.json (same order, same seeds)")
     s.add_argument("--out", required=True)
-    guidance(s)
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_evaluate)

@@ -562,7 +562,7 @@ def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None,
     step_prompts = [c["prompt"] for c in index["step"]]
     s = m["sampling"]
     params = SamplingParams(temperature=s["temperature"], top_k=s["top_k"], min_len=s["min_len"],
-                            max_len=s["max_len"])
+                            max_len=s["max_len"], guidance=s.get("guidance", 1.0))
     normalizer = Normalizer(np.asarray(m["normalization"]["mean"], np.float32),
                             np.asarray(m["normalization"]["std"], np.float32))
 

@@ -7,7 +7,7 @@ Everything lives under ``parity/`` as ``.npy`` files (little-endian, C order) de
      "files": [{"path": "parity/step/case0_tokens.npy", "dtype": "int64", "shape": [7, 4],
                 "tolerance": 0.0, "what": "..."}, ...],      # tolerance: max abs diff, 0 = exact
      "text":   {"cases": "parity/text/cases.json"},          # written by export_text_encoder
-     "step":   [{"prompt", "seed", "sampling", "length", "greedy_length", "logit_steps", "files"}],
+     "step":   [{"prompt", "seed", "sampling", "length", "greedy_length", "logit_steps", "guided", "files"}],
      "decode": [{"from_step_case", "n_tokens", "files"}],
      "rng":    {"seed", "files"}}
 
@@ -19,7 +19,8 @@ Paths are relative to the bundle root (the keys of the manifest's ``files`` tabl
   ``logits_<stream>`` (n, V_s): the logits of steps 0..n-1 from the teacher-forced PyTorch
   forward over the sampled codes (n = min(N, length + 1)); ``tokens`` (length, 4): the codes
   sampled with the bundle's default sampling params and seed; ``greedy_tokens``: the same
-  with temperature 0. Lengths are in the case entry.
+  with temperature 0; ``guided_greedy_tokens``: temperature 0 with classifier-free guidance
+  at ``GUIDED_PARITY_SCALE`` (the case's ``guided``: scale and length). Lengths are in the case entry.
 * decode: ``tokens`` (n, 4) of step case 0 -> ``frames_offline`` (n*F, 335) normalized,
   from ``ComponentVQ.decode`` of the whole sequence; ``frames_stream`` (n*F, 335) from the
   PyTorch streaming step, token by token; ``frames_denormalized`` = frames_offline * std +
@@ -36,13 +37,14 @@ from __future__ import annotations
 import copy
 import json
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..models.gpt_configs import STREAMS
-from ..models.sampling import SamplingParams, SplitMix64, generate, run_sampling_loop
+from ..models.sampling import SamplingParams, SplitMix64, generate, guide_logits, run_sampling_loop
 from .decoder_graph import STREAM_TOLERANCE, check_decoder_onnx
 from .step_graph import OnnxStepRunner
 
@@ -52,6 +54,8 @@ TOL_STATES = 1e-4
 TOL_LOGITS = 1e-4
 TOL_FRAMES = STREAM_TOLERANCE
 DEFAULT_STEP_PROMPTS: tuple[str, ...] = ("A woman drinks from the mug.", "The man lifts a small cube.")
+# The classifier-free guidance scale of the guided greedy parity case, whatever the bundle's default.
+GUIDED_PARITY_SCALE = 2.0
 
 
 class ParityError(RuntimeError):
@@ -105,12 +109,16 @@ def _teacher_forced_logits(gpt, emb: torch.Tensor, tokens: torch.Tensor, n: int)
 
 
 def _onnx_generation(step_path, cfg, emb: np.ndarray, params: SamplingParams, seed: int, n: int):
-    """Generate through the ONNX step graph; also return the logits of its first n steps."""
+    """Generate through the ONNX step graph (guided: a second runner on the null
+    condition, as the engine does); also return the logits of its first n steps."""
     runner = OnnxStepRunner(step_path, cfg, emb)
+    null = OnnxStepRunner(step_path, cfg, np.zeros_like(emb)) if params.guidance != 1.0 else None
     seen: list[list[np.ndarray]] = []
 
     def step_fn(tokens, k):
         out = runner.step_fn(tokens, k)
+        if null is not None:
+            out = [guide_logits(c, u, params.guidance) for c, u in zip(out, null.step_fn(tokens, k))]
         if k < n:
             seen.append([o[0] for o in out])
         return out
@@ -125,18 +133,23 @@ def write_step_parity(w: ParityWriter, gpt, encoder, step_path: str | Path, para
     """Step cases (see module doc) from a CPU float32 ``gpt``. Returns (cases, measured
     diffs, per-case sampled codes (length, 4))."""
     cfg = gpt.cfg
+    # greedy: unguided; guided: greedy at GUIDED_PARITY_SCALE
     greedy = SamplingParams(0.0, 0, params.min_len, params.max_len)
+    guided = replace(greedy, guidance=GUIDED_PARITY_SCALE)
     cases, codes, max_logit = [], [], 0.0
     for k, prompt in enumerate(prompts):
         emb = encoder.encode([prompt]).to(torch.float32).cpu()
         gen = generate(gpt, emb, params, seed=seed)
         ref_greedy = generate(gpt, emb, greedy, seed=seed)
+        ref_guided = generate(gpt, emb, guided, seed=seed)
         length = int(gen.lengths[0])
         n = min(n_logit_steps, length + 1)
         logits = _teacher_forced_logits(gpt, emb, gen.tokens, n)
         onnx_gen, onnx_logits = _onnx_generation(step_path, cfg, emb.numpy(), params, seed, n)
         onnx_greedy, _ = _onnx_generation(step_path, cfg, emb.numpy(), greedy, seed, 0)
-        for name, ref, got in (("sampled", gen, onnx_gen), ("greedy", ref_greedy, onnx_greedy)):
+        onnx_guided, _ = _onnx_generation(step_path, cfg, emb.numpy(), guided, seed, 0)
+        for name, ref, got in (("sampled", gen, onnx_gen), ("greedy", ref_greedy, onnx_greedy),
+                               ("guided greedy", ref_guided, onnx_guided)):
             if not (torch.equal(ref.lengths, got.lengths) and torch.equal(ref.tokens, got.tokens)):
                 raise ParityError(f"step.onnx gives other {name} tokens than PyTorch for {prompt!r} "
                                   f"(lengths {got.lengths.tolist()} vs {ref.lengths.tolist()})")
@@ -156,9 +169,13 @@ def write_step_parity(w: ParityWriter, gpt, encoder, step_path: str | Path, para
                                 f"step case {k}: codes sampled with the default sampling params, seed {seed}")
         files["greedy_tokens"] = w.add(f"{d}_greedy_tokens.npy", gseq.reshape(-1, len(STREAMS)), 0.0,
                                        f"step case {k}: codes with temperature 0 (greedy)")
+        guided_len = int(ref_guided.lengths[0])
+        files["guided_greedy_tokens"] = w.add(
+            f"{d}_guided_greedy_tokens.npy", ref_guided.tokens[0, :guided_len].numpy().astype(np.int64).reshape(-1, 4),
+            0.0, f"step case {k}: codes with temperature 0 and classifier-free guidance {GUIDED_PARITY_SCALE}")
         cases.append({"prompt": prompt, "seed": int(seed), "sampling": sampling_dict(params, cfg.l_max),
                       "length": length, "greedy_length": int(ref_greedy.lengths[0]), "logit_steps": n,
-                      "files": files})
+                      "guided": {"scale": GUIDED_PARITY_SCALE, "length": guided_len}, "files": files})
         codes.append(seq)
     return cases, {"step_logits": max_logit}, codes
 
@@ -207,7 +224,8 @@ def write_rng_parity(w: ParityWriter, seed: int, n: int = 8) -> dict:
 def sampling_dict(params: SamplingParams, l_max: int) -> dict:
     """The sampling parameters as plain JSON numbers (max_len resolved against L_max)."""
     return {"temperature": float(params.temperature), "top_k": int(params.top_k),
-            "min_len": int(params.min_len), "max_len": int(params.resolved_max_len(l_max))}
+            "min_len": int(params.min_len), "max_len": int(params.resolved_max_len(l_max)),
+            "guidance": float(params.guidance)}
 
 
 def write_parity(root: str | Path, *, gpt, vq, encoder, normalizer, step_path, decoder_path,

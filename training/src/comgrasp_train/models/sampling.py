@@ -43,11 +43,11 @@ exp_det(d) for d <= 0 (d = z - m):
 with the constants below (repr round-trips, so Rust float literals give the same bits).
 exp_det(0) == 1.0 exactly, so total >= 1. Relative error vs exp is ~1e-16.
 
-Classifier-free guidance (`generate(..., guidance=s)`, s != 1; PyTorch only so far, the
-engine and the bundle do not carry it yet): every step also runs the model on the null
-condition (a zero text embedding, what `train-gpt --text-dropout` trains on) with its own
-cache and the same tokens, and the logits handed to rule 1 are, per element in float32,
-u + s * (c - u) (c: with the text, u: null; each operation rounded, no fused multiply-add).
+Classifier-free guidance (`SamplingParams.guidance` = s, s != 1): every step also runs the
+model on the null condition (a zero text embedding, what `train-gpt --text-dropout` trains
+on) with its own cache and the same tokens, and the logits handed to rule 1 are, per
+element in float32, u + s32 * (c - u) (c: with the text, u: null, s32: s rounded to
+float32; each operation rounded, no fused multiply-add). s = 1 is the text alone: one pass.
 
 Sequence end (in `generate`): all four streams share one length; generation stops for
 a sequence at the first step k where any stream samples End; its length is k (the
@@ -129,17 +129,22 @@ def exp_det(d: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class SamplingParams:
     """temperature 0 = greedy; top_k 0 = off; End forbidden at steps k < min_len and
-    forced at k == max_len (None = the model's L_max). Serialized into the manifest."""
+    forced at k == max_len (None = the model's L_max); guidance: the classifier-free
+    guidance scale (module docstring), 1 = off. Serialized into the manifest."""
 
     temperature: float = 1.0
     top_k: int = 0
     min_len: int = 0
     max_len: int | None = None
+    guidance: float = 1.0
 
     def __post_init__(self) -> None:
         t = float(self.temperature)
         if not (t == 0.0 or MIN_TEMPERATURE <= t < float("inf")):
             raise ValueError(f"temperature must be 0 or >= {MIN_TEMPERATURE}, got {t}")
+        g = float(self.guidance)
+        if not (0.0 <= g <= float(np.finfo(np.float32).max)):  # finite in float32 (NaN fails too)
+            raise ValueError(f"guidance must be finite and >= 0, got {g}")
         if self.top_k < 0 or self.min_len < 0 or (self.max_len is not None and self.max_len < 0):
             raise ValueError("top_k, min_len and max_len must be >= 0")
 
@@ -262,17 +267,15 @@ def guide_logits(cond: np.ndarray, uncond: np.ndarray, scale: float) -> np.ndarr
 
 @torch.no_grad()
 def generate(model, text_emb: torch.Tensor, params: SamplingParams = SamplingParams(),
-             seed: int | Sequence[int] = 0, use_cache: bool = True, guidance: float = 1.0) -> Generation:
+             seed: int | Sequence[int] = 0, use_cache: bool = True) -> Generation:
     """Batched generation from text embeddings (B, d_text) on the model's device.
 
     use_cache=False re-runs the full forward pass over the prefix at every step (the
     benchmark's no-cache reference); both paths feed the same sampler and loop.
-    guidance: classifier-free guidance scale (module docstring); 1 = the text alone.
     """
-    if not (np.isfinite(guidance) and guidance >= 0.0):
-        raise ValueError(f"guidance must be finite and >= 0, got {guidance}")
     cfg = model.cfg
     batch, device = text_emb.shape[0], text_emb.device
+    guidance = params.guidance
     guided = guidance != 1.0
     if guided:  # elements B..2B-1: the same sequences on the null condition
         text_emb = torch.cat([text_emb, torch.zeros_like(text_emb)])
