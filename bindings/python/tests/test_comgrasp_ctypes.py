@@ -138,6 +138,8 @@ def test_iteration_ids_and_determinism():
             for x, y in zip(fa, fb):
                 assert x.stream_id == a.id and y.stream_id == b.id
                 assert bytes(x)[8:] == bytes(y)[8:]  # all but the stream id
+        with e.start("The man lifts a small cube.", guidance=2.0, **opts) as g:  # classifier-free guidance
+            assert [bytes(x)[8:] for x in g] != [bytes(x)[8:] for x in fa]
 
 
 def test_raw_output_flag():
@@ -226,6 +228,9 @@ def test_errors():
         e = raises(eng.start, "a" * (cg.MAX_TEXT_BYTES + 1))
         assert e.status == Status.ERR_INVALID_ARGUMENT and "4096" in e.message
         assert raises(eng.start, "a mug", max_len=0).status == Status.ERR_INVALID_ARGUMENT
+        for g in (-1.0, float("nan"), float("inf")):
+            e = raises(eng.start, "a mug", guidance=g)
+            assert e.status == Status.ERR_INVALID_ARGUMENT and "guidance" in e.message
 
         lib = cg.load()
         msg = lib.cg_last_error()
