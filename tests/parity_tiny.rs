@@ -231,23 +231,13 @@ fn guidance_zero_is_the_null_condition_and_one_is_plain() {
     let zeros = vec![0.0f32; case.text_emb.len()];
     let (mut guided, mut null) = (b.step.new_guided_state(0.0), b.step.new_state());
     assert_eq!(b.step.new_guided_state(1.0).guidance(), 1.0);
+    let bits = |state: &mut StepState, tokens, pos, emb: &[f32]| -> Vec<Vec<u32>> {
+        let logits = b.step.step(state, tokens, pos, emb).unwrap();
+        logits.iter().map(|l| l.iter().map(|x| x.to_bits()).collect()).collect()
+    };
     for pos in 0..4 {
         let tokens = if pos == 0 { pad } else { case.tokens[pos - 1] };
-        let g: Vec<Vec<u32>> = b
-            .step
-            .step(&mut guided, tokens, pos, &case.text_emb)
-            .unwrap()
-            .iter()
-            .map(|l| l.iter().map(|x| x.to_bits()).collect())
-            .collect();
-        let n: Vec<Vec<u32>> = b
-            .step
-            .step(&mut null, tokens, pos, &zeros)
-            .unwrap()
-            .iter()
-            .map(|l| l.iter().map(|x| x.to_bits()).collect())
-            .collect();
-        assert_eq!(g, n, "step {pos}");
+        assert_eq!(bits(&mut guided, tokens, pos, &case.text_emb), bits(&mut null, tokens, pos, &zeros), "step {pos}");
     }
 }
 
