@@ -10,6 +10,8 @@
 #   VQ_STOP=         pause the VQ at this step (checkpointed; rerun without it to continue)
 #   GPT_ITERS=3000   Transformer steps (batch 64); the lowest validation NLL is kept (best.pt)
 #   GPT_STOP=        pause the GPT at this step
+#   TEXT_DROPOUT=0.1 share of GPT training sequences on the null condition (classifier-free guidance)
+#   GUIDANCE=1       the bundle's default guidance scale (pick it with scripts/sampling_sweep.py)
 #   WIDTH=0.5        VQ conv widths x this (0.5: global 128, body 256, hands 192)
 #   WORKERS=2        processes for synth and prepare
 #   bash scripts/train_default.sh            # CPU or the first CUDA device
@@ -20,6 +22,8 @@ SEQS=${SEQS:-3000}
 PARAPHRASES=${PARAPHRASES:-16}
 VQ_ITERS=${VQ_ITERS:-2400}
 GPT_ITERS=${GPT_ITERS:-3000}
+TEXT_DROPOUT=${TEXT_DROPOUT:-0.1}
+GUIDANCE=${GUIDANCE:-1}
 WIDTH=${WIDTH:-0.5}
 WORKERS=${WORKERS:-2}
 DATA=${DATA:-data/sg$SEQS}
@@ -28,15 +32,16 @@ OUT=${OUT:-models/default}
 [ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
 mkdir -p "$RUN"
 [ -f $DATA/synthgrasp_index.json ] || $P/comgrasp-data -q synth --out $DATA --sequences "$SEQS" --seed 1 --workers "$WORKERS"
-[ -f ${DATA}_prep/stats.npz ] || $P/comgrasp-data -q prepare $DATA --out ${DATA}_prep --split synthgrasp --hands \
+# prepare.json is written last: a prepare cut short runs again
+[ -f ${DATA}_prep/prepare.json ] || $P/comgrasp-data -q prepare $DATA --out ${DATA}_prep --split synthgrasp --hands \
   --paraphrases "$PARAPHRASES" --workers "$WORKERS"
 $P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small --width-scale "$WIDTH" \
   --window 64 --batch 64 --iters "$VQ_ITERS" --lr 1e-3 --lambda-joint 10 --ckpt-every 100 \
   ${VQ_STOP:+--stop-after "$VQ_STOP"}
 [ -z "${VQ_STOP:-}" ] || exit 0
 $P/comgrasp-train -q train-gpt --data ${DATA}_prep --vq $RUN/vq --out $RUN/gpt --preset small \
-  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8-tok4 \
+  --iters "$GPT_ITERS" --batch 64 --lr 3e-4 --ckpt-every 200 --text-weights int8-tok4 --text-dropout "$TEXT_DROPOUT" \
   ${GPT_STOP:+--stop-after "$GPT_STOP"}
 [ -z "${GPT_STOP:-}" ] || exit 0
-$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights --native-text
+$P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights --native-text --guidance "$GUIDANCE"
 RUN=$RUN DATA=${DATA}_prep BUNDLE=$OUT OUT=$RUN/eval bash scripts/quality_report.sh

@@ -22,6 +22,8 @@
 #   PY=python3 with torch and this package importable; WORK=scratch folder; PACK=output folder
 #   SEQS_VQ=800 SEQS=3000 PARAPHRASES=16 WORKERS=$(nproc) WIDTH=0.5
 #   VQ_SECONDS=210 VQ_BATCH=256 VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520
+#   TEXT_DROPOUT=0.1 (train-gpt --text-dropout: the null condition of classifier-free
+#   guidance; choose the bundle's --guidance with scripts/sampling_sweep.py, docs/training.md)
 #   bash scripts/train_timed.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -39,6 +41,7 @@ VQ_BATCH=${VQ_BATCH:-256}
 VQ_LR=${VQ_LR:-1e-3}
 GPT_BATCH=${GPT_BATCH:-128}
 GPT_LR=${GPT_LR:-4e-4}
+TEXT_DROPOUT=${TEXT_DROPOUT:-0.1}
 DEADLINE=${DEADLINE:-520}   # seconds after START by which the GPT has stopped
 DATA="$PY -m comgrasp_train.cli.data -q"
 TRAIN="$PY -m comgrasp_train.cli.train -q"
@@ -66,7 +69,7 @@ stamp "VQ done (rc $RC): $(tail -n 1 "$WORK/vq.out")"
 if [ "$RC" = 0 ]; then
   stamp "train-gpt until $DEADLINE s"
   $TRAIN train-gpt --data "$WORK/data_prep" --vq "$WORK/vq" --out "$WORK/gpt" --preset small --batch "$GPT_BATCH" \
-    --lr "$GPT_LR" --text-weights int8 --deadline "$((START + DEADLINE))" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
+    --lr "$GPT_LR" --text-weights int8 --text-dropout "$TEXT_DROPOUT" --deadline "$((START + DEADLINE))" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
     || RC=$?
   stamp "GPT done (rc $RC): $(tail -n 1 "$WORK/gpt.out")"
 fi

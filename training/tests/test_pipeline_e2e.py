@@ -73,8 +73,9 @@ def test_train_generate_evaluate(prepared, tmp_path):
     # with and the training subjects' mean skeleton
     bundle = tmp_path / "bundle"
     assert train_main(["export", "--vq", str(vq), "--gpt", str(gpt), "--out", str(bundle),
-                       "--max-len", "3", "--min-len", "1"]) == 0
+                       "--max-len", "3", "--min-len", "1", "--guidance", "1.5"]) == 0
     man = json.loads((bundle / "manifest.json").read_text())
+    assert man["sampling"]["guidance"] == 1.5  # the engine's default scale; parity sampled with it
     assert man["provenance"]["checkpoints"] == {"vq": {"file": "best.pt", "step": 6}, "gpt": {"file": "best.pt", "step": 6}}
     assert man["provenance"]["text_encoder_weights"]["tensors"] > 0
     assert man["provenance"]["run_configs"]["gpt"]["text"]["weights"] == "int8"

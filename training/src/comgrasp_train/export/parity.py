@@ -18,7 +18,8 @@ Paths are relative to the bundle root (the keys of the manifest's ``files`` tabl
 * step, per prompt: ``text_emb`` (1, d_text), the embedding fed to the step graph;
   ``logits_<stream>`` (n, V_s): the logits of steps 0..n-1 from the teacher-forced PyTorch
   forward over the sampled codes (n = min(N, length + 1)); ``tokens`` (length, 4): the codes
-  sampled with the bundle's default sampling params and seed; ``greedy_tokens``: the same
+  sampled with the bundle's default sampling params and seed (with a default guidance other
+  than 1, from guided logits, not from ``logits_<stream>`` alone); ``greedy_tokens``: the same
   with temperature 0; ``guided_greedy_tokens``: temperature 0 with classifier-free guidance
   at ``GUIDED_PARITY_SCALE`` (the case's ``guided``: scale and length). Lengths are in the case entry.
 * decode: ``tokens`` (n, 4) of step case 0 -> ``frames_offline`` (n*F, 335) normalized,
@@ -117,10 +118,10 @@ def _onnx_generation(step_path, cfg, emb: np.ndarray, params: SamplingParams, se
 
     def step_fn(tokens, k):
         out = runner.step_fn(tokens, k)
+        if k < n:  # the graph's own logits, compared with the teacher-forced forward
+            seen.append([o[0] for o in out])
         if null is not None:
             out = [guide_logits(c, u, params.guidance) for c, u in zip(out, null.step_fn(tokens, k))]
-        if k < n:
-            seen.append([o[0] for o in out])
         return out
 
     gen = run_sampling_loop(step_fn, cfg, 1, params, [seed])
