@@ -46,7 +46,7 @@ def test_layout_matches_c():
     assert ctypes.sizeof(CgFrame) == cg.FRAME_SIZE == 1608
     lib = cg.load()
     assert lib.cg_frame_size() == ctypes.sizeof(CgFrame)
-    assert ctypes.sizeof(cg.CgStreamConfig) == 112
+    assert ctypes.sizeof(cg.CgStreamConfig) == 120
     assert ctypes.sizeof(cg.CgEngineConfig) == (80 if ctypes.sizeof(ctypes.c_void_p) == 8 else 72)
     assert cg.CgEngineConfig.scheduling.offset == (72 if ctypes.sizeof(ctypes.c_void_p) == 8 else 64)
     assert cg.CgEngineConfig.publish_name.offset == (32 if ctypes.sizeof(ctypes.c_void_p) == 8 else 28)

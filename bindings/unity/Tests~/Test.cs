@@ -107,7 +107,7 @@ static unsafe class ComGraspTest
         Eq(ComGraspNative.cg_frame_size().ToUInt64(), (ulong)sizeof(CgFrame), "cg_frame_size()");
         Eq(ComGraspNative.FrameSize, sizeof(CgFrame), "ComGraspNative.FrameSize");
         Eq(sizeof(CgEngineConfig), IntPtr.Size == 8 ? 80 : 72, "sizeof(CgEngineConfig)");
-        Eq(sizeof(CgStreamConfig), 112, "sizeof(CgStreamConfig)");
+        Eq(sizeof(CgStreamConfig), 120, "sizeof(CgStreamConfig)");
         Eq(sizeof(CgSubscriberConfig), 16, "sizeof(CgSubscriberConfig)");
         Eq(sizeof(CgStreamEvent), 280, "sizeof(CgStreamEvent)");
         Eq(sizeof(CgSubscriberStats), 48, "sizeof(CgSubscriberStats)");
