@@ -350,6 +350,16 @@ impl EngineConfig {
     }
 }
 
+/// A classifier-free guidance scale (DESIGN §4), validated: finite and >= 0, rounded to
+/// the f32 the logits are combined in (as the reference rounds it).
+pub fn guidance_scale(g: f64) -> Result<f32> {
+    if (0.0..=f32::MAX as f64).contains(&g) {
+        Ok(g as f32)
+    } else {
+        Err(Error::InvalidArgument(format!("guidance must be finite and >= 0, got {g}")))
+    }
+}
+
 /// Per-stream sampling overrides. `None` = inherit (engine default, then bundle default).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct StreamConfig {
@@ -466,7 +476,7 @@ impl StreamConfig {
             }
         }
         if let Some(g) = self.guidance {
-            crate::sampler::guidance_scale(g)?;
+            guidance_scale(g)?;
         }
         if let Some(m) = self.max_len {
             if m == 0 {

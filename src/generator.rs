@@ -49,12 +49,12 @@ use crate::anchor::AnchorStage;
 use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
-use crate::config::{EngineConfig, StreamConfig};
+use crate::config::{guidance_scale, EngineConfig, StreamConfig};
 use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurface};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecodeJob, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
-use crate::sampler::{guidance_scale, SamplingParams, TokenSampler};
+use crate::sampler::{SamplingParams, TokenSampler};
 use crate::skeleton::{mat_vec, transpose, Mat3, Vec3};
 
 /// Where a stream's frames come from. The real implementation is

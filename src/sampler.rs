@@ -161,16 +161,6 @@ impl SamplingParams {
     }
 }
 
-/// A classifier-free guidance scale (DESIGN §4), validated: finite and >= 0, rounded to
-/// the f32 the logits are combined in (as the reference rounds it).
-pub fn guidance_scale(g: f64) -> Result<f32> {
-    if (0.0..=f32::MAX as f64).contains(&g) {
-        Ok(g as f32)
-    } else {
-        Err(Error::InvalidArgument(format!("guidance must be finite and >= 0, got {g}")))
-    }
-}
-
 /// Samples one token per stream per step for one sequence.
 ///
 /// Holds the sequence's RNG and reusable scratch; [`TokenSampler::sample_step`] does not
