@@ -196,11 +196,18 @@ fn step_greedy_tokens_match_pytorch() {
 }
 
 /// Classifier-free guidance (DESIGN §4): greedy decoding from a guided state gives
-/// PyTorch's guided greedy tokens over the whole sequence, on both step backends.
+/// PyTorch's guided greedy tokens over the whole sequence, on both step backends. A bundle
+/// exported before guidance (COMGRASP_PARITY_BUNDLE=models/default) has no such cases;
+/// models/tiny must.
 #[test]
 fn step_guided_greedy_tokens_match_pytorch() {
     let dir = tiny_dir();
     let index = parity_index(&dir);
+    if index["step"].as_array().unwrap().iter().all(|c| c.get("guided").is_none()) {
+        assert!(std::env::var_os("COMGRASP_PARITY_BUNDLE").is_some(), "models/tiny has no guided parity cases");
+        println!("{}: no guided parity cases (exported before guidance)", dir.display());
+        return;
+    }
     for backend in [StepBackend::Tract, StepBackend::Native] {
         let opts = RuntimeOptions { step_backend: backend, ..RuntimeOptions::default() };
         let b = Bundle::load_with(BundleSource::dir(&dir), &opts).unwrap();
