@@ -1,8 +1,9 @@
 //! Soak and fault tests through the C ABI (issue 8, point 4), run by plain `cargo test`:
 //!
 //! * 10,000 start/cancel cycles with the frames polled on another thread, resident memory
-//!   (VmRSS) measured after a warm-up and at the end: growth must stay below
-//!   [`RSS_GROWTH_BOUND`]; threads, streams and sources must all be back to zero.
+//!   (VmRSS) sampled every [`RSS_SAMPLE_EVERY`] cycles: the end may exceed the highest sample
+//!   of the first half by at most [`RSS_GROWTH_BOUND`]; threads, streams and sources must all
+//!   be back to zero.
 //! * A consumer that stops polling: the worker fills the ring and then waits (no more
 //!   chunks produced, no CPU burnt, memory flat), and `cg_cancel` from another thread still
 //!   returns at once, after which polling gives CG_CANCELLED and destroy joins promptly.
@@ -22,10 +23,16 @@ use comgrasp::ffi::*;
 use comgrasp::Frame;
 use common::*;
 
-/// Allowed VmRSS growth over the 10,000 cycles (after a 500-cycle warm-up).
-const RSS_GROWTH_BOUND: u64 = 8 << 20;
+/// Allowed VmRSS growth over the second half of the cycles (5,000), against the highest
+/// sample of the first half. A leak grows linearly, so it shows in the second half as in the
+/// first; the allocator's (and under valgrind, the tool's own) warm-up does not: on a loaded
+/// machine under valgrind it went on for thousands of cycles to a plateau (117.7 MiB after
+/// the 500-cycle warm-up, 124.8 MiB from then on), which a single after-warm-up baseline
+/// read as 7–8.6 MiB of growth. 4 MiB over 5,000 cycles is 0.8 KiB per cycle.
+const RSS_GROWTH_BOUND: u64 = 4 << 20;
 const CYCLES: usize = if cfg!(miri) { 20 } else { 10_000 };
 const WARMUP: usize = if cfg!(miri) { 4 } else { 500 };
+const RSS_SAMPLE_EVERY: usize = if cfg!(miri) { 4 } else { 500 };
 
 /// A field of /proc/self/status in bytes (`VmRSS`, `VmHWM`) or as a count (`Threads`).
 fn proc_status(key: &str) -> Option<u64> {
@@ -135,14 +142,16 @@ fn start_cancel_cycles_keep_memory_flat() {
     });
 
     let threads_before = proc_status("Threads");
-    let mut rss_after_warmup = 0;
-    let mut peak = 0u64;
+    // (cycle, VmRSS) every RSS_SAMPLE_EVERY cycles from the end of the warm-up on
+    let mut samples: Vec<(usize, u64)> = Vec::new();
     let t0 = Instant::now();
     let mut t_measured = t0;
     for i in 0..WARMUP + CYCLES {
         if i == WARMUP {
-            rss_after_warmup = rss();
             t_measured = Instant::now();
+        }
+        if i >= WARMUP && (i - WARMUP) % RSS_SAMPLE_EVERY == 0 {
+            samples.push((i - WARMUP, rss()));
         }
         let mut s = null_mut();
         let text = CString::new("chunks=100000 frames=16").unwrap();
@@ -167,26 +176,34 @@ fn start_cancel_cycles_keep_memory_flat() {
             while first_rx.try_recv().is_ok() {}
         }
         assert_eq!(unsafe { cg_stream_destroy(s) }, cg_status::CG_OK);
-        if i % 1000 == 0 {
-            peak = peak.max(rss());
-        }
     }
     job_tx.send(Job::Stop).unwrap();
     poller.join().unwrap();
     let elapsed = t_measured.elapsed();
     let rss_end = rss();
-    peak = peak.max(rss_end);
-    let growth = rss_end.saturating_sub(rss_after_warmup);
+    let first_half_peak = samples.iter().filter(|(c, _)| *c <= CYCLES / 2).map(|(_, r)| *r).max().unwrap_or(0);
+    let growth = rss_end.saturating_sub(first_half_peak);
+    let curve: Vec<String> = samples.iter().map(|(c, r)| format!("{c}:{:.1}", mib(*r))).collect();
     eprintln!(
         "{CYCLES} start/poll-on-another-thread/cancel/destroy cycles in {elapsed:.2?} ({:.0} µs each), {} frames polled; \
-         VmRSS after {WARMUP}-cycle warm-up {:.1} MiB, at the end {:.1} MiB (growth {:.2} MiB, bound {:.0} MiB), peak sampled {:.1} MiB",
+         VmRSS highest in the first half {:.1} MiB, at the end {:.1} MiB (growth {:.2} MiB, bound {:.0} MiB); \
+         VmRSS by cycle after the {WARMUP}-cycle warm-up (MiB): {}",
         elapsed.as_secs_f64() * 1e6 / CYCLES as f64,
         frames_total.load(Ordering::Relaxed),
-        mib(rss_after_warmup), mib(rss_end), mib(growth), mib(RSS_GROWTH_BOUND), mib(peak)
+        mib(first_half_peak),
+        mib(rss_end),
+        mib(growth),
+        mib(RSS_GROWTH_BOUND),
+        curve.join(" ")
     );
     if !cfg!(miri) {
-        assert!(rss_after_warmup > 0, "VmRSS not readable");
-        assert!(growth < RSS_GROWTH_BOUND, "VmRSS grew by {:.2} MiB over {CYCLES} cycles", mib(growth));
+        assert!(first_half_peak > 0, "VmRSS not readable");
+        assert!(
+            growth < RSS_GROWTH_BOUND,
+            "VmRSS grew by {:.2} MiB over the last {} cycles",
+            mib(growth),
+            CYCLES - CYCLES / 2
+        );
     }
     assert_eq!(e.stream_count(), 0);
     assert_eq!(e.counters.sources_alive.load(Ordering::SeqCst), 0, "a source leaked");
