@@ -150,7 +150,7 @@ fn start_cancel_cycles_keep_memory_flat() {
         if i == WARMUP {
             t_measured = Instant::now();
         }
-        if i >= WARMUP && (i - WARMUP) % RSS_SAMPLE_EVERY == 0 {
+        if i >= WARMUP && (i - WARMUP).is_multiple_of(RSS_SAMPLE_EVERY) {
             samples.push((i - WARMUP, rss()));
         }
         let mut s = null_mut();
