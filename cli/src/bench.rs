@@ -109,6 +109,10 @@ pub struct Args {
     /// Top-k (default: the bundle's).
     #[arg(long, value_name = "K")]
     top_k: Option<u32>,
+    /// Classifier-free guidance scale (default: the bundle's): above or below 1, every step
+    /// (the step loop's and the streams') also runs the null condition.
+    #[arg(long, value_name = "S")]
+    guidance: Option<f64>,
     /// End-to-end streams to time.
     #[arg(long, value_name = "N", default_value_t = 3, value_parser = at_least_one)]
     stream_runs: usize,
@@ -437,6 +441,7 @@ fn bench(o: &Args) -> Result<Value, String> {
     let seed = o.seed.unwrap_or(m.sampling.seed);
     let temperature = o.temperature.unwrap_or(m.sampling.temperature);
     let top_k = o.top_k.unwrap_or(m.sampling.top_k as u32);
+    let guidance = comgrasp::config::guidance_scale(o.guidance.unwrap_or(m.sampling.guidance)).map_err(err)?;
     let params = SamplingParams::new(temperature, top_k, steps as u32, steps as u32, l_max as u32).map_err(err)?;
     let end_ids = m.end_ids();
     let pad_ids = m.pad_ids();
@@ -455,8 +460,8 @@ fn bench(o: &Args) -> Result<Value, String> {
         }
     }
 
-    // 3. steps with the real cache
-    let mut st = bundle.step.new_state();
+    // 3. steps with the real cache (guided as the streams below are)
+    let mut st = bundle.step.new_guided_state(guidance);
     let mut prev = pad_ids;
     let mut warm_sampler = TokenSampler::new(seed, params, end_ids, pad_usize);
     for k in 0..o.warmup.min(steps) {
@@ -576,7 +581,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         top_k: Some(top_k),
         min_len: Some(steps as u32),
         max_len: Some(steps as u32),
-        guidance: None,
+        guidance: Some(guidance as f64),
         raw_output: None,
         anchor: None,
         continue_from: None,
@@ -762,7 +767,7 @@ fn bench(o: &Args) -> Result<Value, String> {
                     "native_step": native_threads[0], "native_decoder": native_threads[1]},
         "config": {
             "prompt": o.prompt, "seed": seed, "steps": steps, "warmup": o.warmup,
-            "temperature": temperature, "top_k": top_k, "min_len": steps, "max_len": steps,
+            "temperature": temperature, "top_k": top_k, "guidance": guidance, "min_len": steps, "max_len": steps,
             "fps": fps, "frames_per_token": f, "l_max": l_max,
         },
         "model": model,
@@ -822,12 +827,13 @@ fn print_report(r: &Value) {
         r["threads"]["note"].as_str().unwrap_or("?")
     );
     println!(
-        "  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, prompt {}",
+        "  sequence  {} steps x {} frames, seed {}, temperature {}, top-k {}, guidance {}, prompt {}",
         s(&["config", "steps"]),
         s(&["config", "frames_per_token"]),
         s(&["config", "seed"]),
         s(&["config", "temperature"]),
         s(&["config", "top_k"]),
+        s(&["config", "guidance"]),
         s(&["config", "prompt"])
     );
     println!(
@@ -952,6 +958,7 @@ mod tests {
         assert!(parse(&["--bundle", "b", "--steps", "0"]).is_err());
         assert!(parse(&["--stream-runs", "0"]).is_err());
         assert!(parse(&["--bundle", "b", "--seed"]).is_err());
+        assert_eq!(parse(&["--guidance", "2"]).unwrap().guidance, Some(2.0));
     }
 
     #[test]

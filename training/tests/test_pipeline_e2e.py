@@ -166,3 +166,35 @@ def test_gpt_codes_use_the_normalization_the_vq_was_trained_with(prepared, tmp_p
                        "--preset", "tiny", "--iters", "2", "--batch", "4", "--device", "cpu"]) == 0
     want = Normalizer.load(vq / "stats.npz")
     assert seen and all(np.array_equal(n.mean, want.mean) and np.array_equal(n.std, want.std) for n in seen)
+
+
+def test_a_resumed_train_gpt_reuses_its_codes_and_text_embeddings(prepared, tmp_path, monkeypatch):
+    """Encoding and embedding are kept in the run folder (gpt_cache.py): the resume computes
+    neither again, and trains on from the same step."""
+    from comgrasp_train.train import gpt_trainer
+
+    vq, gpt = tmp_path / "vq", tmp_path / "gpt"
+    assert train_main(["-q", "train-vq", "--data", str(prepared), "--out", str(vq), "--preset", "tiny",
+                       "--iters", "2", "--batch", "4", "--device", "cpu"]) == 0
+    calls = {"encode": 0, "embed": 0}
+    real_encode, real_embed = gpt_trainer.encode_feature_set, gpt_trainer.embed_texts
+
+    def encode(*a):
+        calls["encode"] += 1
+        return real_encode(*a)
+
+    def embed(*a, **k):
+        calls["embed"] += 1
+        return real_embed(*a, **k)
+
+    monkeypatch.setattr(gpt_trainer, "encode_feature_set", encode)
+    monkeypatch.setattr(gpt_trainer, "embed_texts", embed)
+    args = ["-q", "train-gpt", "--data", str(prepared), "--vq", str(vq), "--out", str(gpt), "--preset", "tiny",
+            "--batch", "4", "--device", "cpu"]
+    assert train_main([*args, "--iters", "4", "--stop-after", "2"]) == 0
+    assert calls == {"encode": 2, "embed": 1}  # train and val codes, one pass over all texts
+    assert {p.name for p in gpt.glob("*.npz")} >= {"codes_train.npz", "codes_val.npz", "text_emb.npz"}
+    assert train_main([*args, "--iters", "4"]) == 0
+    assert calls == {"encode": 2, "embed": 1}
+    log = [json.loads(line) for line in (gpt / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == 4

@@ -1,7 +1,8 @@
 """Train the four coordinated Transformers on the codes of a trained VQ.
 
 The text encoder runs once over every unique description (they repeat across sequences),
-then training samples (text embedding, codes) batches. Writes ``<out>/ckpt.pt``
+then training samples (text embedding, codes) batches. Codes and embeddings are kept in the
+run folder, so a resume does not compute them again (gpt_cache.py). Writes ``<out>/ckpt.pt``
 (resumable) + ``config.json`` (transformer, training, VQ run, text encoder) and a log.
 When the prepared data has a ``val`` part, its mean NLL per token (every sequence from its
 start, first description) is logged as ``val_loss`` beside the training ``loss`` every
@@ -21,6 +22,7 @@ from ..models.transformer import ComGraspTransformer, stream_nll
 from ..models.vq_losses import make_scheduler
 from ..normalization import Normalizer
 from ..text_encoder import load_text_encoder
+from .gpt_cache import arrays_digest, cached_codes, cached_embeddings, file_stamp, module_digest
 from .runtime import TimeLimit, load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
 from .tokens import TokenBatcher, encode_feature_set
 from .vq_trainer import load_prepared, load_vq
@@ -101,14 +103,26 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
                                 weights=text.weights)
     if encoder.dim != cfg.d_text:
         raise ValueError(f"transformer d_text {cfg.d_text} != text encoder dim {encoder.dim}")
-    tokens = encode_feature_set(vq, fs, norm, rt.device)
-    val_batcher = None
+    # Codes and text embeddings are kept in the run folder for resumes (gpt_cache.py).
+    vq_key = {"vq": module_digest(vq), "normalization": arrays_digest(norm.mean, norm.std)}
+
+    def codes_of(part: str, part_fs):
+        key = {**vq_key, "features": file_stamp(Path(data_dir) / f"features_{part}.npz")}
+        return cached_codes(out_dir / f"codes_{part}.npz", key, part_fs,
+                            lambda: encode_feature_set(vq, part_fs, norm, rt.device), write=rt.is_main)
+
+    tokens = codes_of("train", fs)
+    val_tokens = None
     if (Path(data_dir) / "features_val.npz").is_file() and train.val_every > 0:
-        val_fs, _ = load_prepared(data_dir, "val")
-        val_tokens = encode_feature_set(vq, val_fs, norm, rt.device)
-        val_batcher = TokenBatcher(val_tokens, cfg, embed_texts(encoder, [t[:1] for t in val_tokens.texts]))
+        val_tokens = codes_of("val", load_prepared(data_dir, "val")[0])
     del vq
-    batcher = TokenBatcher(tokens, cfg, embed_texts(encoder, tokens.texts))
+    val_texts = [t[:1] for t in val_tokens.texts] if val_tokens is not None else []
+    embed = cached_embeddings(
+        out_dir / "text_emb.npz", {"text": asdict(text), "encoder": module_digest(encoder.network)},
+        [t for variants in tokens.texts + val_texts for t in variants],
+        lambda missing: embed_texts(encoder, [missing]), write=rt.is_main)
+    val_batcher = TokenBatcher(val_tokens, cfg, embed) if val_tokens is not None else None
+    batcher = TokenBatcher(tokens, cfg, embed)
 
     model = ComGraspTransformer(cfg).to(rt.device)
     opt = torch.optim.AdamW(model.parameters(), lr=train.lr, betas=train.betas, weight_decay=train.weight_decay)
