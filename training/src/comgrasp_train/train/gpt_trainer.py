@@ -115,7 +115,7 @@ def train_gpt(data_dir: Path, vq_dir: Path, out_dir: Path, cfg: TransformerConfi
     val_tokens = None
     if (Path(data_dir) / "features_val.npz").is_file() and train.val_every > 0:
         val_tokens = codes_of("val", load_prepared(data_dir, "val")[0])
-    del vq
+    vq = None  # not needed past the codes
     val_texts = [t[:1] for t in val_tokens.texts] if val_tokens is not None else []
     embed = cached_embeddings(
         out_dir / "text_emb.npz", {"text": asdict(text), "encoder": module_digest(encoder.network)},
