@@ -86,6 +86,8 @@ for f in Path(sys.argv[1]).glob("*/best.pt"):
     ckpt["model"] = {k: v.half() if v.is_floating_point() else v for k, v in ckpt["model"].items()}
     torch.save(ckpt, f)
 PY
-(cd "$WORK" && tar -cz --exclude=ckpt.pt $(ls -d vq gpt vq.out gpt.out 2>/dev/null)) | split -b 15m - "$PACK/runs.tgz.part-"
+# Only what export needs: no optimizer state, and not the GPT run's cache of codes and text
+# embeddings (gpt_cache.py; tens of MB, and remade from the data on a resume).
+(cd "$WORK" && tar -cz --exclude=ckpt.pt --exclude='codes_*.npz' --exclude=text_emb.npz $(ls -d vq gpt vq.out gpt.out 2>/dev/null)) | split -b 15m - "$PACK/runs.tgz.part-"
 stamp "packed $(du -ch "$PACK"/runs.tgz.part-* | tail -n 1 | cut -f1)"
 exit "$RC"
