@@ -13,7 +13,8 @@
 #      contact stage (scripts/contact_report.py).
 # Knobs: RUN (runs/default: vq/ and gpt/), DATA (data/sg3000_prep), BUNDLE (models/default),
 # LIMIT (100 test sequences), REPEATS (2), ENGINE_PROMPTS (24), SEEDS (2), OUT (out/quality),
-# ENGINE_ONLY (0; 1 skips step 1, for a bundle without its checkpoints or data: the bars
+# GUIDANCE (the bundle's own `sampling.guidance`, 1 without it: PyTorch samples as the
+# engine does), ENGINE_ONLY (0; 1 skips step 1, for a bundle without its checkpoints or data: the bars
 # PyTorch measures then read "not measured").
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,9 +29,11 @@ SEEDS=${SEEDS:-2}
 OUT=${OUT:-out/quality}
 mkdir -p "$OUT/engine"
 [ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
+GUIDANCE=${GUIDANCE:-$($P/python -c 'import json, sys
+print(json.load(open(sys.argv[1])).get("sampling", {}).get("guidance", 1.0))' "$BUNDLE/manifest.json")}
 if [ "${ENGINE_ONLY:-0}" = 0 ] && [ ! -f "$OUT/table.json" ]; then
   $P/comgrasp-train -q evaluate --data "$DATA" --vq "$RUN/vq" --gpt "$RUN/gpt" --out "$OUT/table.md" \
-    --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out
+    --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out --guidance "$GUIDANCE"
 fi
 [ -x target/release/comgrasp ] || cargo build --release --locked
 for mode in stage raw; do

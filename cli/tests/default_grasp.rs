@@ -9,9 +9,9 @@
 //! * a drink brings it within 15 cm of the head (`drink`).
 //!
 //! A sampled model is judged on rates, not single samples (sampling is seeded, so the rates
-//! of one bundle are exact). The thresholds sit between what the model shipped before the
-//! H200-trained one scored on these cases and what the shipped one scores (at `MIN_GRASP`),
-//! so a regression to the old model fails.
+//! of one bundle are exact). The lift and drink thresholds sit between what the model shipped
+//! before scored on these cases and what the shipped one scores, so a regression to the old
+//! model fails.
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -30,17 +30,17 @@ const SEEDS: &[u64] = &[1, 2, 3, 4, 5, 6];
 
 /// Least share of samples with the named hand holding the object, with nothing moving it
 /// otherwise, of lifts that rise 10 cm, of drinks that come within 15 cm of the head (the
-/// checker's own rules and thresholds, `intent_check.CheckConfig`). The model shipped before
-/// the H200-trained one scored 0.83 / 0.67 / 0.00 / 0.25 on two seeds of these cases; the
-/// shipped one scores 0.89 / 0.97 / 0.50 / 0.67 on six. Lift and drink separate the models;
-/// stillness separates contact stages: 0.42 before the stage levelled an object brought
-/// down tilted before setting it down and showed contact through the frame a hand lets go
-/// in (the object tipped or was put down in a frame that showed no hand), 0.79 (seeds 1-4)
-/// with the second change alone.
-const MIN_GRASP: f64 = 0.75;
+/// checker's own rules and thresholds, `intent_check.CheckConfig`). On these six seeds the
+/// H200-trained model shipped before scored 0.89 / 0.97 / 0.50 / 0.67; the shipped one
+/// (Transformers on 7,000 sequences, guidance 2) scores 0.94 / 1.00 / 0.67 / 0.92. Lift and
+/// drink separate the models, one sample of margin each; stillness separates contact stages:
+/// 0.42 before the stage levelled an object brought down tilted before setting it down and
+/// showed contact through the frame a hand lets go in, 0.79 (seeds 1-4) with the second
+/// change alone.
+const MIN_GRASP: f64 = 0.85;
 const MIN_UNHELD_STILL: f64 = 0.85;
-const MIN_LIFT: f64 = 0.35;
-const MIN_DRINK: f64 = 0.5;
+const MIN_LIFT: f64 = 0.55;
+const MIN_DRINK: f64 = 0.75;
 
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("cli/ has a parent")
@@ -109,6 +109,7 @@ fn the_default_model_grasps_what_the_prompt_names() {
     let lift = rate(&rows, is("lifting"), flag("intent_lift"));
     let drink = rate(&rows, is("drinking"), flag("intent_drink"));
     let got = format!("grasp {grasp:.2}, unheld still {still:.2}, lift {lift:.2}, drink {drink:.2}");
+    eprintln!("default model: {got}"); // shown with --nocapture, for moving the thresholds
     assert!(
         grasp >= MIN_GRASP && still >= MIN_UNHELD_STILL && lift >= MIN_LIFT && drink >= MIN_DRINK,
         "{got} (want >= {MIN_GRASP}, {MIN_UNHELD_STILL}, {MIN_LIFT}, {MIN_DRINK})\n{report}"
