@@ -110,7 +110,7 @@ pub struct Args {
     #[arg(long, value_name = "K")]
     top_k: Option<u32>,
     /// Classifier-free guidance scale (default: the bundle's): above or below 1, every step
-    /// (the step loop's and the streams') also runs the null condition.
+    /// (the step loop's, the streams' and the crowds' of --streams) also runs the null condition.
     #[arg(long, value_name = "S")]
     guidance: Option<f64>,
     /// End-to-end streams to time.
@@ -161,6 +161,7 @@ pub fn run(opts: Args) -> Result<(), String> {
             steps: opts.steps,
             threads: opts.scheduler_threads,
             crowd_only: opts.crowd_only,
+            guidance: opts.guidance,
             bundle: opts.bundle.clone(),
             runtime: runtime_options(&opts)?,
         };

@@ -47,6 +47,8 @@ pub struct Crowd {
     pub steps: Option<usize>,
     pub threads: Option<usize>,
     pub crowd_only: bool,
+    /// Every stream's guidance scale (None: the bundle's).
+    pub guidance: Option<f64>,
     pub bundle: Option<std::path::PathBuf>,
     pub runtime: RuntimeOptions,
 }
@@ -68,15 +70,16 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
     let per_stream = if c.crowd_only { None } else { Some(engine(Scheduling::PerStream)?) };
     let m = &crowd.bundle().ok_or("no bundle")?.manifest;
     let (fps, steps) = (m.fps, c.steps.unwrap_or(16).min(m.l_max));
+    let each = Each { steps, guidance: c.guidance };
     let mut runs: Vec<[Vec<Run>; 2]> = c.counts.iter().map(|_| [Vec::new(), Vec::new()]).collect();
     for round in 0..c.rounds {
         for (i, &n) in c.counts.iter().enumerate() {
             for (k, e) in std::iter::once(&crowd).chain(&per_stream).enumerate() {
                 // throughput alone, then the time to first frame of probes among the crowd
                 // (the probes' own work would otherwise count against small crowds)
-                let mut r = crowd_run(e, n, steps, 0, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
+                let mut r = crowd_run(e, n, each, 0, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
                 if c.probes > 0 {
-                    let p = crowd_run(e, n, steps, c.probes, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
+                    let p = crowd_run(e, n, each, c.probes, round, fps, rss).map_err(|e| format!("N={n}: {e}"))?;
                     r.ttff_ms = p.ttff_ms;
                 }
                 runs[i][k].push(r);
@@ -117,6 +120,7 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
     Ok(json!({
         "fps": fps,
         "steps_per_stream": steps,
+        "guidance": c.guidance.unwrap_or(m.sampling.guidance),
         "frames_per_stream": steps * m.frames_per_token,
         "rounds": c.rounds,
         "scheduler_threads": crowd.scheduler_threads(),
@@ -128,9 +132,10 @@ pub fn run(c: &Crowd, rss: fn() -> (Option<u64>, Option<u64>)) -> Result<Value, 
 /// Prints the crowd report.
 pub fn print(r: &Value) {
     println!(
-        "crowd: {} frames per stream at {} fps, {} rounds, crowd scheduler threads {}, peak RSS {:.0} MiB",
+        "crowd: {} frames per stream at {} fps, guidance {}, {} rounds, crowd scheduler threads {}, peak RSS {:.0} MiB",
         r["frames_per_stream"],
         r["fps"],
+        r["guidance"],
         r["rounds"],
         r["scheduler_threads"],
         r["rss_peak_mib"].as_f64().unwrap_or(0.0)
@@ -158,12 +163,19 @@ pub fn print(r: &Value) {
     }
 }
 
+/// What every stream of a crowd runs: token steps and guidance scale (None: the bundle's).
+#[derive(Clone, Copy)]
+struct Each {
+    steps: usize,
+    guidance: Option<f64>,
+}
+
 /// One crowd of `n` streams on `engine`, drained by this thread, with `probes` streams
 /// started among them for the time to first frame.
 fn crowd_run(
     engine: &Engine,
     n: usize,
-    steps: usize,
+    each: Each,
     probes: usize,
     round: usize,
     fps: f64,
@@ -174,8 +186,10 @@ fn crowd_run(
         seed: Some(seed),
         min_len: Some(len as u32),
         max_len: Some(len as u32),
+        guidance: each.guidance,
         ..Default::default()
     };
+    let steps = each.steps;
     let t0 = Instant::now();
     let mut streams: Vec<(Stream, Instant, Option<Instant>, u64, bool)> = Vec::with_capacity(n);
     for i in 0..n {

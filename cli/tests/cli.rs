@@ -232,3 +232,39 @@ fn non_utf8_argument_is_an_error_not_a_panic() {
     assert_eq!(o.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("invalid UTF-8") && !stderr.contains("panicked"), "{stderr}");
 }
+
+#[test]
+fn the_crowd_bench_runs_its_streams_at_the_guidance_it_is_given() {
+    let tiny = tiny();
+    let crowd = |guidance: &str| {
+        comgrasp(&[
+            "bench",
+            "--bundle",
+            &tiny,
+            "--streams",
+            "2",
+            "--rounds",
+            "1",
+            "--probes",
+            "1",
+            "--steps",
+            "2",
+            "--crowd-only",
+            "--json",
+            &format!("--guidance={guidance}"),
+        ])
+    };
+    for g in [1.0, 2.0] {
+        let o = crowd(&g.to_string());
+        assert!(o.status.success(), "{}", text(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("one JSON object");
+        assert_eq!(v["guidance"].as_f64(), Some(g), "{v}");
+        let row = &v["rows"][0];
+        assert_eq!(row["streams"].as_u64(), Some(2), "{v}");
+        assert!(row["crowd"]["total_rtf"].as_f64().unwrap() > 0.0, "{v}");
+    }
+    // The scale reaches every stream, so a bad one is the engine's clear error.
+    let o = crowd("-1");
+    let stderr = text(&o.stderr);
+    assert!(!o.status.success() && stderr.contains("guidance") && !stderr.contains("panicked"), "{stderr}");
+}
