@@ -29,9 +29,9 @@ SEEDS=${SEEDS:-2}
 OUT=${OUT:-out/quality}
 mkdir -p "$OUT/engine"
 [ -x $P/comgrasp-train ] || bash scripts/setup_python.sh
-GUIDANCE=${GUIDANCE:-$($P/python -c 'import json, sys
-print(json.load(open(sys.argv[1])).get("sampling", {}).get("guidance", 1.0))' "$BUNDLE/manifest.json")}
 if [ "${ENGINE_ONLY:-0}" = 0 ] && [ ! -f "$OUT/table.json" ]; then
+  GUIDANCE=${GUIDANCE:-$($P/python -c 'import json, sys
+print(json.load(open(sys.argv[1])).get("sampling", {}).get("guidance", 1.0))' "$BUNDLE/manifest.json")}
   $P/comgrasp-train -q evaluate --data "$DATA" --vq "$RUN/vq" --gpt "$RUN/gpt" --out "$OUT/table.md" \
     --limit "$LIMIT" --repeats "$REPEATS" --prompts template,held_out --guidance "$GUIDANCE"
 fi
