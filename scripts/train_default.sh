@@ -11,7 +11,8 @@
 #   GPT_SEQS=10000   SynthGrasp sequences for the Transformers (the same generator and seed;
 #                    their codes come from the VQ above; more data is what they lack)
 #   PARAPHRASES=16   training wordings per sequence beyond the templates (grab.paraphrase)
-#   VQ_ITERS=2400    VQ steps (batch 64 x 64 frames = 256 latents per component per step)
+#   VQ_ITERS=2400    VQ steps (batch 16 x 256 frames = 256 latents per component per step; whole-ish
+#                    sequences, as they are decoded: docs/training.md, "Training windows")
 #   VQ_STOP=         pause the VQ at this step (checkpointed; rerun without it to continue)
 #   GPT_ITERS=3000   Transformer steps (batch 64); the lowest validation NLL is kept (best.pt)
 #   GPT_STOP=        pause the GPT at this step
@@ -46,7 +47,7 @@ make_data() {  # DIR SEQUENCES: SynthGrasp and its prepared features in DIR_prep
 }
 make_data "$DATA" "$SEQS"
 $P/comgrasp-train -q train-vq --data ${DATA}_prep --out $RUN/vq --preset small --width-scale "$WIDTH" \
-  --window 64 --batch 64 --iters "$VQ_ITERS" --lr 1e-3 --lambda-joint 10 --ckpt-every 100 \
+  --window 256 --batch 16 --codebook global=1024 --iters "$VQ_ITERS" --lr 1e-3 --lambda-joint 10 --ckpt-every 100 \
   ${VQ_STOP:+--stop-after "$VQ_STOP"}
 [ -z "${VQ_STOP:-}" ] || exit 0
 make_data "$GPT_DATA" "$GPT_SEQS"

@@ -21,7 +21,7 @@
 # see docs/training.md):
 #   PY=python3 with torch and this package importable; WORK=scratch folder; PACK=output folder
 #   SEQS_VQ=800 SEQS=3000 PARAPHRASES=16 WORKERS=$(nproc) WIDTH=0.5
-#   VQ_SECONDS=210 VQ_BATCH=256 VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520
+#   VQ_SECONDS=210 VQ_BATCH=64 (x 256 frames) VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520
 #   TEXT_DROPOUT=0.1 (train-gpt --text-dropout: the null condition of classifier-free
 #   guidance; choose the bundle's --guidance with scripts/sampling_sweep.py, docs/training.md)
 #   bash scripts/train_timed.sh
@@ -37,7 +37,7 @@ PARAPHRASES=${PARAPHRASES:-16}
 WORKERS=${WORKERS:-$(nproc)}
 WIDTH=${WIDTH:-0.5}
 VQ_SECONDS=${VQ_SECONDS:-210}
-VQ_BATCH=${VQ_BATCH:-256}
+VQ_BATCH=${VQ_BATCH:-64}
 VQ_LR=${VQ_LR:-1e-3}
 GPT_BATCH=${GPT_BATCH:-128}
 GPT_LR=${GPT_LR:-4e-4}
@@ -55,7 +55,7 @@ $DATA prepare "$WORK/vqdata" --out "$WORK/vqdata_prep" --split synthgrasp --hand
 stamp "train-vq for $VQ_SECONDS s; meanwhile $SEQS sequences for the Transformers"
 # Two cores stay with the trainer: a small-kernel GPU step is bound by its launching thread.
 OMP_NUM_THREADS=2 $TRAIN train-vq --data "$WORK/vqdata_prep" --out "$WORK/vq" --preset small \
-  --width-scale "$WIDTH" --window 64 --batch "$VQ_BATCH" --lr "$VQ_LR" --lambda-joint 10 \
+  --width-scale "$WIDTH" --window 256 --codebook global=1024 --batch "$VQ_BATCH" --lr "$VQ_LR" --lambda-joint 10 \
   --time-budget "$VQ_SECONDS" --ckpt-every 100000 >"$WORK/vq.out" 2>&1 &
 VQ_PID=$!
 GEN=$((WORKERS > 4 ? WORKERS - 2 : 2))

@@ -72,6 +72,59 @@ def test_presets_and_json_round_trip(tmp_path):
         make_config("huge")
 
 
+def test_codebook_override_changes_only_the_named_component():
+    books = [(c.name, c.codebook_size, c.code_dim) for c in make_config("small", codebooks={"global": 1024}).model.components]
+    assert books == [("global", 1024, 64), ("body", 512, 128), ("lhand", 256, 96), ("rhand", 256, 96)]
+    for bad in ({"globl": 1024}, {"global": 1}):
+        with pytest.raises(ValueError, match="codebook override"):
+            make_config("small", codebooks=bad)
+
+
+def test_validation_reads_whole_sequences_and_legacy_configs_keep_windows():
+    from comgrasp_train.dataset import FeatureSet
+    from comgrasp_train.normalization import Normalizer
+    from comgrasp_train.train.vq_trainer import _val_batches
+
+    lengths = (37, 80, 21)
+    g = torch.Generator().manual_seed(3)
+    feats = [random_batch(1, n, seed=i)[0].numpy() for i, n in enumerate(lengths)]
+    fs = FeatureSet(30.0, feats, [sk.DEFAULT_REST_JOINTS] * 3, [["t"]] * 3, [{"subject": f"s{i}"} for i in range(3)])
+    norm = Normalizer(mean=torch.randn(FRAME_DIM, generator=g).numpy(), std=torch.rand(FRAME_DIM, generator=g).numpy() + 0.5)
+    cfg = make_config("tiny", down_t=2)  # 4 frames per token
+    whole = _val_batches(fs, norm, cfg)
+    assert [tuple(x.shape) for x, _ in whole] == [(1, 40, FRAME_DIM), (1, 80, FRAME_DIM), (1, 24, FRAME_DIM)]
+    for (x, rest), f in zip(whole, feats):
+        n = len(f)
+        assert torch.allclose(x[0, :n], torch.from_numpy(norm.normalize(f)), atol=1e-6)
+        assert torch.equal(x[0, n:], x[0, n - 1:n].expand(x.shape[1] - n, -1))  # the last frame held
+        assert rest.shape == (1, 55, 3)
+    d = cfg.to_dict()
+    del d["train"]["val_sequences"]
+    legacy = VQConfig.from_dict(d)
+    assert legacy.train.val_sequences == 0
+    windows = _val_batches(fs, norm, legacy)
+    assert sum(len(x) for x, _ in windows) == legacy.train.val_windows
+    assert {x.shape[1] for x, _ in windows} == {legacy.train.window_frames}
+
+
+def test_object_loss_charges_only_the_global_component_and_is_zero_on_the_truth():
+    from dataclasses import replace
+
+    from comgrasp_train.models.vq_losses import object_points
+
+    x = random_batch(2, 8)
+    x[..., 9:15] = torch.tensor([1.0, 0, 0, 0, 1, 0])  # identity 6D
+    pts = object_points(x)
+    assert torch.allclose(pts[..., 1:, :] - pts[..., :1, :], 0.1 * torch.eye(3).expand(2, 8, 3, 3))
+    cfg = make_config("tiny", down_t=2)
+    cfg = replace(cfg, loss=replace(cfg.loss, lambda_obj=10.0))
+    vq = randomized(ComponentVQ(cfg.model))
+    _, m = compute_loss(vq, x, joints_fn, cfg)
+    assert m["obj/global"] > 0 and all(m[f"obj/{c}"] == 0 for c in ("body", "lhand", "rhand"))
+    _, off = compute_loss(vq, x, joints_fn, make_config("tiny", down_t=2))
+    assert float(off["obj"]) == 0 and torch.allclose(m["loss/global"] - off["loss/global"], 10 * m["obj/global"])
+
+
 def test_fit_to_tokens():
     x = torch.arange(40.0).reshape(1, 20, 2)
     assert fit_to_tokens(x, 16).shape == (1, 16, 2)

@@ -41,19 +41,32 @@ def _time_limit(args):
     return TimeLimit(seconds=args.time_budget, deadline=args.deadline)
 
 
+def _codebooks(specs: list[str]) -> dict[str, int]:
+    """``["global=1024"]`` -> ``{"global": 1024}``."""
+    out = {}
+    for spec in specs:
+        name, _, size = spec.partition("=")
+        if not size.isdigit():
+            raise ValueError(f"--codebook {spec!r}: expected COMPONENT=SIZE, e.g. global=1024")
+        out[name] = int(size)
+    return out
+
+
 def cmd_train_vq(args) -> int:
     from ..models.configs import make_config
     from ..models.vq_losses import capped_warmup
     from ..train.vq_trainer import train_vq
 
     cfg = make_config(args.preset, single=args.single, down_t=args.down_t, causal_decoder=not args.paper_decoder,
-                      width_scale=args.width_scale)
+                      width_scale=args.width_scale, codebooks=_codebooks(args.codebook))
     t = cfg.train
     t = replace(t, total_iters=args.iters or t.total_iters, batch_size=args.batch or t.batch_size,
                 warmup_iters=capped_warmup(t.warmup_iters, args.iters or t.total_iters),
                 lr=args.lr or t.lr, window_frames=args.window or t.window_frames)
     if args.lambda_joint is not None:
         cfg = replace(cfg, loss=replace(cfg.loss, lambda_joint=args.lambda_joint))
+    if args.lambda_obj is not None:
+        cfg = replace(cfg, loss=replace(cfg.loss, lambda_obj=args.lambda_obj))
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
                  ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after,
@@ -206,11 +219,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--down-t", type=int, default=4, help="2**down_t frames per token (4: 16 frames)")
     s.add_argument("--width-scale", type=float, default=1.0, help="conv widths x this (0.25 for quick CPU runs)")
     s.add_argument("--window", type=int, default=None, help="training crop length in frames")
+    s.add_argument("--codebook", action="append", default=[], metavar="COMPONENT=SIZE",
+                   help="another codebook size for one component (repeatable), e.g. global=1024")
     s.add_argument("--iters", type=int, default=None)
     s.add_argument("--batch", type=int, default=None)
     s.add_argument("--lr", type=float, default=None)
     s.add_argument("--lambda-joint", type=float, default=None,
                    help="weight of the FK joint L1 (metres) against the normalized parameter L1 (default 1.0)")
+    s.add_argument("--lambda-obj", type=float, default=None,
+                   help="weight of the object-pose L1 (metres, four points of the object; default 0: off)")
     pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_vq)

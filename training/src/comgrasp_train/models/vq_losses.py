@@ -3,12 +3,15 @@
 Per component c (losses are summed over components, so training the container equals
 training the four tokenizers independently, each with its own loss scale):
 
-    L_c = L1_param,c + lambda_joint * L1_joint,c + lambda_vel * L1_vel,c
+    L_c = L1_param,c + lambda_joint * L1_joint,c + lambda_obj * L1_obj,c + lambda_vel * L1_vel,c
           + lambda_cont * BCE_c (hand components only) + beta * commit_c
 
 * L1_param: mean |x_hat - x| over the component's non-contact channels (normalized space).
 * L1_vel:   the same on first differences in time.
 * BCE:      on the component's contact channels; the decoder emits logits there.
+* L1_obj:   mean |P(h_c) - P(x)| (metres) over four points of the object (its origin and a
+  point 10 cm along each of its axes): the object's pose has no joints, and with the joint
+  loss alone the global component left the object ~15 cm from where it was (docs/training.md).
 * L1_joint: mean |FK(h_c) - FK(x)| over all 55 joints (metres), where h_c is the ground
   truth frame with only component c's slice replaced by its reconstruction, so each
   component is charged for its own joint error and no gradient crosses components. FK
@@ -26,7 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..layout import CONTACT_CHANNELS
+from ..layout import CONTACT_CHANNELS, FIELD
+from ..rotations import rotation_6d_to_matrix
 from .configs import LossConfig, TrainConfig, VQConfig
 from .vqvae import ComponentVQ
 
@@ -67,11 +71,16 @@ def compute_loss(
     with torch.no_grad():
         j_true = joints_fn(dn(x))
     l_joint = (joints_fn(dn(hybrid)) - j_true[None]).abs().flatten(1).mean(1)
+    if cfg.lambda_obj:
+        l_obj = (object_points(dn(hybrid)) - object_points(dn(x))[None]).abs().flatten(1).mean(1)
+    else:  # off (the default): not even computed
+        l_obj = torch.zeros_like(l_joint)
 
-    per = l_param + cfg.lambda_joint * l_joint + cfg.lambda_vel * l_vel + cfg.lambda_cont * l_cont + cfg.beta * out.commit
+    per = (l_param + cfg.lambda_joint * l_joint + cfg.lambda_obj * l_obj + cfg.lambda_vel * l_vel
+           + cfg.lambda_cont * l_cont + cfg.beta * out.commit)
     loss = per.sum()
     metrics = {"loss": loss.detach()}
-    for key, v in (("param", l_param), ("joint", l_joint), ("vel", l_vel), ("cont", l_cont),
+    for key, v in (("param", l_param), ("joint", l_joint), ("obj", l_obj), ("vel", l_vel), ("cont", l_cont),
                    ("commit", out.commit), ("perplexity", out.perplexity), ("resets", out.resets),
                    ("used", out.used), ("loss", per)):
         v = v.detach()
@@ -80,6 +89,17 @@ def compute_loss(
         for name, val in zip(vq.names, v):
             metrics[f"{key}/{name}"] = val
     return loss, metrics
+
+
+OBJECT_POINT_OFFSET = 0.1  # metres along each object axis: rotation errors weigh like translation
+
+
+def object_points(f: torch.Tensor) -> torch.Tensor:
+    """De-normalized (..., 335) features -> (..., 4, 3): the object's origin and the points
+    ``OBJECT_POINT_OFFSET`` along each of its axes, in world coordinates."""
+    t = f[..., FIELD["object_transl"].slice]
+    axes = rotation_6d_to_matrix(f[..., FIELD["object_rot6d"].slice]).transpose(-1, -2)  # rows: R's columns
+    return torch.cat([t[..., None, :], t[..., None, :] + OBJECT_POINT_OFFSET * axes], -2)
 
 
 def make_optimizer(model: nn.Module, cfg: TrainConfig | VQConfig) -> torch.optim.Optimizer:

@@ -3,7 +3,7 @@
 Reads ``<data>/features_train.npz`` + ``<data>/stats.npz`` (from ``comgrasp-data prepare``),
 writes ``<out>/ckpt.pt`` (resumable, every ``ckpt_every`` steps and at the end) with
 ``config.json`` beside it, and ``<out>/log.jsonl`` (one line of metrics per log step).
-When the prepared data has a ``val`` part, the loss on a fixed set of its windows is logged
+When the prepared data has a ``val`` part, the loss on its first sequences, whole, is logged
 (``val_loss``, ``val_joint_mm``, per component ``val_joint_mm/<name>``) and the best weights
 are kept in ``<out>/best.pt``, which ``load_vq`` reads by default.
 """
@@ -19,7 +19,7 @@ import torch
 from ..dataset import FeatureSet
 from ..models.configs import VQConfig
 from ..models.vq_losses import compute_loss, make_optimizer, make_scheduler, vq_training_step
-from ..models.vqvae import build_vq
+from ..models.vqvae import build_vq, fit_to_tokens
 from ..normalization import Normalizer
 from ..representation import features_to_joints
 from .runtime import TimeLimit, load_checkpoint, load_weights, restore, run_training, seed_everything, setup_runtime
@@ -34,6 +34,21 @@ def load_prepared(data_dir: Path, part: str) -> tuple[FeatureSet, Normalizer]:
         if not f.is_file():
             raise FileNotFoundError(f"{f} is missing: run `comgrasp-data prepare ROOT --out {data_dir}` first")
     return FeatureSet.load(data_dir / f"features_{part}.npz"), Normalizer.load(data_dir / "stats.npz")
+
+
+def _val_batches(fs: FeatureSet, norm: Normalizer, cfg: VQConfig) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The fixed validation inputs: (x, rest joints) batches. Whole sequences (first
+    ``val_sequences`` of the subjects in turn, each padded to whole tokens by holding its
+    last frame, as ``evaluate`` does), one per batch since their lengths differ; or, with
+    ``val_sequences`` 0, one draw (its own generator) of ``val_windows`` training windows."""
+    t = cfg.train
+    if t.val_sequences > 0:
+        fs = fs.spread(t.val_sequences)
+        rest = torch.from_numpy(np.stack(fs.rest_joints).astype(np.float32))
+        return [(fit_to_tokens(torch.from_numpy(norm.normalize(f.astype(np.float32)))[None],
+                               cfg.model.frames_per_token, "pad"), rest[i:i + 1]) for i, f in enumerate(fs.features)]
+    x, rest = WindowSampler(fs, norm, t.window_frames).batch(t.val_windows, torch.Generator().manual_seed(12345))
+    return [(x[a:a + t.batch_size], rest[a:a + t.batch_size]) for a in range(0, len(x), t.batch_size)]
 
 
 def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, device: str | None = None,
@@ -59,7 +74,8 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
         # A run started before the EMA warm-up existed resumes without it (its saved config).
         if replace(saved.model, ema_warmup=cfg.model.ema_warmup) != cfg.model:
             raise ValueError(f"{ckpt_path} was trained with a different model config; use a new --out")
-        cfg = replace(cfg, model=saved.model)
+        # ... and validates as it started (a switch would compare best_val across methods).
+        cfg = replace(cfg, model=saved.model, train=replace(cfg.train, val_sequences=saved.train.val_sequences))
         if time_limit is None and "time_budget_s" in ckpt["config"]:  # continue the fitted run
             cfg = replace(cfg, train=replace(cfg.train, total_iters=saved.train.total_iters))
     model = build_vq(cfg.model, rt.device)
@@ -95,21 +111,19 @@ def train_vq(data_dir: Path, out_dir: Path, cfg: VQConfig, *, seed: int = 0, dev
     validate = None
     if (Path(data_dir) / "features_val.npz").is_file() and cfg.train.val_every > 0:
         val_fs, _ = load_prepared(data_dir, "val")
-        # One fixed draw (its own generator), so every validation sees the same windows.
-        val_x, val_rest = WindowSampler(val_fs, norm, cfg.train.window_frames).batch(
-            cfg.train.val_windows, torch.Generator().manual_seed(12345))
+        batches = _val_batches(val_fs, norm, cfg)
+        n_val = sum(len(x) for x, _ in batches)
         core = model.module if rt.distributed else model
 
         @torch.no_grad()
         def validate():
             core.eval()
             metrics = {}
-            for a in range(0, len(val_x), cfg.train.batch_size):
-                x = val_x[a:a + cfg.train.batch_size].to(rt.device)
-                rb = val_rest[a:a + cfg.train.batch_size, None].to(rt.device)
-                _, m = compute_loss(core, x, lambda f, rb=rb: features_to_joints(f, rb), cfg, denorm)
+            for x, rest in batches:
+                rb = rest[:, None].to(rt.device)
+                _, m = compute_loss(core, x.to(rt.device), lambda f, rb=rb: features_to_joints(f, rb), cfg, denorm)
                 for k, v in m.items():
-                    metrics[k] = metrics.get(k, 0.0) + float(v) * len(x) / len(val_x)
+                    metrics[k] = metrics.get(k, 0.0) + float(v) * len(x) / n_val
             core.train()
             out = {"val_loss": metrics["loss"], "val_joint_mm": 1000 * metrics["joint"] / n_comp}
             out.update({f"val_joint_mm/{c.name}": 1000 * metrics[f"joint/{c.name}"] for c in cfg.model.components})
