@@ -107,7 +107,7 @@ def test_validation_reads_whole_sequences_and_legacy_configs_keep_windows():
     assert {x.shape[1] for x, _ in windows} == {legacy.train.window_frames}
 
 
-def test_object_loss_charges_only_the_global_component_and_is_zero_on_the_truth():
+def test_object_loss_charges_only_the_global_component_and_adds_its_weighted_term():
     from dataclasses import replace
 
     from comgrasp_train.models.vq_losses import object_points

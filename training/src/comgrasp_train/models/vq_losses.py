@@ -67,12 +67,13 @@ def compute_loss(
     l_cont = _per_component(bce, comp[:, cont])
 
     dn = denormalize or (lambda t: t)
-    hybrid = torch.where(comp[:, None, None, :], feat[None], x[None])  # (P, B, T, 335)
+    hybrid = dn(torch.where(comp[:, None, None, :], feat[None], x[None]))  # (P, B, T, 335)
+    x_dn = dn(x)
     with torch.no_grad():
-        j_true = joints_fn(dn(x))
-    l_joint = (joints_fn(dn(hybrid)) - j_true[None]).abs().flatten(1).mean(1)
+        j_true = joints_fn(x_dn)
+    l_joint = (joints_fn(hybrid) - j_true[None]).abs().flatten(1).mean(1)
     if cfg.lambda_obj:
-        l_obj = (object_points(dn(hybrid)) - object_points(dn(x))[None]).abs().flatten(1).mean(1)
+        l_obj = (object_points(hybrid) - object_points(x_dn)[None]).abs().flatten(1).mean(1)
     else:  # off (the default): not even computed
         l_obj = torch.zeros_like(l_joint)
 
