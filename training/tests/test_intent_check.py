@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from comgrasp_train.cli.data import main as data_main
-from comgrasp_train.dataset import prepare_features
+from comgrasp_train.dataset import FeatureSet, prepare_features
 from comgrasp_train.grab.text import INTENT_PHRASES, describe, hands_from_contact
 from comgrasp_train.grab.text_parse import UNKNOWN, Intent, parse_prompt
 from comgrasp_train.intent_check import (
@@ -294,3 +294,47 @@ def test_engine_frames_check_like_the_features(synth, tmp_path):
     assert json.loads(report.read_text())["rates"]["intent_ok"] == 1.0
     assert data_main(["-q", "check-engine", str(nofk), "--prompt", fs.texts[0][0]]) == 2
     assert data_main(["-q", "check-engine", str(good), "--prompt", "dance a little"]) == 2
+
+
+class _StandInVQ(torch.nn.Module):
+    """Decodes what it encodes, one frame per token; ``freeze_object`` holds the decoded
+    object at its first frame's pose (a VQ that cannot move the object)."""
+
+    frames_per_token = 1
+
+    def __init__(self, freeze_object: bool):
+        super().__init__()
+        self.freeze_object = freeze_object
+        self.device_anchor = torch.nn.Parameter(torch.zeros(()))  # evaluate reads the device from it
+
+    def encode(self, x):
+        return x
+
+    def decode(self, x):
+        if not self.freeze_object:
+            return x
+        y = x.clone()
+        for f in ("object_transl", "object_rot6d"):
+            s = FIELD[f].slice
+            y[:, :, s] = x[:, :1, s]
+        return y
+
+
+def test_reconstruction_reports_the_prompt_checks_of_what_it_decodes(synth):
+    """evaluate_reconstruction checks each decoded motion against its sequence's prompt: an
+    exact VQ obeys every prompt, one that cannot move the object fails every lift."""
+    from comgrasp_train.evaluate import evaluate_reconstruction
+    from comgrasp_train.normalization import Normalizer
+
+    _, full = synth
+    norm = Normalizer.fit(full.features)
+    first = list({m["intent"]: i for i, m in reversed(list(enumerate(full.meta)))}.values())  # one per intent
+    fs = FeatureSet(full.fps, *([getattr(full, k)[i] for i in first] for k in ("features", "rest_joints", "texts", "meta")))
+    assert sorted(m["intent"] for m in fs.meta) == sorted(SYNTH_INTENTS)
+    exact = evaluate_reconstruction(_StandInVQ(False), norm, fs)["raw"]
+    assert all(row["intent_ok"] == 1.0 and row["mpjpe_mm"] < 1.0 for row in exact)
+    frozen = evaluate_reconstruction(_StandInVQ(True), norm, fs)["raw"]
+    for row, m in zip(frozen, fs.meta):
+        assert row["intent_ok"] == 0.0, m["intent"]
+        if m["intent"] == "lift":
+            assert row["intent_lift"] == 0.0

@@ -125,6 +125,65 @@ def test_object_loss_charges_only_the_global_component_and_adds_its_weighted_ter
     assert float(off["obj"]) == 0 and torch.allclose(m["loss/global"] - off["loss/global"], 10 * m["obj/global"])
 
 
+def test_hand_axes_turn_with_the_hand_and_the_hand_loss_charges_only_the_arm():
+    from dataclasses import replace
+
+    from comgrasp_train.models.vq_losses import HAND_LEVER, hand_axes
+    from comgrasp_train.rotations import axis_angle_to_matrix
+
+    j = joints_fn(random_batch(3, 4, seed=5))
+    a = hand_axes(j)  # (3, 4, 2, 3, 3)
+    eye = torch.eye(3).expand_as(a)
+    torch.testing.assert_close(a @ a.transpose(-1, -2), eye, atol=1e-5, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(a), torch.ones(a.shape[:-2]), atol=1e-5, rtol=0)
+    # A pour: the right hand (every joint below its wrist) turns 60 deg about its own long
+    # axis. Its long axis stays, its other two turn by 60 deg, the left hand's frame stays,
+    # and the knuckles move little: the mean joint error is a fraction of the hand term.
+    w = sk.RIGHT_WRIST
+    below = [i for i in range(55) if i != w and w in _ancestors(i)]
+    rot = axis_angle_to_matrix(a[..., 1, 0, :] * torch.pi / 3)  # (3, 4, 3, 3)
+    turned = j.clone()
+    turned[..., below, :] = (j[..., below, :] - j[..., w:w + 1, :]) @ rot.transpose(-1, -2) + j[..., w:w + 1, :]
+    b = hand_axes(turned)
+    torch.testing.assert_close(b[..., 0, :, :], a[..., 0, :, :])
+    cos = (a[..., 1, :, :] * b[..., 1, :, :]).sum(-1)
+    torch.testing.assert_close(cos, torch.tensor([1.0, 0.5, 0.5]).expand_as(cos), atol=1e-5, rtol=0)
+    assert (turned - j).abs().mean() < HAND_LEVER * (b - a).abs().mean() / 4  # 4.6 vs 34 mm
+    # In the loss: the knuckles that span the frame hang from the wrist at fixed offsets, so
+    # only the components that turn the wrist (global: the root; body: the arm) are charged.
+    x = random_batch(2, 8)
+    cfg = make_config("tiny", down_t=2)
+    cfg = replace(cfg, loss=replace(cfg.loss, lambda_hand=10.0))
+    vq = randomized(ComponentVQ(cfg.model))
+    _, m = compute_loss(vq, x, joints_fn, cfg)
+    assert m["hand/global"] > 0 and m["hand/body"] > 0
+    assert m["hand/lhand"] == 0 and m["hand/rhand"] == 0
+    _, off = compute_loss(vq, x, joints_fn, make_config("tiny", down_t=2))
+    assert float(off["hand"]) == 0
+    torch.testing.assert_close(m["loss/body"] - off["loss/body"], 10 * m["hand/body"])
+    # "held" frames only: nothing without contact, the "all" mean when both hands hold throughout
+    cont = list(CONTACT_CHANNELS)
+    held = replace(cfg, loss=replace(cfg.loss, hand_loss_frames="held"))
+    for flag in (0.0, 1.0):
+        xc = x.clone()
+        xc[..., cont] = flag
+        _, h = compute_loss(vq, xc, joints_fn, held)
+        _, a = compute_loss(vq, xc, joints_fn, cfg)
+        torch.testing.assert_close(h["hand"], a["hand"] * flag)
+    xc[..., cont] = 0.0
+    xc[:, 2:5, cont[1]] = 1.0  # the right hand holds for three frames
+    _, h = compute_loss(vq, xc, joints_fn, held)
+    assert h["hand/body"] > 0 and h["hand/global"] > 0
+
+
+def _ancestors(i: int) -> set[int]:
+    out = set()
+    while sk.PARENTS[i] >= 0:
+        i = sk.PARENTS[i]
+        out.add(i)
+    return out
+
+
 def test_fit_to_tokens():
     x = torch.arange(40.0).reshape(1, 20, 2)
     assert fit_to_tokens(x, 16).shape == (1, 16, 2)

@@ -67,6 +67,10 @@ def cmd_train_vq(args) -> int:
         cfg = replace(cfg, loss=replace(cfg.loss, lambda_joint=args.lambda_joint))
     if args.lambda_obj is not None:
         cfg = replace(cfg, loss=replace(cfg.loss, lambda_obj=args.lambda_obj))
+    if args.lambda_hand is not None:
+        cfg = replace(cfg, loss=replace(cfg.loss, lambda_hand=args.lambda_hand))
+    if args.hand_loss_frames is not None:
+        cfg = replace(cfg, loss=replace(cfg.loss, hand_loss_frames=args.hand_loss_frames))
     cfg = replace(cfg, train=t)
     m = train_vq(Path(args.data), Path(args.out), cfg, seed=args.seed, device=args.device,
                  ckpt_every=args.ckpt_every, progress=not args.quiet, stop_after=args.stop_after,
@@ -228,6 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weight of the FK joint L1 (metres) against the normalized parameter L1 (default 1.0)")
     s.add_argument("--lambda-obj", type=float, default=None,
                    help="weight of the object-pose L1 (metres, four points of the object; default 0: off)")
+    s.add_argument("--lambda-hand", type=float, default=None,
+                   help="weight of the hand-orientation L1 (metres, points 20 cm along each hand axis; default 0)")
+    s.add_argument("--hand-loss-frames", choices=("all", "held"), default=None,
+                   help="frames the hand-orientation L1 covers: all (default), or those where the hand holds the object")
     pausable(s)
     common(s)
     s.set_defaults(fn=cmd_train_vq)

@@ -106,6 +106,13 @@ class LossConfig:
 
     beta: float = 0.05  # commitment
     lambda_joint: float = 1.0
+    # Hands' orientation in metres (models.vq_losses.hand_axes): the turn of a held object.
+    # Off by default: at 10 it tripled the reconstructed pours that pass the checker but
+    # cost the body 4.6 mm and other intents as many passes (docs/training.md).
+    lambda_hand: float = 0.0
+    # "all" frames, or only the frames where that hand holds the object (its contact label):
+    # where the object's turn comes from the hand's.
+    hand_loss_frames: str = "all"
     # Object pose in metres (models.vq_losses). Off by default: at 10 it cut the held-out
     # object error 155 -> 54 mm but raised the global component's joint error 32 -> 100 mm.
     lambda_obj: float = 0.0

@@ -3,8 +3,8 @@
 Per component c (losses are summed over components, so training the container equals
 training the four tokenizers independently, each with its own loss scale):
 
-    L_c = L1_param,c + lambda_joint * L1_joint,c + lambda_obj * L1_obj,c + lambda_vel * L1_vel,c
-          + lambda_cont * BCE_c (hand components only) + beta * commit_c
+    L_c = L1_param,c + lambda_joint * L1_joint,c + lambda_hand * L1_hand,c + lambda_obj * L1_obj,c
+          + lambda_vel * L1_vel,c + lambda_cont * BCE_c (hand components only) + beta * commit_c
 
 * L1_param: mean |x_hat - x| over the component's non-contact channels (normalized space).
 * L1_vel:   the same on first differences in time.
@@ -12,6 +12,12 @@ training the four tokenizers independently, each with its own loss scale):
 * L1_obj:   mean |P(h_c) - P(x)| (metres) over four points of the object (its origin and a
   point 10 cm along each of its axes): the object's pose has no joints, and with the joint
   loss alone the global component left the object ~15 cm from where it was (docs/training.md).
+* L1_hand:  mean |A(h_c) - A(x)| (metres) over the points ``HAND_LEVER`` along each axis of
+  each hand's frame (``hand_axes``, built from the FK wrist and knuckles). A grasped object
+  turns with the hand's frame, but a turn about the forearm (a pour) moves the knuckles only
+  ~3 cm, so the joint loss, averaged over 55 joints, let the body VQ reconstruct a 54-86 deg
+  pour as a 5-29 deg one (docs/training.md). With ``hand_loss_frames = "held"``, the mean
+  over the frames where that hand holds the object only.
 * L1_joint: mean |FK(h_c) - FK(x)| over all 55 joints (metres), where h_c is the ground
   truth frame with only component c's slice replaced by its reconstruction, so each
   component is charged for its own joint error and no gradient crosses components. FK
@@ -29,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .. import skeleton as sk
 from ..layout import CONTACT_CHANNELS, FIELD
 from ..rotations import rotation_6d_to_matrix
 from .configs import LossConfig, TrainConfig, VQConfig
@@ -71,17 +78,29 @@ def compute_loss(
     x_dn = dn(x)
     with torch.no_grad():
         j_true = joints_fn(x_dn)
-    l_joint = (joints_fn(hybrid) - j_true[None]).abs().flatten(1).mean(1)
+    j_hybrid = joints_fn(hybrid)
+    l_joint = (j_hybrid - j_true[None]).abs().flatten(1).mean(1)
+    if cfg.lambda_hand:  # from the joints already computed: no second FK
+        d = HAND_LEVER * (hand_axes(j_hybrid) - hand_axes(j_true)[None]).abs().mean((-2, -1))  # (P, B, T, 2)
+        if cfg.hand_loss_frames == "held":  # contact labels [left, right], the order of hand_axes
+            w = (x[..., cont] > 0.5).to(d.dtype)
+            l_hand = (d * w).flatten(1).sum(1) / w.sum().clamp(min=1.0)
+        elif cfg.hand_loss_frames == "all":
+            l_hand = d.flatten(1).mean(1)
+        else:
+            raise ValueError(f"hand_loss_frames must be 'all' or 'held', got {cfg.hand_loss_frames!r}")
+    else:
+        l_hand = torch.zeros_like(l_joint)
     if cfg.lambda_obj:
         l_obj = (object_points(hybrid) - object_points(x_dn)[None]).abs().flatten(1).mean(1)
     else:  # off (the default): not even computed
         l_obj = torch.zeros_like(l_joint)
 
-    per = (l_param + cfg.lambda_joint * l_joint + cfg.lambda_obj * l_obj + cfg.lambda_vel * l_vel
+    per = (l_param + cfg.lambda_joint * l_joint + cfg.lambda_hand * l_hand + cfg.lambda_obj * l_obj + cfg.lambda_vel * l_vel
            + cfg.lambda_cont * l_cont + cfg.beta * out.commit)
     loss = per.sum()
     metrics = {"loss": loss.detach()}
-    for key, v in (("param", l_param), ("joint", l_joint), ("obj", l_obj), ("vel", l_vel), ("cont", l_cont),
+    for key, v in (("param", l_param), ("joint", l_joint), ("hand", l_hand), ("obj", l_obj), ("vel", l_vel), ("cont", l_cont),
                    ("commit", out.commit), ("perplexity", out.perplexity), ("resets", out.resets),
                    ("used", out.used), ("loss", per)):
         v = v.detach()
@@ -90,6 +109,27 @@ def compute_loss(
         for name, val in zip(vq.names, v):
             metrics[f"{key}/{name}"] = val
     return loss, metrics
+
+
+HAND_LEVER = 0.2  # metres: about where a held object's far side is from the wrist
+# Per side (wrist, middle1, index1, pinky1): the hand's long axis runs wrist -> middle
+# knuckle, its width index -> pinky knuckle. All are FK children of the wrist, so the
+# frame turns exactly as the wrist's global rotation does.
+_HAND_FRAME_JOINTS = tuple(
+    (wrist, *(sk.JOINT_NAMES.index(f"{side}_{n}1") for n in ("middle", "index", "pinky")))
+    for side, wrist in (("left", sk.LEFT_WRIST), ("right", sk.RIGHT_WRIST)))
+
+
+def hand_axes(j: torch.Tensor) -> torch.Tensor:
+    """FK joints (..., 55, 3) -> (..., 2, 3, 3): the unit axes (long, across, palm normal) of
+    the left and right hand's frame, in world coordinates."""
+    idx = torch.tensor(_HAND_FRAME_JOINTS, device=j.device)
+    p = j[..., idx.flatten(), :].unflatten(-2, idx.shape)  # (..., 2, 4, 3)
+    long = F.normalize(p[..., 1, :] - p[..., 0, :], dim=-1)
+    width = p[..., 2, :] - p[..., 3, :]
+    normal = F.normalize(torch.linalg.cross(long, width, dim=-1), dim=-1)
+    across = torch.linalg.cross(normal, long, dim=-1)
+    return torch.stack([long, across, normal], -2)
 
 
 OBJECT_POINT_OFFSET = 0.1  # metres along each object axis: rotation errors weigh like translation

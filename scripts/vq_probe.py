@@ -1,0 +1,105 @@
+"""Where a trained VQ loses the motion, in minutes instead of `evaluate`'s hour: held-out
+sequences encoded and decoded whole, as `evaluate` and the engine decode them.
+
+    .venv/bin/python scripts/vq_probe.py --data data/sg3000_prep runs/a runs/b
+
+Per run (its best checkpoint), one JSON line:
+* on ``--limit`` test sequences (the subjects in turn): FK joint error in mm from the features
+  (``mpjpe``; ``global``, ``body``, ``hands``: only that component reconstructed, the rest
+  ground truth, so each is charged its own error), the object's position error
+  (``object_mm``) and the angle between each decoded hand frame and the true one
+  (``hand_deg``, ``models.vq_losses.hand_axes``: the turn a held object takes from the hand);
+* on every test sequence of ``--intent`` (default pour): the reconstruction through the
+  engine's contact stage against its prompt, as `evaluate` checks it: ``intent_ok`` and the
+  intent's own rule (``rule_ok``; the share of all sequences), and the median of the rule's
+  value (pour: the largest tilt of the held object) over the sequences that grasp at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from comgrasp_train.evaluate import outputs_of, prompt_for
+from comgrasp_train.intent_check import check_features, intent_of
+from comgrasp_train.layout import COMPONENT_SLICES, FIELD
+from comgrasp_train.models.vq_losses import hand_axes
+from comgrasp_train.models.vqvae import fit_to_tokens
+from comgrasp_train.normalization import Normalizer
+from comgrasp_train.representation import features_to_joints
+from comgrasp_train.train.vq_trainer import load_prepared, load_vq
+
+RULE_VALUE = {"pour": "tilt_deg", "lift": "rise_m", "drink": "head_m", "inspect": "turn_deg", "offhand": "reach_frac"}
+
+
+def reconstruct(vq, norm, gt: np.ndarray) -> np.ndarray:
+    x = fit_to_tokens(torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None], vq.frames_per_token, "pad")
+    return norm.denormalize(vq.decode(vq.encode(x))[0].numpy())[: len(gt)]
+
+
+def fk_rows(vq, norm, fs) -> dict[str, float]:
+    rows = {k: [] for k in ("mpjpe", "global", "body", "hands", "object_mm", "hand_deg")}
+    for gt, rest in zip(fs.features, fs.rest_joints):
+        rest = torch.from_numpy(np.asarray(rest)).float()
+        rec = reconstruct(vq, norm, gt)
+        true = features_to_joints(torch.from_numpy(gt), rest)
+
+        def err(x):
+            return float((features_to_joints(torch.from_numpy(x), rest) - true).norm(dim=-1).mean() * 1000)
+
+        rows["mpjpe"].append(err(rec))
+        for name, parts in (("global", ("global",)), ("body", ("body",)), ("hands", ("lhand", "rhand"))):
+            h = gt.copy()
+            for p in parts:
+                h[:, COMPONENT_SLICES[p]] = rec[:, COMPONENT_SLICES[p]]
+            rows[name].append(err(h))
+        s = FIELD["object_transl"].slice
+        rows["object_mm"].append(float(np.linalg.norm(rec[:, s] - gt[:, s], axis=-1).mean() * 1000))
+        a, b = hand_axes(features_to_joints(torch.from_numpy(rec), rest)), hand_axes(true)
+        cos = ((a.transpose(-1, -2) @ b).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2  # (trace(a^T b) - 1) / 2
+        rows["hand_deg"].append(float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).mean()))
+    return {k: round(float(np.mean(v)), 1) for k, v in rows.items()}
+
+
+def intent_rows(vq, norm, fs, intent: str) -> dict[str, float]:
+    ok, rule, values = [], [], []
+    for i, m in enumerate(fs.meta):
+        if m.get("intent") != intent:
+            continue
+        rec = reconstruct(vq, norm, fs.features[i])
+        staged = outputs_of(rec, m, fs.rest_joints[i], fs.fps, ("stage",))["stage"]
+        r = check_features(staged, prompt_for(fs, i), m, fs.rest_joints[i], fs.fps, intent=intent_of(m))
+        ok.append(r.ok)
+        rule.append(r.rules.get(intent, False))
+        if RULE_VALUE.get(intent) in r.values:
+            values.append(r.values[RULE_VALUE[intent]])
+    if not ok:
+        raise SystemExit(f"no test sequence has intent {intent!r}")
+    return {"sequences": len(ok), "intent_ok": round(float(np.mean(ok)), 3), "rule_ok": round(float(np.mean(rule)), 3),
+            f"median_{RULE_VALUE.get(intent, 'value')}": round(float(np.median(values)), 3) if values else None}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="+", help="train-vq output folders")
+    ap.add_argument("--data", required=True, help="a prepared SynthGrasp folder (its test part)")
+    ap.add_argument("--limit", type=int, default=60, help="test sequences for the FK errors")
+    ap.add_argument("--intent", default="pour", help="SynthGrasp intent checked through the contact stage")
+    args = ap.parse_args(argv)
+    torch.set_grad_enabled(False)
+    fs = load_prepared(args.data, "test")[0]
+    for run in args.runs:
+        vq, _, info = load_vq(run, which="best")
+        norm = Normalizer.load(Path(run) / "stats.npz")  # the run's own, as evaluate reads it
+        out = {"run": run, "step": info["checkpoint"]["step"], **fk_rows(vq, norm, fs.spread(args.limit))}
+        out[args.intent] = intent_rows(vq, norm, fs, args.intent)
+        print(json.dumps(out), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
