@@ -24,21 +24,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from comgrasp_train.evaluate import outputs_of, prompt_for
+from comgrasp_train.evaluate import outputs_of, prompt_for, reconstruct
 from comgrasp_train.intent_check import check_features, intent_of
 from comgrasp_train.layout import COMPONENT_SLICES, FIELD
+from comgrasp_train.metrics import rotation_angle_deg
 from comgrasp_train.models.vq_losses import hand_axes
-from comgrasp_train.models.vqvae import fit_to_tokens
 from comgrasp_train.normalization import Normalizer
 from comgrasp_train.representation import features_to_joints
 from comgrasp_train.train.vq_trainer import load_prepared, load_vq
 
 RULE_VALUE = {"pour": "tilt_deg", "lift": "rise_m", "drink": "head_m", "inspect": "turn_deg", "offhand": "reach_frac"}
-
-
-def reconstruct(vq, norm, gt: np.ndarray) -> np.ndarray:
-    x = fit_to_tokens(torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None], vq.frames_per_token, "pad")
-    return norm.denormalize(vq.decode(vq.encode(x))[0].numpy())[: len(gt)]
 
 
 def fk_rows(vq, norm, fs) -> dict[str, float]:
@@ -60,8 +55,7 @@ def fk_rows(vq, norm, fs) -> dict[str, float]:
         s = FIELD["object_transl"].slice
         rows["object_mm"].append(float(np.linalg.norm(rec[:, s] - gt[:, s], axis=-1).mean() * 1000))
         a, b = hand_axes(features_to_joints(torch.from_numpy(rec), rest)), hand_axes(true)
-        cos = ((a.transpose(-1, -2) @ b).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2  # (trace(a^T b) - 1) / 2
-        rows["hand_deg"].append(float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).mean()))
+        rows["hand_deg"].append(float(rotation_angle_deg(a.numpy(), b.numpy()).mean()))
     return {k: round(float(np.mean(v)), 1) for k, v in rows.items()}
 
 

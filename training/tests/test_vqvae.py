@@ -168,8 +168,8 @@ def test_hand_axes_turn_with_the_hand_and_the_hand_loss_charges_only_the_arm():
         xc = x.clone()
         xc[..., cont] = flag
         _, h = compute_loss(vq, xc, joints_fn, held)
-        _, a = compute_loss(vq, xc, joints_fn, cfg)
-        torch.testing.assert_close(h["hand"], a["hand"] * flag)
+        _, every = compute_loss(vq, xc, joints_fn, cfg)
+        torch.testing.assert_close(h["hand"], every["hand"] * flag)
     xc[..., cont] = 0.0
     xc[:, 2:5, cont[1]] = 1.0  # the right hand holds for three frames
     _, h = compute_loss(vq, xc, joints_fn, held)

@@ -66,6 +66,13 @@ def outputs_of(pred: np.ndarray, meta: dict, rest: np.ndarray, fps: float, outpu
 
 
 @torch.no_grad()
+def reconstruct(vq, norm: Normalizer, gt: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
+    """One de-normalized sequence (T, 335) encoded and decoded whole, as the engine decodes it."""
+    x = fit_to_tokens(torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None].to(device), vq.frames_per_token, "pad")
+    return norm.denormalize(vq.decode(vq.encode(x))[0].cpu().numpy())[: len(gt)]
+
+
+@torch.no_grad()
 def evaluate_reconstruction(vq, norm: Normalizer, fs: FeatureSet, body=None, cfg=MetricConfig(),
                             limit: int | None = None, outputs=("raw",)) -> dict[str, list[dict]]:
     """Runs on the model's own device (the inputs follow the weights). Rows per output."""
@@ -73,9 +80,7 @@ def evaluate_reconstruction(vq, norm: Normalizer, fs: FeatureSet, body=None, cfg
     device = next(vq.parameters()).device
     rows = {o: [] for o in outputs}
     for i, gt in enumerate(fs.features[:limit]):
-        x = torch.from_numpy(norm.normalize(gt.astype(np.float32)))[None].to(device)
-        x = fit_to_tokens(x, vq.frames_per_token, "pad")
-        rec = norm.denormalize(vq.decode(vq.encode(x))[0].cpu().numpy())[: len(gt)]
+        rec = reconstruct(vq, norm, gt, device)
         for o, pred in outputs_of(rec, fs.meta[i], fs.rest_joints[i], fs.fps, outputs).items():
             row = _pair_metrics(pred, gt, fs.meta[i], fs.rest_joints[i], body, fs.fps, cfg)
             row["contact_accuracy"] = float(((pred[:, [240, 334]] > 0.5) == (gt[:, [240, 334]] > 0.5)).mean())

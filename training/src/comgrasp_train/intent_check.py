@@ -40,7 +40,7 @@ import torch
 
 from . import skeleton as sk
 from .grab.text_parse import SIDES, UNKNOWN, Intent, parse_prompt
-from .metrics import unheld_object_motion
+from .metrics import rotation_angle_deg, unheld_object_motion
 from .objects.catalogue import CATALOGUE
 from .representation import features_to_joints, features_to_params
 
@@ -114,11 +114,6 @@ def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
     """[start, stop) of each run of True."""
     d = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
     return list(zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]))
-
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    cos = (np.einsum("...ji,...ji->...", a, b) - 1.0) / 2.0  # (trace(a^T b) - 1) / 2
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def _to_object(track: MotionTrack, points: np.ndarray, frames=slice(None)) -> np.ndarray:
@@ -217,7 +212,7 @@ def _intent_rule(res: CheckResult, track: MotionTrack, gripped: np.ndarray, cfg:
         res.rule(name, v["tilt_deg"] >= cfg.pour_deg, f"tilts {v['tilt_deg']:.0f} deg < {cfg.pour_deg:.0f}")
     elif name == "inspect":
         rot = track.object_rot[f[head_dist <= cfg.face_m]]
-        v["turn_deg"] = float(_angle_deg(rot[:, None], rot[None]).max()) if len(rot) else 0.0
+        v["turn_deg"] = float(rotation_angle_deg(rot[:, None], rot[None]).max()) if len(rot) else 0.0
         res.rule(name, v["rise_m"] >= cfg.raise_m and v["head_m"] <= cfg.face_m and v["turn_deg"] >= cfg.turn_deg,
                  f"rises {v['rise_m'] * 100:.0f} cm, comes {v['head_m'] * 100:.0f} cm from the head, turns "
                  f"{v['turn_deg']:.0f} deg there (need {cfg.raise_m * 100:.0f}, {cfg.face_m * 100:.0f}, "

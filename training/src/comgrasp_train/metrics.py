@@ -368,9 +368,10 @@ def summarize_repeats(repeats: Sequence[Sequence[Mapping[str, float]]]) -> dict[
 # ---- physical plausibility of a single sequence -------------------------------------------
 
 
-def _rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    rel = np.einsum("...ji,...jk->...ik", a, b)  # a^T b
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle of the rotation between rotation matrices (or orthonormal frames) a and b,
+    broadcast over leading axes."""
+    cos = (np.einsum("...ji,...ji->...", a, b) - 1.0) / 2.0  # (trace(a^T b) - 1) / 2
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
@@ -385,7 +386,7 @@ def unheld_object_motion(object_rotmat: np.ndarray, object_transl: np.ndarray,
     if not free.any():
         return 0.0, 0.0
     move = np.linalg.norm(object_transl[free] - object_transl[anchor[free]], axis=-1) * 1000.0
-    turn = _rotation_angle_deg(object_rotmat[anchor[free]], object_rotmat[free])
+    turn = rotation_angle_deg(object_rotmat[anchor[free]], object_rotmat[free])
     return float(move.max()), float(turn.max())
 
 
