@@ -11,6 +11,13 @@ verbs, subjects and hand phrases the training texts never use), and every seed, 
 the quality report's checker against the prompt's meaning. Writes OUT/sweep.json (every
 sample) and OUT/sweep.md (rates per config and prompt set, plus how often two seeds of the
 same prompt give the same motion, so that a low temperature's loss of variety shows).
+
+``--raw`` checks the model's raw frames instead (``generate --raw``). Every sample also
+records its grasp offsets (``intent_check.grasp_offsets``: each grasping hand's wrist when
+its flag comes on, minus the object's resting origin); the table shows their mean upward
+part and mean length, and ``--reference DATA`` adds the same for a prepared set's test
+motions. On raw frames that is where the model closes its hand against where it put the
+object, which the contact stage has to make up.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from comgrasp_train.grab.paraphrase import Meaning, one
 from comgrasp_train.grab.text_parse import Intent, parse_prompt
-from comgrasp_train.intent_check import check_motion, object_sdf_for, track_from_engine
+from comgrasp_train.intent_check import check_motion, grasp_offsets, object_sdf_for, track_from_engine, track_from_features
 from quality_report import prompts
 
 RATES = ("intent_ok", "intent_grasp", "intent_unheld_still", "intent_lift", "intent_drink", "intent_pour",
@@ -46,17 +53,34 @@ def held_out_wording(k: int, meaning: str) -> str:
 
 
 def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, g: float | None, out: Path,
-            intent: Intent) -> dict:
+            intent: Intent, raw: bool = False) -> dict:
     if not out.exists():
         subprocess.run([binary, "generate", "--bundle", bundle, "--text", text, "--seed", str(seed), "--fk",
                         "--temperature", str(t), "--top-k", str(k), *(["--guidance", str(g)] if g is not None else []),
-                        "--out", str(out)],
+                        *(["--raw"] if raw else []), "--out", str(out)],
                        check=True, stdout=subprocess.DEVNULL)
     with np.load(out) as frames:
         frames = dict(frames)
-    r = check_motion(track_from_engine(frames, object_sdf_for({"object": intent.object})), intent)
+    track = track_from_engine(frames, object_sdf_for({"object": intent.object}))
+    r = check_motion(track, intent)
     return {"ok": r.ok, "reason": r.reason, **r.row(), "frames": len(frames["object_translation"]),
-            "object_path": frames["object_translation"][::8].round(3).tolist()}
+            "object_path": frames["object_translation"][::8].round(3).tolist(),
+            "grasp_offsets": grasp_offsets(track).round(3).tolist()}
+
+
+def offset_cells(offsets: list) -> str:
+    """Table cells: mean up offset and mean length of grasp offsets, in cm."""
+    o = np.array(offsets, float).reshape(-1, 3)
+    return f"{100 * o[:, 2].mean():.1f} | {100 * np.linalg.norm(o, axis=1).mean():.1f}" if len(o) else "– | –"
+
+
+def reference_offsets(data: str) -> list:
+    """The ground truth's grasp offsets: every sequence of a prepared set's test part."""
+    from comgrasp_train.dataset import FeatureSet
+
+    fs = FeatureSet.load(Path(data) / "features_test.npz")
+    return [o for x, rest in zip(fs.features, fs.rest_joints)
+            for o in grasp_offsets(track_from_features(x, rest, fs.fps, lambda p: p[..., 0])).tolist()]
 
 
 def parse_config(c: str) -> tuple[float, int, float | None]:
@@ -78,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sets", default="template,held_out")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", default="out/sweep")
+    ap.add_argument("--raw", action="store_true", help="check the model's raw frames (generate --raw)")
+    ap.add_argument("--reference", metavar="DATA",
+                    help="a prepared SynthGrasp folder: add its test motions' grasp offsets as a row")
     a = ap.parse_args(argv)
     out = Path(a.out)
     (out / "npz").mkdir(parents=True, exist_ok=True)
@@ -96,16 +123,16 @@ def main(argv: list[str] | None = None) -> int:
 
     def work(job):
         (s, i, text, intent), t, k, g, seed = job
-        f = out / "npz" / f"t{t}_k{k}{'' if g is None else f'_g{g}'}_{s}_p{i}_s{seed}.npz"
-        row = run_one(a.binary, a.bundle, text, seed, t, k, g, f, intent)
+        f = out / "npz" / f"t{t}_k{k}{'' if g is None else f'_g{g}'}{'_raw' if a.raw else ''}_{s}_p{i}_s{seed}.npz"
+        row = run_one(a.binary, a.bundle, text, seed, t, k, g, f, intent, a.raw)
         return {"temperature": t, "top_k": k, "guidance": g, "set": s, "prompt": i, "text": text, "seed": seed, **row}
 
     with ThreadPoolExecutor(a.jobs) as pool:
         rows = list(pool.map(work, jobs))
     (out / "sweep.json").write_text(json.dumps(rows, indent=0))
     lines = ["| T | top-k | guidance | prompts | n | " + " | ".join(r.removeprefix("intent_") for r in RATES)
-             + " | same motion across seeds | frames |",
-             "|---" * (len(RATES) + 7) + "|"]
+             + " | same motion across seeds | frames | grasp offset up (cm) | grasp offset (cm) |",
+             "|---" * (len(RATES) + 9) + "|"]
     for t, k, g in configs:
         for s in a.sets.split(","):
             sel = [r for r in rows if (r["temperature"], r["top_k"], r["guidance"]) == (t, k, g) and r["set"] == s]
@@ -117,7 +144,11 @@ def main(argv: list[str] | None = None) -> int:
                 same += [p.shape == q.shape and float(np.abs(p - q).max()) < 0.01
                          for n, p in enumerate(paths) for q in paths[n + 1:]]
             lines.append(f"| {t} | {k} | {'bundle' if g is None else g} | {s} | {len(sel)} | " + " | ".join(f"{v:.2f}" for v in rates)
-                         + f" | {np.mean(same):.2f} | {np.mean([r['frames'] for r in sel]):.0f} |")
+                         + f" | {np.mean(same):.2f} | {np.mean([r['frames'] for r in sel]):.0f} | "
+                         + offset_cells([o for r in sel for o in r["grasp_offsets"]]) + " |")
+    if a.reference:
+        lines.append("| ground truth | | | test motions | | " + "| " * (len(RATES) + 2)
+                     + offset_cells(reference_offsets(a.reference)) + " |")
     table = "\n".join(lines) + "\n"
     (out / "sweep.md").write_text(table)
     print(table)

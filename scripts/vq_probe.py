@@ -8,7 +8,10 @@ Per run (its best checkpoint), one JSON line:
   (``mpjpe``; ``global``, ``body``, ``hands``: only that component reconstructed, the rest
   ground truth, so each is charged its own error), the object's position error
   (``object_mm``) and the angle between each decoded hand frame and the true one
-  (``hand_deg``, ``models.vq_losses.hand_axes``: the turn a held object takes from the hand);
+  (``hand_deg``, ``models.vq_losses.hand_axes``: the turn a held object takes from the hand),
+  the signed height error of the resting object (``rest_up_mm``, frame 0) and how far above
+  its resting object each grasping wrist closes (``grasp_up_mm``; ``grasp_up_gt_mm`` the
+  same for the ground truth; ``intent_check.grasp_offsets``);
 * on every test sequence of ``--intent`` (default pour): the reconstruction through the
   engine's contact stage against its prompt, as `evaluate` checks it: ``intent_ok`` and the
   intent's own rule (``rule_ok``; the share of all sequences), and the median of the rule's
@@ -25,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from comgrasp_train.evaluate import outputs_of, prompt_for, reconstruct
-from comgrasp_train.intent_check import check_features, intent_of
+from comgrasp_train.intent_check import check_features, grasp_offsets, intent_of, track_from_features
 from comgrasp_train.layout import COMPONENT_SLICES, FIELD
 from comgrasp_train.metrics import rotation_angle_deg
 from comgrasp_train.models.vq_losses import hand_axes
@@ -37,7 +40,8 @@ RULE_VALUE = {"pour": "tilt_deg", "lift": "rise_m", "drink": "head_m", "inspect"
 
 
 def fk_rows(vq, norm, fs) -> dict[str, float]:
-    rows = {k: [] for k in ("mpjpe", "global", "body", "hands", "object_mm", "hand_deg")}
+    rows = {k: [] for k in ("mpjpe", "global", "body", "hands", "object_mm", "hand_deg", "rest_up_mm")}
+    grasp = {"grasp_up_mm": [], "grasp_up_gt_mm": []}
     for gt, rest in zip(fs.features, fs.rest_joints):
         rest = torch.from_numpy(np.asarray(rest)).float()
         rec = reconstruct(vq, norm, gt)
@@ -56,7 +60,14 @@ def fk_rows(vq, norm, fs) -> dict[str, float]:
         rows["object_mm"].append(float(np.linalg.norm(rec[:, s] - gt[:, s], axis=-1).mean() * 1000))
         a, b = hand_axes(features_to_joints(torch.from_numpy(rec), rest)), hand_axes(true)
         rows["hand_deg"].append(float(rotation_angle_deg(a.numpy(), b.numpy()).mean()))
-    return {k: round(float(np.mean(v)), 1) for k, v in rows.items()}
+        rows["rest_up_mm"].append(float(rec[0, s][2] - gt[0, s][2]) * 1000)
+        for key, x in (("grasp_up_mm", rec), ("grasp_up_gt_mm", gt)):
+            grasp[key] += (grasp_offsets(track_from_features(x, rest, fs.fps, _no_shape))[:, 2] * 1000).tolist()
+    return {k: round(float(np.mean(v)), 1) for k, v in {**rows, **grasp}.items()}
+
+
+def _no_shape(points):
+    raise AssertionError("grasp offsets need no object shape")
 
 
 def intent_rows(vq, norm, fs, intent: str) -> dict[str, float]:

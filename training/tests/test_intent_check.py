@@ -256,6 +256,28 @@ def test_a_flickering_flag_is_not_a_release_and_short_touches_are_not_grasps():
     assert np.array_equal(np.nonzero(gripped[:, 0])[0], np.arange(10, 40)) and not gripped[:, 1].any()
 
 
+def test_grasp_offsets_are_each_grasping_wrist_at_its_first_flag_from_the_resting_object():
+    from comgrasp_train import skeleton as sk
+    from comgrasp_train.intent_check import MotionTrack, grasp_offsets
+
+    T = 12
+    joints = np.random.default_rng(0).normal(size=(T, 55, 3))
+    transl = np.zeros((T, 3))
+    transl[:] = (0.1, 0.5, 0.9)
+    transl[5:] += (0.0, 0.0, 0.3)  # lifted later: the offset is from where it rested
+    contact = np.zeros((T, 2), bool)
+    contact[7:10, 1] = True  # right hand first in time, listed second
+    contact[4:11, 0] = True
+    joints[4, sk.LEFT_WRIST] = (0.1, 0.4, 1.0)
+    joints[7, sk.RIGHT_WRIST] = (0.25, 0.5, 0.85)
+    track = MotionTrack(joints, np.tile(np.eye(3), (T, 1, 1)), transl, contact, 30.0, lambda p: p[..., 0])
+    assert np.allclose(grasp_offsets(track), [(0.0, -0.1, 0.1), (0.15, 0.0, -0.05)])
+    contact[:, 0] = False
+    assert np.allclose(grasp_offsets(track), [(0.15, 0.0, -0.05)])
+    assert grasp_offsets(MotionTrack(joints, track.object_rot, transl, np.zeros((T, 2), bool), 30.0,
+                                     track.object_sdf)).shape == (0, 3)
+
+
 def _engine_frames(fs, i) -> dict:
     """What `comgrasp generate --fk --out F.npz` writes for a motion (native coordinates,
     quaternions x, y, z, w), built from a prepared sequence."""

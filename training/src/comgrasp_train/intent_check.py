@@ -50,7 +50,8 @@ _ARMS = ((16, 18, sk.LEFT_WRIST), (17, 19, sk.RIGHT_WRIST))  # shoulder, elbow, 
 _HIPS = (1, 2)  # left, right
 
 __all__ = ["CheckConfig", "CheckResult", "Intent", "MotionTrack", "UNKNOWN", "check_feature_set", "check_features",
-           "check_motion", "intent_of", "intent_rates", "parse_prompt", "track_from_engine", "track_from_features"]
+           "check_motion", "grasp_offsets", "intent_of", "intent_rates", "parse_prompt", "track_from_engine",
+           "track_from_features"]
 
 
 @dataclass
@@ -238,6 +239,18 @@ def check_motion(track: MotionTrack, intent: Intent, cfg: CheckConfig = CheckCon
     if intent.intent in SYNTH_INTENTS:
         _intent_rule(res, track, gripped, cfg)
     return res
+
+
+def grasp_offsets(track: MotionTrack) -> np.ndarray:
+    """(n, 3) world offsets, one per hand whose contact flag ever comes on: that hand's wrist in
+    the first flagged frame minus the object's origin in the first frame (where the motion put
+    the object at rest). Where a motion closes its hand relative to its own object: on a
+    model's raw frames a systematic offset is what the contact stage's reach correction has
+    to make up (docs/training.md, "The object's rest height"). Needs no object shape."""
+    flags = np.asarray(track.contact, bool)
+    wrists = (sk.LEFT_WRIST, sk.RIGHT_WRIST)
+    return np.array([track.joints[np.argmax(flags[:, k]), wrists[k]] - track.object_transl[0]
+                     for k in (0, 1) if flags[:, k].any()]).reshape(-1, 3)
 
 
 # ---- from features ------------------------------------------------------------------------
