@@ -80,7 +80,7 @@ def reference_offsets(data: str) -> list:
 
     fs = FeatureSet.load(Path(data) / "features_test.npz")
     return [o for x, rest in zip(fs.features, fs.rest_joints)
-            for o in grasp_offsets(track_from_features(x, rest, fs.fps, lambda p: p[..., 0])).tolist()]
+            for o in grasp_offsets(track_from_features(x, rest, fs.fps)).tolist()]
 
 
 def parse_config(c: str) -> tuple[float, int, float | None]:

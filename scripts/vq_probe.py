@@ -62,12 +62,8 @@ def fk_rows(vq, norm, fs) -> dict[str, float]:
         rows["hand_deg"].append(float(rotation_angle_deg(a.numpy(), b.numpy()).mean()))
         rows["rest_up_mm"].append(float(rec[0, s][2] - gt[0, s][2]) * 1000)
         for key, x in (("grasp_up_mm", rec), ("grasp_up_gt_mm", gt)):
-            grasp[key] += (grasp_offsets(track_from_features(x, rest, fs.fps, _no_shape))[:, 2] * 1000).tolist()
+            grasp[key] += (grasp_offsets(track_from_features(x, rest, fs.fps))[:, 2] * 1000).tolist()
     return {k: round(float(np.mean(v)), 1) for k, v in {**rows, **grasp}.items()}
-
-
-def _no_shape(points):
-    raise AssertionError("grasp offsets need no object shape")
 
 
 def intent_rows(vq, norm, fs, intent: str) -> dict[str, float]:

@@ -266,7 +266,7 @@ def test_grasp_offsets_are_each_grasping_wrist_at_its_first_flag_from_the_restin
     transl[:] = (0.1, 0.5, 0.9)
     transl[5:] += (0.0, 0.0, 0.3)  # lifted later: the offset is from where it rested
     contact = np.zeros((T, 2), bool)
-    contact[7:10, 1] = True  # right hand first in time, listed second
+    contact[7:10, 1] = True  # the right hand grasps later than the left
     contact[4:11, 0] = True
     joints[4, sk.LEFT_WRIST] = (0.1, 0.4, 1.0)
     joints[7, sk.RIGHT_WRIST] = (0.25, 0.5, 0.85)
@@ -276,6 +276,18 @@ def test_grasp_offsets_are_each_grasping_wrist_at_its_first_flag_from_the_restin
     assert np.allclose(grasp_offsets(track), [(0.15, 0.0, -0.05)])
     assert grasp_offsets(MotionTrack(joints, track.object_rot, transl, np.zeros((T, 2), bool), 30.0,
                                      track.object_sdf)).shape == (0, 3)
+
+
+def test_a_track_without_the_shape_gives_grasp_offsets_and_refuses_shape_queries(synth):
+    from comgrasp_train.intent_check import grasp_offsets
+
+    _, fs = synth
+    i = 0
+    bare = track_from_features(fs.features[i], fs.rest_joints[i], fs.fps)
+    full = track_from_features(fs.features[i], fs.rest_joints[i], fs.fps, object_sdf_for(fs.meta[i]))
+    assert len(grasp_offsets(bare)) > 0 and np.array_equal(grasp_offsets(bare), grasp_offsets(full))
+    with pytest.raises(ValueError, match="without the object's shape"):
+        check_motion(bare, parse_prompt(fs.texts[i][0]))
 
 
 def _engine_frames(fs, i) -> dict:

@@ -248,8 +248,7 @@ def grasp_offsets(track: MotionTrack) -> np.ndarray:
     model's raw frames a systematic offset is what the contact stage's reach correction has
     to make up (docs/training.md, "The object's rest height"). Needs no object shape."""
     flags = np.asarray(track.contact, bool)
-    wrists = (sk.LEFT_WRIST, sk.RIGHT_WRIST)
-    return np.array([track.joints[np.argmax(flags[:, k]), wrists[k]] - track.object_transl[0]
+    return np.array([track.joints[np.argmax(flags[:, k]), _ARMS[k][2]] - track.object_transl[0]
                      for k in (0, 1) if flags[:, k].any()]).reshape(-1, 3)
 
 
@@ -268,10 +267,15 @@ def object_sdf_for(meta: dict) -> Callable[[np.ndarray], np.ndarray]:
     raise FileNotFoundError(f"no mesh or catalogue shape for object {meta.get('object')!r} ({mesh})")
 
 
+def _shape_unknown(points: np.ndarray) -> np.ndarray:
+    raise ValueError("this track was made without the object's shape (track_from_features(..., object_sdf))")
+
+
 def track_from_features(x: np.ndarray, rest_joints: np.ndarray, fps: float,
-                        object_sdf: Callable[[np.ndarray], np.ndarray]) -> MotionTrack:
+                        object_sdf: Callable[[np.ndarray], np.ndarray] = _shape_unknown) -> MotionTrack:
     """A track from de-normalized (T, 335) features, through the inversion generated
-    motions take (FK of the rotations, the object pose and contact columns)."""
+    motions take (FK of the rotations, the object pose and contact columns). Without
+    ``object_sdf`` only measures that need no shape (``grasp_offsets``) work on it."""
     rest = torch.as_tensor(np.asarray(rest_joints), dtype=torch.float64)
     joints = features_to_joints(torch.as_tensor(np.asarray(x), dtype=torch.float64), rest).numpy()
     p = features_to_params(x, rest)
