@@ -122,8 +122,13 @@
 // contact-consistency stage (the object may float or drift, a hand may hold empty air).
 #define CG_STREAM_RAW_OUTPUT (1 << 0)
 
+// Set in `cg_stream_config.flags`: the resting object stays where the model put it instead
+// of where the model's hand first closes on it (placement from the grasp, which holds the
+// first frame back until that grasp, at most 128 frames ahead: docs/engine.md).
+#define CG_STREAM_NO_GRASP_PLACEMENT (1 << 1)
+
 // All `CG_STREAM_*` flags this library knows.
-#define CG_STREAM_FLAGS_ALL CG_STREAM_RAW_OUTPUT
+#define CG_STREAM_FLAGS_ALL (CG_STREAM_RAW_OUTPUT | CG_STREAM_NO_GRASP_PLACEMENT)
 
 // Set in `cg_stream_config.anchor`: `character_position` / `character_rotation` place the
 // character in the host's world.

@@ -34,7 +34,7 @@ from comgrasp_train.contact_stage import ObjectShape, apply_contact_stage, featu
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "tests" / "fixtures" / "contact_stage"
 BUNDLE = ROOT / "models" / "default"
-CASES = (  # prompt, seed: together they make every rule in RULES fire
+CASES = (  # prompt, seed[, placement from the grasp]: together they make every rule in RULES fire
     ("The woman picks up the banana", 3),
     ("The man is passing the small cylinder from his right hand to his left.", 2),
     ("The man pours from the bowl", 4),
@@ -43,22 +43,28 @@ CASES = (  # prompt, seed: together they make every rule in RULES fire
     ("Someone lifts the large sphere with both hands", 6),
     # carried below the table's top until its edge passes under the cube: not set down (thrown up)
     ("Someone grabs the large cube with their left hand and lifts it up", 2),
+    # the object where the model put it (the engine's CG_STREAM_NO_GRASP_PLACEMENT): set down tilted
+    ("The woman picks up the banana", 3, False),
 )
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
          "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim", "place_frames",
-         "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted")
+         "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted", "placed")
 
 
 def main() -> int:
     keep = "--keep-inputs" in sys.argv[1:]
     manifest = json.loads((BUNDLE / "manifest.json").read_text())
     rest = np.asarray(manifest["skeleton"]["rest_joints"], np.float32)
+    if keep and (OUT / "rest_joints.npy").is_file():
+        # the skeleton the stored motions were made with (the default model may have changed since)
+        rest = np.load(OUT / "rest_joints.npy")
     objects = {o["name"]: o for o in manifest["objects"]}
     OUT.mkdir(parents=True, exist_ok=True)
     np.save(OUT / "rest_joints.npy", rest)
     cases, total = [], Counter()
     with tempfile.TemporaryDirectory() as tmp:
-        for k, (prompt, seed) in enumerate(CASES):
+        for k, (prompt, seed, *rest_of) in enumerate(CASES):
+            place = rest_of[0] if rest_of else True
             stored = OUT / f"case{k}_input.npy"
             old = json.loads((OUT / "index.json").read_text())["cases"] if keep else []
             if keep and stored.is_file() and k < len(old):
@@ -78,14 +84,14 @@ def main() -> int:
             shape = ObjectShape.of(obj["centre"], obj["half_extents"],
                                    (surface[:, :3].astype(np.float64), surface[:, 3:].astype(np.float64)))
             events = Counter()
-            y = apply_contact_stage(x, rest, fps, shape, events)
+            y = apply_contact_stage(x, rest, fps, shape, events, place)
             np.save(OUT / f"case{k}_input.npy", x)
             np.save(OUT / f"case{k}_output.npy", y)
             np.save(OUT / f"case{k}_surface.npy", surface)
             cases.append({"prompt": prompt, "seed": seed, "object": name, "mesh": obj["mesh"], "centre": obj["centre"],
                           "half_extents": obj["half_extents"], "surface": f"case{k}_surface.npy",
                           "input": f"case{k}_input.npy", "output": f"case{k}_output.npy", "frames": len(x),
-                          "events": dict(sorted(events.items()))})
+                          "place": place, "placed": bool(events["placed"]), "events": dict(sorted(events.items()))})
             total += events
             print(f"case{k}: {prompt!r} seed {seed}, {name}, {len(x)} frames: {dict(events)}")
     missing = [r for r in RULES if not total[r]]

@@ -113,6 +113,12 @@ impl AnchorStage {
         self.object.map(|(ro, po)| (mat_mul(&rt, &ro), mat_vec(&rt, &sub(&po, &t))))
     }
 
+    /// Whether the host's object pose replaces the model's (an object anchor that does not
+    /// place the character from it): the model's own placement of the object is moot.
+    pub fn fixes_object(&self) -> bool {
+        self.object.is_some() && !self.place_character
+    }
+
     /// Moves a frame (after the contact stage) into the host's world.
     pub fn apply(&self, pose: &mut Pose) {
         if let Some((r, t)) = &self.world {

@@ -381,6 +381,12 @@ pub struct StreamConfig {
     /// `Some(true)`: frames are the model's raw output, without the contact-consistency
     /// stage (`crate::contact`). Unset = false: the stage is on.
     pub raw_output: Option<bool>,
+    /// `Some(false)`: the contact stage keeps the resting object where the model's first
+    /// frame put it. Unset = true: it is placed where the model's hand first closes on it
+    /// (`crate::contact::GraspOnset`), the frames held back until then (at most
+    /// `contact::PLACE_LOOKAHEAD`). Moot without the stage, with an anchored object or a
+    /// continued stream.
+    pub grasp_placement: Option<bool>,
     /// Where the host's scene puts the character and the object (`crate::anchor`); unset:
     /// the model's own placement.
     pub anchor: Option<Anchor>,
@@ -462,6 +468,7 @@ impl StreamConfig {
             max_len: self.max_len.or(fallback.max_len),
             guidance: self.guidance.or(fallback.guidance),
             raw_output: self.raw_output.or(fallback.raw_output),
+            grasp_placement: self.grasp_placement.or(fallback.grasp_placement),
             anchor: self.anchor.or(fallback.anchor),
             continue_from: self.continue_from.or(fallback.continue_from),
         }

@@ -126,6 +126,62 @@ pub const TIP_SPEED: f64 = 3.0;
 /// this far from the box face nearest below it (2°): one set down on an edge would tip over
 /// after the hands let go.
 const SET_DOWN_TILT: f64 = 2.0 * std::f64::consts::PI / 180.0;
+/// Frames from the first that [`GraspOnset`] looks through for the model's first grasp
+/// (8 tokens of 16 frames): the engine holds a stream's frames back until it finds one.
+pub const PLACE_LOOKAHEAD: usize = 128;
+
+/// Where the model's hand first closes on the object: the resting object is placed there
+/// ([`ContactStage::place`]) before the stage starts.
+///
+/// Why: the model puts its resting object some 20 cm off (mostly sideways: its one global
+/// code per token does not carry the place), while its arm goes where the object should be.
+/// The reach then drags the wrist aside for up to half a second and a lift made meanwhile is
+/// lost. The hand knows better: at the first frame a hand's raw flag has been on for
+/// [`ON_FRAMES`] frames, its FK wrist minus its own wrist-to-object vector is the centre it
+/// closes on (the mean of both hands when both start then). Fed the raw frames in order, up
+/// to [`PLACE_LOOKAHEAD`] of them; docs/engine.md, "Placement from the grasp".
+#[derive(Clone, Debug, Default)]
+pub struct GraspOnset {
+    seen: usize,
+    on: [u32; 2],
+    centre: Option<Vec3>,
+}
+
+impl GraspOnset {
+    /// Feeds the next raw frame (before the stage); true once decided: a grasp found or
+    /// [`PLACE_LOOKAHEAD`] frames seen. Frames fed after that change nothing.
+    pub fn feed(&mut self, skeleton: &Skeleton, pose: &Pose) -> bool {
+        if self.decided() {
+            return true;
+        }
+        self.seen += 1;
+        for (on, &flag) in self.on.iter_mut().zip(&pose.contact) {
+            *on = if flag { *on + 1 } else { 0 };
+        }
+        let starts = self.on.map(|on| on == ON_FRAMES);
+        let n = starts.iter().filter(|&&s| s).count();
+        if n > 0 {
+            let mut global = [IDENTITY; CG_NUM_JOINTS];
+            let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
+            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+            let mut sum = [0.0; 3];
+            for h in (0..2).filter(|&h| starts[h]) {
+                sum = add(&sum, &sub(&joints[ARMS[h][3]], &pose.wrist_to_object[h]));
+            }
+            self.centre = Some(scale(&sum, 1.0 / n as f64));
+        }
+        self.decided()
+    }
+
+    pub fn decided(&self) -> bool {
+        self.centre.is_some() || self.seen >= PLACE_LOOKAHEAD
+    }
+
+    /// The centre the first grasp closes on; `None` while none was found.
+    pub fn centre(&self) -> Option<Vec3> {
+        self.centre
+    }
+}
 
 /// Collar, shoulder, elbow and wrist joints of the left and right arm (SMPL-X).
 const ARMS: [[usize; 4]; 2] = [[13, 16, 18, 20], [14, 17, 19, 21]];
@@ -551,6 +607,16 @@ impl ContactStage {
     /// the model's first frame puts it. Call before the first [`Self::apply`].
     pub fn set_start_object(&mut self, rot: Mat3, pos: Vec3) {
         self.start_object = Some((rot, pos));
+    }
+
+    /// Moves the object of `pose` (the stream's first frame, raw) so that its centre, as the
+    /// stage reckons it from the catalogue's box, lies at `centre` ([`GraspOnset`]); its
+    /// rotation stays. Call before the first [`Self::apply`] (and before anchoring, which
+    /// places the character from the object).
+    pub fn place(&self, pose: &mut Pose, centre: &Vec3) {
+        let d = sub(centre, &self.shape.centre_at(&pose.object_rotation, &pose.object_translation));
+        pose.object_translation = add(&pose.object_translation, &d);
+        pose.object_centre = add(&pose.object_centre, &d);
     }
 
     /// Rewrites one frame (the next of the stream) in place. No allocation.
@@ -1495,6 +1561,38 @@ mod tests {
             // the raw object drifts although the model holds it only from frame 30
             object: Box::new(|t| add(&TABLE_OBJECT, &[0.001 * t as f64, 0.0, 0.0])),
         }
+    }
+
+    #[test]
+    fn the_grasp_onset_is_where_the_first_hands_close_after_their_flags_settle() {
+        let s = skeleton();
+        let mut pose = Pose { pelvis: [0.0, 0.0, 0.6], ..Pose::default() };
+        let (_, joints) = fk(&s, &pose);
+        pose.wrist_to_object = [[0.1, 0.0, 0.0], [0.0, -0.1, 0.2]];
+        let mut onset = GraspOnset::default();
+        // A one-frame flicker of the right hand, then both hands on from frame 3.
+        for (t, flags) in [[false, true], [false, false], [false, false], [true, true]].iter().enumerate() {
+            pose.contact = *flags;
+            assert!(!onset.feed(&s, &pose), "frame {t}");
+        }
+        assert!(onset.feed(&s, &pose));
+        let want: Vec3 = std::array::from_fn(|i| {
+            0.5 * (joints[20][i] - pose.wrist_to_object[0][i] + joints[21][i] - pose.wrist_to_object[1][i])
+        });
+        assert!(dist(&onset.centre().unwrap(), &want) < 1e-12);
+        // Placed: the stage's centre of the first frame's object is there, its rotation kept.
+        let stage = ContactStage::new(
+            ObjectShape { centre: [0.0, 0.0, 0.01], half_extents: [0.03, 0.03, 0.05], surface: None },
+            30.0,
+        );
+        let mut first = Pose { object_rotation: axis_angle(&[0.0, 0.0, 1.0], 0.7), ..pose };
+        stage.place(&mut first, &want);
+        assert!(dist(&stage.shape.centre_at(&first.object_rotation, &first.object_translation), &want) < 1e-12);
+        // No grasp within PLACE_LOOKAHEAD frames: decided, nothing to place.
+        let mut none = GraspOnset::default();
+        pose.contact = [false; 2];
+        assert!(!(0..PLACE_LOOKAHEAD - 1).any(|_| none.feed(&s, &pose)));
+        assert!(none.feed(&s, &pose) && none.centre().is_none());
     }
 
     #[test]

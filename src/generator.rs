@@ -50,7 +50,7 @@ use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::choose_object;
 use crate::bundle::N_STREAMS;
 use crate::config::{guidance_scale, EngineConfig, StreamConfig};
-use crate::contact::{heading, smoothstep, ContactStage, ObjectShape, ObjectSurface};
+use crate::contact::{heading, smoothstep, ContactStage, GraspOnset, ObjectShape, ObjectSurface, PLACE_LOOKAHEAD};
 use crate::error::{Error, Result};
 use crate::frame::Frame;
 use crate::model::{decode_group, overlap, Bundle, DecodeJob, DecoderState, StepJob, StepState, MAX_DECODE_GROUP};
@@ -318,6 +318,12 @@ pub struct Generator {
     done: bool,
     /// The contact-consistency stage (None: the raw model output was asked for).
     contact: Option<ContactStage>,
+    /// Placement from the grasp (`contact::GraspOnset`): while it is undecided, decoded
+    /// frames are held back in the decode buffer (`pending` values at its start).
+    onset: Option<GraspOnset>,
+    pending: usize,
+    /// Where the first frame's object goes once decided (None: where the model put it).
+    placement: Option<Vec3>,
     /// Scene anchoring (None: the model's own placement).
     anchor: Option<AnchorStage>,
     object: StreamObject,
@@ -385,6 +391,12 @@ impl Generator {
             }
             None => c.anchor.as_ref().map(|a| AnchorStage::new(a, pipe.assembler.coordinate_system())).transpose()?,
         };
+        // A continued stream's object is where the earlier one left it, an anchored one's
+        // where the host put it: nothing to place.
+        let place = contact.is_some()
+            && c.grasp_placement.unwrap_or(true)
+            && continuation.is_none()
+            && !anchor.as_ref().is_some_and(AnchorStage::fixes_object);
         let sampler = TokenSampler::new(c.seed.unwrap_or(d.seed), params, pipe.end_ids, pad_usize);
         let memo = Arc::new(Continuation {
             pose: Pose::default(),
@@ -409,6 +421,9 @@ impl Generator {
             next_frame: 0,
             done: false,
             contact,
+            onset: place.then(GraspOnset::default),
+            pending: 0,
+            placement: None,
             anchor,
             object,
             memo: Some(memo),
@@ -433,7 +448,7 @@ impl Generator {
         self.encode_text()?;
         let b = &self.pipe.bundle;
         let emb = self.text_emb.as_deref().unwrap_or_default();
-        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance, self.onset.is_some()));
         let logits = b.step.step(&mut state.step, prev, k, emb)?;
         let codes = self.sampler.sample_step(k, logits)?;
         if self.pipe.ends(&codes) {
@@ -490,13 +505,15 @@ impl Generator {
 struct State {
     step: StepState,
     decoder: DecoderState,
-    /// The normalized output of one decode (up to MAX_DECODE_GROUP x F x 335), reused.
+    /// The normalized output of one decode (up to MAX_DECODE_GROUP x F x 335), after the
+    /// frames held back for the look-ahead (`lookahead`: room for PLACE_LOOKAHEAD more), reused.
     normalized: Vec<f32>,
 }
 
 impl State {
-    fn new(b: &Bundle, guidance: f32) -> State {
-        let normalized = vec![0.0; MAX_DECODE_GROUP * b.decoder.chunk_len()];
+    fn new(b: &Bundle, guidance: f32, lookahead: bool) -> State {
+        let extra = if lookahead { PLACE_LOOKAHEAD.div_ceil(b.manifest.frames_per_token) } else { 0 };
+        let normalized = vec![0.0; (MAX_DECODE_GROUP + extra) * b.decoder.chunk_len()];
         State { step: b.step.new_guided_state(guidance), decoder: b.decoder.new_state(), normalized }
     }
 }
@@ -504,7 +521,8 @@ impl State {
 impl ChunkSource for Generator {
     /// A decode's chunks plus the previous call's held frame.
     fn max_chunk_frames(&self) -> usize {
-        self.pipe.group * self.pipe.bundle.manifest.frames_per_token + 1
+        let held_back = if self.onset.is_some() { PLACE_LOOKAHEAD } else { 0 };
+        self.pipe.group * self.pipe.bundle.manifest.frames_per_token + 1 + held_back
     }
 
     fn object(&self) -> Option<StreamObject> {
@@ -550,8 +568,8 @@ impl ChunkSource for Generator {
         let next = self.k + g;
         ended |= next >= self.max_len;
         let b = &self.pipe.bundle;
-        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
-        let normalized = &mut state.normalized[..g * b.decoder.chunk_len()];
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance, self.onset.is_some()));
+        let normalized = &mut state.normalized[self.pending..self.pending + g * b.decoder.chunk_len()];
         // Whether the group's last chunk ends the sequence: known now if End was sampled or
         // the step limit forces it, or once the steps after the group ran with the decode
         // (overlap); otherwise the next call decides.
@@ -600,6 +618,11 @@ impl ChunkSource for Generator {
 impl Generator {
     /// The previous chunk was the last one: releases its held frame, marked, and ends.
     fn release_last(&mut self, out: &mut Vec<Frame>) {
+        if self.pending > 0 {
+            // Frames held back for the look-ahead: they go out now, the last one marked.
+            self.emit_group(0, Some(true), out);
+            return;
+        }
         self.done = true;
         if let Some(mut f) = self.held.take() {
             // The contact stage's last word (an object still falling lands), then the same
@@ -618,14 +641,33 @@ impl Generator {
         }
     }
 
-    /// Assembles the first `used` values of the decode buffer (whole frames) into frames:
-    /// `last`: whether the group's last chunk ends the sequence (`None`: not known yet, its
-    /// final frame is held for the next step's verdict).
+    /// Assembles the `used` values the decode just wrote (whole frames, after any held back)
+    /// into frames: `last`: whether the group's last chunk ends the sequence (`None`: not
+    /// known yet, its final frame is held for the next step's verdict). While the grasp
+    /// look-ahead is undecided, the frames are held back instead.
     fn emit_group(&mut self, used: usize, last: Option<bool>, out: &mut Vec<Frame>) {
         let Some(state) = self.state.as_mut() else { return };
         let width = crate::bundle::manifest::FRAME_DIM;
         // Moved out (no copy, no allocation) so the frame loop may borrow the generator.
         let buffer = std::mem::take(&mut state.normalized);
+        let used = self.pending + used;
+        if let Some(onset) = &mut self.onset {
+            let assembler = &self.pipe.assembler;
+            let mut pose = Pose::default();
+            for feats in buffer[self.pending..used].chunks_exact(width) {
+                assembler.decode(feats, &mut pose);
+                if onset.feed(assembler.skeleton(), &pose) {
+                    break;
+                }
+            }
+            if !onset.decided() && last != Some(true) {
+                self.pending = used;
+                state.normalized = buffer;
+                return;
+            }
+            self.placement = onset.centre();
+            (self.onset, self.pending) = (None, 0);
+        }
         let n = used / width;
         let pipe = Arc::clone(&self.pipe);
         for (i, feats) in buffer[..used].chunks_exact(width).enumerate() {
@@ -636,6 +678,9 @@ impl Generator {
             let mut pose = Pose::default();
             assembler.decode(feats, &mut pose);
             if self.next_frame == 0 {
+                if let (Some(centre), Some(stage)) = (self.placement, &self.contact) {
+                    stage.place(&mut pose, &centre);
+                }
                 self.begin(&pose);
             }
             if let Some(from) = &self.blend_from {
@@ -730,7 +775,7 @@ impl Generator {
         let pos = self.k + self.ahead_n;
         let tokens = if self.ahead_n > 0 { self.ahead[self.ahead_n - 1] } else { self.prev };
         let text_emb = self.text_emb.as_deref().unwrap_or_default();
-        let state = &mut self.state.get_or_insert_with(|| State::new(b, self.guidance)).step;
+        let state = &mut self.state.get_or_insert_with(|| State::new(b, self.guidance, self.onset.is_some())).step;
         StepJob { state, tokens, pos, text_emb }
     }
 
@@ -783,9 +828,9 @@ impl Generator {
     /// [`decode_job`](Self::decode_job) again, once it passed.
     pub(crate) fn decode_job_unchecked(&mut self) -> DecodeJob<'_> {
         let b = &self.pipe.bundle;
-        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance));
+        let state = self.state.get_or_insert_with(|| State::new(b, self.guidance, self.onset.is_some()));
         let g = self.ahead_n;
-        let out = &mut state.normalized[..g * b.decoder.chunk_len()];
+        let out = &mut state.normalized[self.pending..self.pending + g * b.decoder.chunk_len()];
         DecodeJob { state: &mut state.decoder, tokens: &self.ahead[..g], out }
     }
 

@@ -144,12 +144,13 @@ fn frames_agree_and_the_object_obeys_the_hands() {
                     if a.contact[h] == 1 && b.contact[h] == 1 && a.contact[1 - h] == 0 && b.contact[1 - h] == 0 {
                         // Held by one hand: rigid, the wrist stays as far from the centre; on
                         // the last frame held the object may slip onto the support it is put
-                        // down on (at most half MAX_SPEED).
+                        // down on (at most half MAX_SPEED): the frame before the one the hand
+                        // lets go in, which still shows its contact.
                         let (da, db) = (
                             dist(&a.joint_positions[wrist], &a.object_centre),
                             dist(&b.joint_positions[wrist], &b.object_centre),
                         );
-                        let last = fr.get(t + 2).is_some_and(|c| c.contact[h] == 0);
+                        let last = fr[t + 2..].iter().take(2).any(|c| c.contact[h] == 0);
                         let slip = if last { 0.5 * MAX_SPEED / fps + 1e-3 } else { 1e-3 };
                         assert!((da - db).abs() < slip, "{at}: hand {h} slips {da} -> {db}");
                     }
@@ -219,6 +220,61 @@ fn raw_output_is_the_models_own() {
         .count();
     assert!(same * 4 >= raw.len() * 3, "{same} of {} frames keep the model's root, legs and fingers", raw.len());
     assert!(raw.iter().zip(&consistent).any(|(a, b)| a.object_translation != b.object_translation));
+}
+
+/// Placement from the grasp: the resting object starts where the model's hand first closes
+/// on it (the raw stream's FK wrist minus its wrist-to-object vector, at the first frame a
+/// flag has been on for two frames), and every frame still comes out, once, in order.
+#[test]
+fn the_resting_object_starts_where_the_first_grasp_closes() {
+    let e = engine();
+    let mut placed = 0;
+    for (text, seed) in [(PROMPTS[1], 1), (PROMPTS[3], 2), (PROMPTS[0], 3)] {
+        let raw = frames(&e, text, seed, true);
+        let on = |cfg: StreamConfig| collect(&e, text, StreamConfig { seed: Some(seed), ..cfg });
+        let (placed_fr, kept) =
+            (on(StreamConfig::default()), on(StreamConfig { grasp_placement: Some(false), ..Default::default() }));
+        for fr in [&placed_fr, &kept] {
+            assert_eq!(fr.len(), raw.len(), "{text:?}");
+            assert!(fr.iter().enumerate().all(|(i, f)| f.frame_index == i as u64), "{text:?}: frame order");
+            assert!(fr.iter().take(fr.len() - 1).all(|f| f.is_last == 0) && fr.last().unwrap().is_last == 1);
+        }
+        // Without placement the object rests where the model's first frame put it.
+        assert_eq!(kept[0].object_translation, raw[0].object_translation, "{text:?}");
+        let onset = (1..raw.len().min(comgrasp::contact::PLACE_LOOKAHEAD)).find_map(|t| {
+            (0..2)
+                .find(|&h| {
+                    raw[t].contact[h] == 1 && raw[t - 1].contact[h] == 1 && (t < 2 || raw[t - 2].contact[h] == 0)
+                })
+                .map(|h| (t, h))
+        });
+        match onset {
+            Some((t, h)) => {
+                let mut want = [0.0f64; 3];
+                let mut n = 0.0;
+                for g in (0..2).filter(|&g| {
+                    raw[t].contact[g] == 1 && raw[t - 1].contact[g] == 1 && (t < 2 || raw[t - 2].contact[g] == 0)
+                }) {
+                    let w2o = [raw[t].left_wrist_to_object, raw[t].right_wrist_to_object][g];
+                    let c = sub(&raw[t].joint_positions[[20, 21][g]], &w2o);
+                    want = std::array::from_fn(|i| want[i] + c[i] as f64);
+                    n += 1.0;
+                }
+                let want = want.map(|v| (v / n) as f32);
+                let d = dist(&placed_fr[0].object_centre, &want);
+                assert!(
+                    d < 1e-3,
+                    "{text:?} seed {seed}: hand {h} closes at frame {t} on {want:?}, the object starts at {:?}",
+                    placed_fr[0].object_centre
+                );
+                placed += 1;
+            }
+            None => {
+                assert_eq!(placed_fr[0].object_translation, kept[0].object_translation, "{text:?}: no grasp, not moved")
+            }
+        }
+    }
+    assert!(placed > 0, "no stream grasped within the look-ahead");
 }
 
 fn placement(position: [f32; 3], yaw_deg: f32, up: [f32; 3]) -> comgrasp::Placement {
@@ -327,7 +383,7 @@ fn a_continued_stream_starts_where_the_earlier_one_left_off() {
 fn the_python_reference_stage_gives_the_same_frames() {
     use comgrasp::assemble::{FrameAssembler, Pose};
     use comgrasp::bundle::{npy, obj};
-    use comgrasp::contact::ContactStage;
+    use comgrasp::contact::{ContactStage, GraspOnset};
     use comgrasp::skeleton::SMPLX_PARENTS;
 
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/contact_stage");
@@ -377,12 +433,26 @@ fn the_python_reference_stage_gives_the_same_frames() {
         };
         let mut stage = ContactStage::new(shape, fps);
         let n = input.len() / width;
+        // Placement from the grasp, as a stream does it (unless the case turns it off): the raw
+        // frames up to the first grasp.
+        let mut onset = GraspOnset::default();
+        for feats in input.chunks_exact(width).take(if case["place"].as_bool().unwrap() { usize::MAX } else { 0 }) {
+            let mut pose = Pose::default();
+            asm.decode(feats, &mut pose);
+            if onset.feed(asm.skeleton(), &pose) {
+                break;
+            }
+        }
+        assert_eq!(onset.centre().is_some(), case["placed"].as_bool().unwrap(), "{}: placed", case["prompt"]);
         let mut worst = 0.0f64;
         for t in 0..n {
             let at = format!("{} frame {t}", case["prompt"]);
             let (mut pose, mut want) = (Pose::default(), Pose::default());
             asm.decode(&input[t * width..(t + 1) * width], &mut pose);
             asm.decode(&output[t * width..(t + 1) * width], &mut want);
+            if let (0, Some(centre)) = (t, onset.centre()) {
+                stage.place(&mut pose, &centre);
+            }
             stage.apply(asm.skeleton(), &mut pose);
             if t + 1 == n {
                 stage.finish(asm.skeleton(), &mut pose);

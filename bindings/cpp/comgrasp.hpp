@@ -198,6 +198,12 @@ public:
         raw_.flags = on ? (raw_.flags | CG_STREAM_RAW_OUTPUT) : (raw_.flags & ~CG_STREAM_RAW_OUTPUT);
         return *this;
     }
+    /// Off: the resting object stays where the model put it, not where its hand first
+    /// closes on it (which holds the first frame back until that grasp).
+    StreamConfig &grasp_placement(bool on) {
+        raw_.flags = on ? (raw_.flags & ~CG_STREAM_NO_GRASP_PLACEMENT) : (raw_.flags | CG_STREAM_NO_GRASP_PLACEMENT);
+        return *this;
+    }
     const cg_stream_config &raw() const noexcept { return raw_; }
 
 private:

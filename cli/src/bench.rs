@@ -61,6 +61,7 @@ use comgrasp::assemble::Pose;
 use comgrasp::bundle::manifest::FRAME_DIM;
 use comgrasp::bundle::{choose_object, N_STREAMS};
 use comgrasp::config::RuntimeOptions;
+use comgrasp::contact::GraspOnset;
 use comgrasp::engine::{SourceFactory, StreamRequest};
 use comgrasp::generator::{Generator, Pipeline};
 use comgrasp::model::{decode_group, MAX_DECODE_GROUP};
@@ -125,6 +126,10 @@ pub struct Args {
     /// Print one JSON object instead of the report.
     #[arg(long)]
     json: bool,
+    /// Streams keep the resting object where the model put it (no look-ahead for the first
+    /// grasp before the first frame): run with and without it to see what placement costs.
+    #[arg(long)]
+    no_grasp_placement: bool,
     /// Instead of the one-stream bench: crowds of N concurrent streams (comma-separated,
     /// e.g. 1,8,64,256) on the crowd scheduler and on a thread per stream, in interleaved
     /// rounds (cli/src/crowd_bench.rs); each stream runs --steps token steps (default 16).
@@ -551,12 +556,26 @@ fn bench(o: &Args) -> Result<Value, String> {
     let objects = &bundle.manifest.objects;
     let (object, _) = choose_object(objects, &o.prompt).ok_or("the bundle's object catalogue is empty")?;
     let mut stage = pipeline.contact_stage(object);
+    // Placement from the grasp, as the streams do it (from the frames up to the first grasp).
+    let mut onset = GraspOnset::default();
+    for feats in
+        normalized[..n_frames * FRAME_DIM].chunks_exact(FRAME_DIM).take(if o.no_grasp_placement { 0 } else { n_frames })
+    {
+        let mut pose = Pose::default();
+        assembler.decode(feats, &mut pose);
+        if onset.feed(assembler.skeleton(), &pose) {
+            break;
+        }
+    }
     for (c, frames) in expected.chunks_mut(f).enumerate() {
         let (mut stage_time, t) = (Duration::ZERO, Instant::now());
         for (i, fr) in frames.iter_mut().enumerate() {
             let idx = c * f + i;
             let mut pose = Pose::default();
             assembler.decode(&normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM], &mut pose);
+            if let (0, Some(centre)) = (idx, onset.centre()) {
+                stage.place(&mut pose, &centre);
+            }
             let ts = Instant::now();
             stage.apply(assembler.skeleton(), &mut pose);
             if idx + 1 == n_frames {
@@ -584,6 +603,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         max_len: Some(steps as u32),
         guidance: Some(guidance as f64),
         raw_output: None,
+        grasp_placement: o.no_grasp_placement.then_some(false),
         anchor: None,
         continue_from: None,
     };

@@ -72,6 +72,10 @@ pub struct Args {
     /// a hand may close on empty air).
     #[arg(long)]
     raw: bool,
+    /// Keep the resting object where the model's first frame puts it, instead of placing it
+    /// where the model's hand first closes on it (which holds frames back until that grasp).
+    #[arg(long)]
+    no_grasp_placement: bool,
     /// Scene anchoring: the character's ground point and heading in the frames' coordinate
     /// system, X,Y,Z[,YAW] (YAW: degrees about the system's up axis; 0 faces native +y).
     #[arg(long, value_name = "X,Y,Z[,YAW]", value_parser = placement, allow_hyphen_values = true)]
@@ -310,6 +314,7 @@ fn options(a: Args) -> Result<Options, String> {
         max_len: a.max_len,
         guidance: a.guidance,
         raw_output: a.raw.then_some(true),
+        grasp_placement: a.no_grasp_placement.then_some(false),
         anchor: None,
         continue_from: None,
     };

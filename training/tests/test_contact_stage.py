@@ -51,7 +51,7 @@ def test_the_fixtures_are_what_the_stage_makes_and_every_rule_fires(fixture):
     total = Counter()
     for case, x, y in cases:
         events = Counter()
-        got = apply_contact_stage(x, rest, index["fps"], _shape(case), events)
+        got = apply_contact_stage(x, rest, index["fps"], _shape(case), events, case["place"])
         np.testing.assert_allclose(got, y, rtol=0, atol=1e-6, err_msg=case["prompt"])
         total += events
     assert [r for r in index["rules"] if not total[r]] == []
@@ -170,14 +170,14 @@ def test_a_flicker_changes_nothing_and_an_object_out_of_reach_is_not_grasped(res
     near = wrist + np.array([0.0, 0.25, -0.05])
     x = _still_motion(rest, 40, near, flick)
     events = Counter()
-    y = apply_contact_stage(x, rest, 30.0, shape, events)
+    y = apply_contact_stage(x, rest, 30.0, shape, events, place=False)
     assert not (y[:, list(CONTACT_CHANNELS)] > 0.5).any()
     assert events["reach"] == 1 and events["reach_abandoned"] == 1 and events["capture"] == 0
     np.testing.assert_array_equal(y[:, FIELD["object_transl"].slice], x[:, FIELD["object_transl"].slice])
     # far away (3 m): no reach at all, the arm is untouched
     far = _still_motion(rest, 40, wrist + np.array([0.0, 3.0, 0.0]), np.ones(40))
     events = Counter()
-    y = apply_contact_stage(far, rest, 30.0, shape, events)
+    y = apply_contact_stage(far, rest, 30.0, shape, events, place=False)
     assert events["reach"] == 0 and events["out_of_reach"] > 0
     np.testing.assert_array_equal(y[:, 21:147], far[:, 21:147])
 
@@ -190,7 +190,7 @@ def test_a_grasp_reaches_holds_rigidly_and_lets_go_onto_the_support(rest):
     flags[5:60] = 1.0
     x = _still_motion(rest, 90, start, flags)
     events = Counter()
-    y = apply_contact_stage(x, rest, 30.0, shape, events)
+    y = apply_contact_stage(x, rest, 30.0, shape, events, place=False)
     held = y[:, CONTACT_CHANNELS[1]] > 0.5
     assert events["capture"] == 1 and events["release"] == 1 and held.any()
     wrists = _right_wrist(rest, y)
@@ -208,6 +208,34 @@ def test_a_grasp_reaches_holds_rigidly_and_lets_go_onto_the_support(rest):
     last = Pose.from_features(y[-1])
     bottom = shape.bottom_at(last.object_rotation, last.object_translation)
     assert abs(bottom - (start[2] - 0.03)) < 1e-5
+
+
+def test_the_resting_object_is_placed_where_the_first_grasp_closes(rest):
+    shape = ObjectShape.of([0.0, 0.0, 0.02], [0.03, 0.03, 0.05])
+    wrist = _right_wrist(rest, _still_motion(rest, 1, [0, 0, 0], [0]))[0]
+    flags = np.zeros(60)
+    flags[8] = 1.0  # one frame: not a grasp
+    flags[20:50] = 1.0
+    model_object = wrist + np.array([0.15, 0.1, -0.1])  # where the model put it: 20 cm off
+    x = _still_motion(rest, 60, model_object, flags)
+    grip = np.array([0.0, -0.06, 0.04])  # the model's wrist-to-object channel: the grasp it closes
+    x[:, FIELD["rwrist_to_object"].slice] = grip
+    centre = cs.grasp_onset(Skeleton(rest), x)
+    np.testing.assert_allclose(centre, wrist - grip, atol=1e-6)
+    # through the stage: the object rests there from the first frame, the reach is short
+    events = Counter()
+    y = apply_contact_stage(x, rest, 30.0, shape, events)
+    assert events["placed"] == 1 and events["capture"] == 1
+    centres = y[:, FIELD["object_centre"].slice]
+    np.testing.assert_allclose(centres[:20], np.tile(wrist - grip, (20, 1)), atol=1e-6)
+    moved = np.linalg.norm(_right_wrist(rest, y) - _right_wrist(rest, x), axis=1)
+    assert moved.max() < 0.05, moved.max()  # the hand closes where the model closed it
+    kept = apply_contact_stage(x, rest, 30.0, shape, place=False)
+    np.testing.assert_allclose(kept[0, FIELD["object_transl"].slice], model_object, atol=1e-6)
+    # no grasp within the look-ahead: nothing moves
+    late = np.zeros(cs.PLACE_LOOKAHEAD + 20)
+    late[cs.PLACE_LOOKAHEAD:] = 1.0
+    assert cs.grasp_onset(Skeleton(rest), _still_motion(rest, len(late), model_object, late)) is None
 
 
 def test_arm_ik_puts_the_wrist_on_target_and_keeps_the_hand(rest):

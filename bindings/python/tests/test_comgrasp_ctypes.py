@@ -151,13 +151,17 @@ def test_raw_output_flag():
             raw = s.frames()
         with e.start(PROMPT, **opts) as s:
             consistent = s.frames()
+        with e.start(PROMPT, grasp_placement=False, **opts) as s:
+            kept = s.frames()
         cfg = cg.CgStreamConfig()
         e._lib.cg_stream_config_init(ctypes.byref(cfg))
         cfg.flags = 1 << 6
         h = ctypes.c_void_p()
         st = e._lib.cg_start_utf8(e.handle, b"a mug", 5, ctypes.byref(cfg), ctypes.byref(h))
         assert st == Status.ERR_INVALID_ARGUMENT and b"flags" in e._lib.cg_last_error()
-    assert len(raw) == len(consistent) == 96
+    assert len(raw) == len(consistent) == len(kept) == 96
+    # without placement from the grasp the resting object starts where the model put it
+    assert list(kept[0].object_translation) == list(raw[0].object_translation)
     with engine() as e:
         with e.start("Lift the small cube", min_len=1, max_len=1) as s:
             assert s.object == ("cubesmall", True)

@@ -260,6 +260,8 @@ namespace ComGrasp
         public uint Flags;
         /// <summary>CG_STREAM_RAW_OUTPUT: the model's frames without the contact-consistency stage.</summary>
         public const uint FlagRawOutput = 1u << 0;
+        /// <summary>CG_STREAM_NO_GRASP_PLACEMENT: the resting object stays where the model put it (not where its hand first closes).</summary>
+        public const uint FlagNoGraspPlacement = 1u << 1;
         /// <summary>CG_ANCHOR_*: bits of Anchor.</summary>
         public const uint AnchorCharacter = 1u << 0;
         public const uint AnchorObject = 1u << 1;
@@ -682,6 +684,10 @@ namespace ComGrasp
         /// <summary>The model's raw frames, without the contact-consistency stage (the object
         /// may float or drift). Default false.</summary>
         public bool RawOutput;
+        /// <summary>The resting object stays where the model put it, not where its hand first
+        /// closes on it (placement from the grasp holds the first frame back until that grasp).
+        /// Default false.</summary>
+        public bool NoGraspPlacement;
         /// <summary>Scene anchoring: the character's ground point and heading in the engine's
         /// coordinates (e.g. its Unity transform's position and rotation).</summary>
         public CgVec3? CharacterPosition;
@@ -787,6 +793,7 @@ namespace ComGrasp
             if (options.MaxLen.HasValue) { cfg.MaxLen = options.MaxLen.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultMaxLen; }
             if (options.Guidance.HasValue) { cfg.Guidance = options.Guidance.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultGuidance; }
             if (options.RawOutput) { cfg.Flags |= CgStreamConfig.FlagRawOutput; }
+            if (options.NoGraspPlacement) { cfg.Flags |= CgStreamConfig.FlagNoGraspPlacement; }
             if (options.CharacterPosition.HasValue)
             {
                 cfg.Anchor |= CgStreamConfig.AnchorCharacter;

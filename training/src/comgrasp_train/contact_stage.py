@@ -66,6 +66,7 @@ LEVEL_SPEED = 6.0
 PLACE_HEIGHT = 0.08
 SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
+PLACE_LOOKAHEAD = 128
 NORM_EPS = 1e-12
 
 ARMS = ((13, 16, 18, 20), (14, 17, 19, 21))
@@ -432,6 +433,13 @@ class ContactStage:
 
     def holding(self) -> list[bool]:
         return [h.phase == "holding" for h in self.hands]
+
+    def place(self, pose: Pose, centre: np.ndarray) -> None:
+        """Moves the first frame's object so that its box centre lies at ``centre`` (its
+        rotation stays); before the first ``apply``."""
+        d = centre - self.shape.centre_at(pose.object_rotation, pose.object_translation)
+        pose.object_translation = pose.object_translation + d
+        pose.object_centre = pose.object_centre + d
 
     def apply(self, skel: Skeleton, pose: Pose) -> None:
         glob, joints = skel.forward(pose.local, pose.pelvis)
@@ -962,16 +970,42 @@ def arm_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, h: int, targ
     local[w] = ge.T @ glob[w]
 
 
+def grasp_onset(skel: Skeleton, x: np.ndarray) -> np.ndarray | None:
+    """Where the model's hand first closes on the object (``contact::GraspOnset``): at the
+    first of the first PLACE_LOOKAHEAD raw frames in which a hand's flag has been on for
+    ON_FRAMES frames, its FK wrist minus its wrist-to-object vector (the mean of both hands
+    when both start then); None when no hand starts a grasp that early."""
+    on = [0, 0]
+    for t in range(min(len(x), PLACE_LOOKAHEAD)):
+        pose = Pose.from_features(x[t])
+        starts = []
+        for h in range(2):
+            on[h] = on[h] + 1 if pose.contact[h] else 0
+            if on[h] == ON_FRAMES:
+                starts.append(h)
+        if starts:
+            _, joints = skel.forward(pose.local, pose.pelvis)
+            return sum(joints[ARMS[h][3]] - pose.wrist_to_object[h] for h in starts) / len(starts)
+    return None
+
+
 def apply_contact_stage(x: np.ndarray, rest_joints: np.ndarray, fps: float, shape: ObjectShape,
-                        events: Counter | None = None) -> np.ndarray:
+                        events: Counter | None = None, place: bool = True) -> np.ndarray:
     """A whole de-normalized (T, 335) motion through the stage, frame by frame as the engine
     streams it (the last frame finished); returns the consistent motion as (T, 335) float32.
-    ``events``, when given, is updated with how often each rule fired."""
+    ``place``: the resting object starts where the first grasp closes (``grasp_onset``), as
+    the engine's streams do unless told not to. ``events``, when given, is updated with how
+    often each rule fired (``placed`` when the object was moved)."""
     skel, stage = Skeleton(rest_joints), ContactStage(shape, fps)
     x = np.asarray(x)
+    centre = grasp_onset(skel, x) if place else None
+    if centre is not None:
+        stage.events["placed"] += 1
     out = np.empty((len(x), FRAME_DIM), np.float32)
     for t in range(len(x)):
         pose = Pose.from_features(x[t])
+        if t == 0 and centre is not None:
+            stage.place(pose, centre)
         stage.apply(skel, pose)
         if t + 1 == len(x):
             stage.finish(skel, pose)
@@ -1011,5 +1045,5 @@ def features_from_engine(frames: dict) -> np.ndarray:
     return out.astype(np.float32)
 
 
-__all__ = ["ContactStage", "ObjectShape", "Pose", "Skeleton", "Table", "apply_contact_stage", "arm_ik",
+__all__ = ["ContactStage", "ObjectShape", "Pose", "Skeleton", "Table", "apply_contact_stage", "arm_ik", "grasp_onset",
            "features_from_engine"]
