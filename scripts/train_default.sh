@@ -4,9 +4,9 @@
 # checkpoint, so an interrupted run continues where it stopped when this is run again.
 # Sizes are environment variables; the defaults are the recipe of issue 15 (the bundle's
 # manifest records the exact configs and commands under provenance). The shipped model is
-# these defaults, except that each run went to a deadline instead of its ITERS: the VQ to 55
-# minutes (2,289 steps), the Transformers to 2,783 steps (0.6 s each): ~1 h 25 min of
-# training on a 2-core CPU, plus the data (docs/training.md, "The embedded default model").
+# these defaults, except that its VQ ran to a one-hour deadline instead of VQ_ITERS (its
+# schedule fitted to 1,775 steps, stopped at 1,663): ~1 h for the VQ and ~1 h 5 min for the
+# Transformers on a 2-core CPU, plus the data (docs/training.md).
 #   SEQS=3000        SynthGrasp sequences for the VQ (seed 1; split synthgrasp: test s9+s10, val s8)
 #   GPT_SEQS=10000   SynthGrasp sequences for the Transformers (the same generator and seed;
 #                    their codes come from the VQ above; more data is what they lack)
@@ -17,7 +17,7 @@
 #   GPT_ITERS=3000   Transformer steps (batch 64); the lowest validation NLL is kept (best.pt)
 #   GPT_STOP=        pause the GPT at this step
 #   TEXT_DROPOUT=0.1 share of GPT training sequences on the null condition (classifier-free guidance)
-#   GUIDANCE=1       the bundle's default guidance scale (pick it with scripts/sampling_sweep.py)
+#   GUIDANCE=2       the bundle's default guidance scale (pick it with scripts/sampling_sweep.py)
 #   WIDTH=0.5        VQ conv widths x this (0.5: global 128, body 256, hands 192)
 #   WORKERS=2        processes for synth and prepare
 #   bash scripts/train_default.sh            # CPU or the first CUDA device
@@ -30,7 +30,7 @@ PARAPHRASES=${PARAPHRASES:-16}
 VQ_ITERS=${VQ_ITERS:-2400}
 GPT_ITERS=${GPT_ITERS:-3000}
 TEXT_DROPOUT=${TEXT_DROPOUT:-0.1}
-GUIDANCE=${GUIDANCE:-1}
+GUIDANCE=${GUIDANCE:-2}
 WIDTH=${WIDTH:-0.5}
 WORKERS=${WORKERS:-2}
 DATA=${DATA:-data/sg$SEQS}

@@ -111,8 +111,9 @@ const LANDED: f64 = 1e-9;
 const LIMIT_TRIES: u32 = 4;
 /// Speed at which a two-handed hold's wrist turn fades once one hand lets go, rad/s.
 const TURN_FADE: f64 = 1.0;
-/// A held object let go at most this far above its support is put down on it, m.
-pub const PLACE_HEIGHT: f64 = 0.08;
+/// A held object let go at most this far above its support is put down on it, m (within
+/// the frame's speed budget: what is left falls).
+pub const PLACE_HEIGHT: f64 = 0.2;
 /// Fastest the arm holding an object up off the table rises, m/s (the hand moves too).
 const PRESS_UP_SPEED: f64 = 0.6;
 /// Within this height above its support a held object is levelled onto a face, m.
@@ -679,8 +680,18 @@ impl ContactStage {
         }
         match bow {
             Some((angle, axis)) => {
-                let most = BOW_SPEED * self.dt;
-                (self.bow, self.bow_axis) = (angle.clamp(self.bow - most, self.bow + most), axis)
+                // The bow as a vector (its angle along its axis) moves at most BOW_SPEED, so
+                // neither its size nor its direction jumps (a reach whose target swings to
+                // the other side of the body turned the torso, and a holding hand, at once).
+                let (now, want) = (scale(&self.bow_axis, self.bow), scale(&axis, angle));
+                let (d, most) = (sub(&want, &now), BOW_SPEED * self.dt);
+                let n = norm(&d);
+                let next = if n > most { add(&now, &scale(&d, most / n)) } else { want };
+                let size = norm(&next);
+                self.bow = size;
+                if size > 1e-12 {
+                    self.bow_axis = scale(&next, 1.0 / size);
+                }
             }
             None => self.bow = (self.bow - BOW_FADE * self.dt).max(0.0),
         }
@@ -743,6 +754,9 @@ impl ContactStage {
         self.carried_by = self.holding();
         match self.carried(&global, &joints) {
             Some((rot, pos)) => {
+                // The last frame's place: a put-down and a slip move the object at most
+                // MAX_SPEED since then, with whatever the model and the levelling moved it.
+                let was = self.pos;
                 // Where it was: only an object coming down from above the top (or held up on it
                 // while levelled) is set down on it.
                 let above_before = self.pressing || self.shape.bottom_at(&self.rot, &self.pos) >= self.table.height;
@@ -794,7 +808,7 @@ impl ContactStage {
                     let (bottom, floor) = self.floor();
                     let above = bottom - floor;
                     if above > 0.0 && above <= PLACE_HEIGHT {
-                        let down = above / f64::from(left);
+                        let down = (above / f64::from(left)).min(self.budget(&was));
                         for h in 0..2 {
                             if self.hands[h].phase == Phase::Holding {
                                 self.hands[h].correction[2] -= down;
@@ -810,7 +824,8 @@ impl ContactStage {
                         // support as the hands let go (at most half MAX_SPEED; any rest falls).
                         if letting_go {
                             let (bottom, floor) = self.floor();
-                            self.pos[2] -= (bottom - floor).clamp(0.0, 0.5 * MAX_SPEED * self.dt);
+                            let most = (0.5 * MAX_SPEED * self.dt).min(self.budget(&was));
+                            self.pos[2] -= (bottom - floor).clamp(0.0, most);
                         }
                     }
                 }
@@ -840,10 +855,14 @@ impl ContactStage {
             }
         }
 
-        // Let go, complete reaches (capture against this frame's object pose).
+        // Let go, complete reaches (capture against this frame's object pose). The last hand
+        // holding an object it could not put down (more than PLACE_HEIGHT above the support
+        // below it) keeps it: a model that opens its hand in mid-air would drop it, and a
+        // host would see it fall to the floor.
         for h in 0..2 {
             let hand = self.hands[h];
-            if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES {
+            let last = self.hands[1 - h].phase != Phase::Holding;
+            if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES && !(last && self.would_drop()) {
                 self.hands[h].phase = Phase::Free;
                 self.released = true;
                 let other = 1 - h;
@@ -959,6 +978,11 @@ impl ContactStage {
             limited.joints[k] = joints[j];
         }
         limited.wrists = ARMS.map(|arm| global[arm[3]]);
+    }
+
+    /// How much farther the object may move this frame: MAX_SPEED from where it was (`was`).
+    fn budget(&self, was: &Vec3) -> f64 {
+        (MAX_SPEED * self.dt - norm(&sub(&self.pos, was))).max(0.0)
     }
 
     /// The object's centre as hand `h` carries it with its wrist at `rot`, `pos`.
@@ -1143,6 +1167,12 @@ impl ContactStage {
     /// The unheld object's lowest point and the height it comes to rest at: the table top
     /// when it is over the table and not more than [`SUPPORT_DEPTH`] below its top, else
     /// the ground.
+    /// Whether the object, let go now, would fall more than [`PLACE_HEIGHT`].
+    fn would_drop(&self) -> bool {
+        let (bottom, floor) = self.floor();
+        bottom - floor > PLACE_HEIGHT
+    }
+
     fn floor(&self) -> (f64, f64) {
         let bottom = self.shape.bottom_at(&self.rot, &self.pos);
         let on_table =
@@ -1687,6 +1717,38 @@ mod tests {
             );
         }
         assert_eq!(frames[last + 1].0.object_translation, frames.last().unwrap().0.object_translation);
+    }
+
+    #[test]
+    fn let_go_in_mid_air_it_is_kept_until_it_can_be_put_down() {
+        // The model's hand lifts the object 25 cm and opens there (flag off from frame 95),
+        // then comes back down to where it took it by frame 125.
+        let mut s = grasp_and_lift();
+        s.contact = Box::new(|t| [false, (30..95).contains(&t)]);
+        s.wrist = Box::new(|t| {
+            let t = t as f64;
+            let up = 0.25 * ((t - 60.0) / 30.0).clamp(0.0, 1.0) - 0.25 * ((t - 110.0) / 15.0).clamp(0.0, 1.0);
+            [-0.3, 0.27, 0.9 + up]
+        });
+        let frames = run(&s, None);
+        let start = frames[0].0.object_translation;
+        let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
+        let last = *held.last().unwrap();
+        // Kept well past the flag (+ OFF_FRAMES), let go only once within PLACE_HEIGHT of the table.
+        assert!(last > 95 + OFF_FRAMES as usize + 5 && last < 125, "let go at {last}");
+        let d0 = norm(&frames[96].0.wrist_to_object[1]);
+        for (pose, _) in &frames[96..last - 4] {
+            assert!((norm(&pose.wrist_to_object[1]) - d0).abs() < 1e-6, "kept rigidly in the hand");
+        }
+        let bottom = |p: &Pose| p.object_translation[2] - 0.04; // the box's bottom (centre 0.01, half height 0.05)
+        assert!(bottom(&frames[last].0) - (start[2] - 0.04) <= PLACE_HEIGHT + 1e-9);
+        // Put down on the table, never dropped: no frame moves it faster than MAX_SPEED.
+        let rest = frames.last().unwrap().0.object_translation;
+        assert!((rest[2] - start[2]).abs() < 1e-9, "rests on the table: {rest:?}");
+        for w in frames.windows(2) {
+            let v = dist(&w[1].0.object_translation, &w[0].0.object_translation) * 30.0;
+            assert!(v <= MAX_SPEED + 1e-6, "object speed {v} m/s");
+        }
     }
 
     #[test]

@@ -63,7 +63,7 @@ TIP_SPEED = 3.0
 PRESS_UP_SPEED = 0.6
 LEVEL_HEIGHT = 0.1
 LEVEL_SPEED = 6.0
-PLACE_HEIGHT = 0.08
+PLACE_HEIGHT = 0.2
 SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
 PLACE_LOOKAHEAD = 128
@@ -484,8 +484,16 @@ class ContactStage:
             if bow is None or angle > bow[0]:
                 bow = (angle, axis)
         if bow is not None:
-            most = BOW_SPEED * self.dt
-            self.bow, self.bow_axis = min(max(bow[0], self.bow - most), self.bow + most), bow[1]
+            # the bow as a vector (angle along its axis) moves at most BOW_SPEED: neither its
+            # size nor its direction jumps
+            now, want = self.bow_axis * self.bow, bow[1] * bow[0]
+            d, most = want - now, BOW_SPEED * self.dt
+            n = _norm(d)
+            nxt = now + d * (most / n) if n > most else want
+            size = _norm(nxt)
+            self.bow = size
+            if size > 1e-12:
+                self.bow_axis = nxt * (1.0 / size)
         else:
             self.bow = max(self.bow - BOW_FADE * self.dt, 0.0)
         if self.bow > 0.0:
@@ -528,6 +536,7 @@ class ContactStage:
         self.carried_by = self.holding()
         carried = self._carried(glob, joints)
         if carried is not None:
+            was = self.pos.copy()  # a put-down and a slip keep the frame within MAX_SPEED of it
             # where it was: only an object coming down from above the top (or held up on it
             # while levelled) is set down on it
             above_before = self.pressing or self.shape.bottom_at(self.rot, self.pos) >= self.table.height
@@ -561,7 +570,7 @@ class ContactStage:
                 bottom, floor = self._floor()
                 above = bottom - floor
                 if 0.0 < above <= PLACE_HEIGHT:
-                    down = above / left
+                    down = min(above / left, self._budget(was))
                     for h in range(2):
                         if self.hands[h].phase == "holding":
                             self.hands[h].correction[2] -= down
@@ -573,7 +582,7 @@ class ContactStage:
                     if letting_go:  # what the arm could not lower slips onto the support
                         bottom, floor = self._floor()
                         p = self.pos.copy()
-                        p[2] -= min(max(bottom - floor, 0.0), 0.5 * MAX_SPEED * self.dt)
+                        p[2] -= min(max(bottom - floor, 0.0), 0.5 * MAX_SPEED * self.dt, self._budget(was))
                         self.pos = p
                     self.events["place_frames"] += 1
             if both:
@@ -594,7 +603,11 @@ class ContactStage:
             self._settle()
 
         for h in range(2):
+            last = self.hands[1 - h].phase != "holding"
             if self.hands[h].phase == "holding" and self.hands[h].off >= OFF_FRAMES:
+                if last and self._would_drop():  # kept: let go it would fall to the floor
+                    self.events["kept"] += 1
+                    continue
                 self.hands[h].phase = "free"
                 self.released = True
                 self.events["release"] += 1
@@ -641,6 +654,10 @@ class ContactStage:
         pose.object_centre = self.shape.centre_at(self.rot, self.pos)
         pose.wrist_to_object = np.stack([joints[ARMS[h][3]] - pose.object_centre for h in range(2)])
         pose.contact = np.array(self.holding()) | np.array(self.carried_by)
+
+    def _budget(self, was: np.ndarray) -> float:
+        """How much farther the object may move this frame: MAX_SPEED from ``was``."""
+        return max(MAX_SPEED * self.dt - _norm(self.pos - was), 0.0)
 
     def _carried(self, glob: np.ndarray, joints: np.ndarray):
         carried = [(glob[ARMS[h][3]] @ hand.rel_rot, joints[ARMS[h][3]] + glob[ARMS[h][3]] @ hand.rel_pos)
@@ -796,6 +813,10 @@ class ContactStage:
     def _held_centre(self, h: int, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
         hand = self.hands[h]
         return pos + rot @ (hand.rel_pos + hand.rel_rot @ self.shape.centre)
+
+    def _would_drop(self) -> bool:
+        bottom, floor = self._floor()
+        return bottom - floor > PLACE_HEIGHT
 
     def _floor(self) -> tuple[float, float]:
         bottom = self.shape.bottom_at(self.rot, self.pos)
