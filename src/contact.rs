@@ -34,7 +34,8 @@
 
 use std::sync::Arc;
 
-use crate::assemble::Pose;
+use crate::assemble::{FrameAssembler, Pose};
+use crate::bundle::manifest::FRAME_DIM;
 use crate::bundle::obj::Mesh;
 use crate::bundle::ObjectEntry;
 use crate::frame::CG_NUM_JOINTS;
@@ -172,6 +173,16 @@ impl GraspOnset {
             self.centre = Some(scale(&sum, 1.0 / n as f64));
         }
         self.decided()
+    }
+
+    /// [`Self::feed`] on each frame of `features` (whole 335-D frames, as `assembler`
+    /// decodes them) until decided; returns whether it is.
+    pub fn feed_features(&mut self, assembler: &FrameAssembler, features: &[f32]) -> bool {
+        let mut pose = Pose::default();
+        features.chunks_exact(FRAME_DIM).any(|f| {
+            assembler.decode(f, &mut pose);
+            self.feed(assembler.skeleton(), &pose)
+        }) || self.decided()
     }
 
     pub fn decided(&self) -> bool {
@@ -1164,15 +1175,15 @@ impl ContactStage {
         add(&self.pos, &mat_vec(&self.rot, &mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0))))
     }
 
-    /// The unheld object's lowest point and the height it comes to rest at: the table top
-    /// when it is over the table and not more than [`SUPPORT_DEPTH`] below its top, else
-    /// the ground.
     /// Whether the object, let go now, would fall more than [`PLACE_HEIGHT`].
     fn would_drop(&self) -> bool {
         let (bottom, floor) = self.floor();
         bottom - floor > PLACE_HEIGHT
     }
 
+    /// The unheld object's lowest point and the height it comes to rest at: the table top
+    /// when it is over the table and not more than [`SUPPORT_DEPTH`] below its top, else
+    /// the ground.
     fn floor(&self) -> (f64, f64) {
         let bottom = self.shape.bottom_at(&self.rot, &self.pos);
         let on_table =

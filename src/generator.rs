@@ -652,15 +652,7 @@ impl Generator {
         let buffer = std::mem::take(&mut state.normalized);
         let used = self.pending + used;
         if let Some(onset) = &mut self.onset {
-            let assembler = &self.pipe.assembler;
-            let mut pose = Pose::default();
-            for feats in buffer[self.pending..used].chunks_exact(width) {
-                assembler.decode(feats, &mut pose);
-                if onset.feed(assembler.skeleton(), &pose) {
-                    break;
-                }
-            }
-            if !onset.decided() && last != Some(true) {
+            if !onset.feed_features(&self.pipe.assembler, &buffer[self.pending..used]) && last != Some(true) {
                 self.pending = used;
                 state.normalized = buffer;
                 return;

@@ -439,12 +439,8 @@ fn the_python_reference_stage_gives_the_same_frames() {
         // Placement from the grasp, as a stream does it (unless the case turns it off): the raw
         // frames up to the first grasp.
         let mut onset = GraspOnset::default();
-        for feats in input.chunks_exact(width).take(if case["place"].as_bool().unwrap() { usize::MAX } else { 0 }) {
-            let mut pose = Pose::default();
-            asm.decode(feats, &mut pose);
-            if onset.feed(asm.skeleton(), &pose) {
-                break;
-            }
+        if case["place"].as_bool().unwrap() {
+            onset.feed_features(&asm, &input);
         }
         assert_eq!(onset.centre().is_some(), case["placed"].as_bool().unwrap(), "{}: placed", case["prompt"]);
         let mut worst = 0.0f64;

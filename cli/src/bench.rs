@@ -558,14 +558,8 @@ fn bench(o: &Args) -> Result<Value, String> {
     let mut stage = pipeline.contact_stage(object);
     // Placement from the grasp, as the streams do it (from the frames up to the first grasp).
     let mut onset = GraspOnset::default();
-    for feats in
-        normalized[..n_frames * FRAME_DIM].chunks_exact(FRAME_DIM).take(if o.no_grasp_placement { 0 } else { n_frames })
-    {
-        let mut pose = Pose::default();
-        assembler.decode(feats, &mut pose);
-        if onset.feed(assembler.skeleton(), &pose) {
-            break;
-        }
+    if !o.no_grasp_placement {
+        onset.feed_features(assembler, &normalized[..n_frames * FRAME_DIM]);
     }
     for (c, frames) in expected.chunks_mut(f).enumerate() {
         let (mut stage_time, t) = (Duration::ZERO, Instant::now());
