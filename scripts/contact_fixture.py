@@ -52,7 +52,8 @@ CASES = (  # prompt, seed[, placement from the grasp]: together they make every 
 )
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
          "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim", "place_frames",
-         "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted", "placed", "kept")
+         "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted", "placed", "kept", "foot_planted",
+         "foot_freed")
 
 
 def main() -> int:

@@ -12,7 +12,9 @@ hand holds the object (the stage's decision, or the raw flag):
 * unheld drift: the largest horizontal object step between two frames no hand holds, mm;
 * penetration: the deepest hand joint inside the object over all frames, mm;
 * the largest wrist and object speeds, m/s (the object's without the last frame, which
-  lands an object still falling at once).
+  lands an object still falling at once);
+* foot sliding: CHOIS's (``metrics.foot_sliding``: ankles and toes near the floor, their
+  horizontal steps weighted by height), mm per frame; the ground truth's is ~0.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 
 from comgrasp_train.grab.text_parse import parse_prompt
 from comgrasp_train.intent_check import object_sdf_for, track_from_engine
+from comgrasp_train.metrics import foot_sliding
 
 HAND_JOINTS = ((20, *range(25, 40)), (21, *range(40, 55)))
 
@@ -51,6 +54,7 @@ def measure(npz: Path, obj: str) -> dict[str, float]:
         "penetration_mm": float(max(0.0, -d.min()) * 1e3),
         "wrist_speed": float(wrist.max()),
         "object_speed": float(obj_speed.max()),
+        "foot_sliding_mm": foot_sliding(t.joints, t.fps),
     }
 
 
@@ -65,7 +69,8 @@ def main(argv: list[str]) -> int:
         for f in sorted(Path(argv[2]).glob(f"p{k}_s*_stage.npz")):
             for mode in ("raw", "stage"):
                 rows[mode].append(measure(f.with_name(f.name.replace("_stage", f"_{mode}")), obj))
-    keys = ("dist_mean_mm", "dist_max_mm", "drift_mm", "penetration_mm", "wrist_speed", "object_speed")
+    keys = ("dist_mean_mm", "dist_max_mm", "drift_mm", "penetration_mm", "wrist_speed", "object_speed",
+            "foot_sliding_mm")
     print(f"| mode | streams | held frames | {' | '.join(keys)} |")
     print("|---" * (len(keys) + 3) + "|")
     for mode, r in rows.items():

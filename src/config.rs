@@ -387,6 +387,10 @@ pub struct StreamConfig {
     /// `contact::PLACE_LOOKAHEAD`). Moot without the stage, with an anchored object or a
     /// continued stream.
     pub grasp_placement: Option<bool>,
+    /// `Some(false)`: the contact stage leaves the model's legs as they are, so its feet may
+    /// slide. Unset = true: a foot the model stands on stays planted (`crate::feet`). Moot
+    /// without the stage.
+    pub foot_lock: Option<bool>,
     /// Where the host's scene puts the character and the object (`crate::anchor`); unset:
     /// the model's own placement.
     pub anchor: Option<Anchor>,
@@ -469,6 +473,7 @@ impl StreamConfig {
             guidance: self.guidance.or(fallback.guidance),
             raw_output: self.raw_output.or(fallback.raw_output),
             grasp_placement: self.grasp_placement.or(fallback.grasp_placement),
+            foot_lock: self.foot_lock.or(fallback.foot_lock),
             anchor: self.anchor.or(fallback.anchor),
             continue_from: self.continue_from.or(fallback.continue_from),
         }

@@ -38,10 +38,11 @@ use crate::assemble::{FrameAssembler, Pose};
 use crate::bundle::manifest::FRAME_DIM;
 use crate::bundle::obj::Mesh;
 use crate::bundle::ObjectEntry;
+use crate::feet::Feet;
 use crate::frame::CG_NUM_JOINTS;
 use crate::skeleton::{
-    add, axis_angle, cross, dot, mat_mul, mat_vec, norm, orthogonal, rotation_between, scale, sub, transpose, Mat3,
-    Skeleton, Vec3, IDENTITY,
+    add, axis_angle, cross, dot, fade_rotation, limb_ik, mat_mul, mat_vec, norm, scale, sub, transpose, Mat3, Skeleton,
+    Vec3, IDENTITY,
 };
 
 /// Frames a raw contact flag must stay on before a grasp starts.
@@ -559,6 +560,8 @@ pub struct ContactStage {
     /// Last frame a lifted object brought down onto the table still leaned off its face, so
     /// the hands held it up on the top while levelling it (it is set down once level).
     pressing: bool,
+    /// The feet the model stands on stay planted ([`Feet`]); `None` when the host turned it off.
+    feet: Option<Feet>,
 }
 
 impl ContactStage {
@@ -582,7 +585,30 @@ impl ContactStage {
             base: [0.0, 0.0, -1.0],
             carried_by: [false; 2],
             pressing: false,
+            feet: Some(Feet::new(fps)),
         }
+    }
+
+    /// Leaves the model's legs as they are: its feet may slide (`CG_STREAM_FREE_FEET`).
+    pub fn with_free_feet(mut self) -> ContactStage {
+        self.feet = None;
+        self
+    }
+
+    /// This stage with `other`'s choice of planted or free feet: a continued stream follows
+    /// its own config, and its feet start free where the earlier stream's were not pinned.
+    pub fn with_feet_like(mut self, other: &ContactStage) -> ContactStage {
+        match (&self.feet, &other.feet) {
+            (_, None) => self.feet = None,
+            (None, Some(fresh)) => self.feet = Some(fresh.clone()),
+            (Some(_), Some(_)) => {}
+        }
+        self
+    }
+
+    /// Which feet are planted (both `false` with free feet).
+    pub fn planted(&self) -> [bool; 2] {
+        self.feet.as_ref().map_or([false; 2], Feet::planted)
     }
 
     /// The state a stream that continues this one starts from (`StreamConfig::continue_from`),
@@ -596,6 +622,7 @@ impl ContactStage {
         let p = mat_vec(r, &self.pos);
         next.pos = [p[0] + t[0], p[1] + t[1], p[2] + t[2]];
         next.table = self.table.moved(r, t);
+        next.feet = self.feet.as_ref().map(|f| f.moved(r, t));
         next.start_object = None;
         next.bow = 0.0;
         // The new stream blends its body from this one's last pose itself.
@@ -911,6 +938,10 @@ impl ContactStage {
             }
         }
 
+        // Last: no rule above moves the legs, so `joints` still has the model's feet.
+        if let Some(feet) = &mut self.feet {
+            feet.apply(&mut pose.local, &global, &joints);
+        }
         self.write(pose, &joints);
     }
 
@@ -1223,22 +1254,6 @@ fn face_toward(r: &Mat3, local: &Vec3) -> Option<(Vec3, f64)> {
     (tilt > 1e-6 && n > 1e-9).then(|| (scale(&axis, 1.0 / n), tilt))
 }
 
-/// `r` turned back toward the identity by at most `step` radians.
-fn fade_rotation(r: &Mat3, step: f64) -> Mat3 {
-    use crate::skeleton::matrix_to_quaternion;
-    if *r == IDENTITY {
-        return IDENTITY;
-    }
-    let q = matrix_to_quaternion(r);
-    let v = norm(&[q[0], q[1], q[2]]);
-    let angle = 2.0 * v.atan2(q[3].abs());
-    if angle <= step || v <= 1e-12 {
-        return IDENTITY;
-    }
-    let sign = if q[3] < 0.0 { -1.0 } else { 1.0 };
-    axis_angle(&[sign * q[0] / v, sign * q[1] / v, sign * q[2] / v], angle - step)
-}
-
 /// Normalized quaternion interpolation from `a` (t = 0) to `b` (t = 1), the shorter way.
 fn nlerp(a: &Mat3, b: &Mat3, t: f64) -> Mat3 {
     use crate::skeleton::{matrix_to_quaternion, quaternion_to_matrix};
@@ -1404,42 +1419,8 @@ pub fn arm_ik(
     h: usize,
     target: &Vec3,
 ) {
-    let [c, s, e, w] = ARMS[h];
-    let (ps, pe, pw) = (joints[s], joints[e], joints[w]);
-    let u = sub(&pe, &ps);
-    let f = sub(&pw, &pe);
-    let (a, b) = (norm(&u), norm(&f));
-    if !(a > 1e-6 && b > 1e-6 && target.iter().all(|v| v.is_finite())) {
-        return;
-    }
-    // Bend: the angle β between upper arm and forearm (0 = straight) sets |wrist - shoulder|.
-    let lo = (a - b).abs() + 1e-4;
-    let hi = (a + b) * 0.999;
-    let d = norm(&sub(target, &ps)).clamp(lo, hi);
-    let mut axis = cross(&u, &f);
-    let n = norm(&axis);
-    axis = if n > 1e-9 * a * b {
-        scale(&axis, 1.0 / n)
-    } else {
-        // A straight arm bends about an axis orthogonal to it and to the target.
-        let t = cross(&u, &sub(target, &ps));
-        if norm(&t) > 1e-9 {
-            scale(&t, 1.0 / norm(&t))
-        } else {
-            orthogonal(&scale(&u, 1.0 / a))
-        }
-    };
-    let beta = norm(&cross(&u, &f)).atan2(dot(&u, &f));
-    let cos_new = ((d * d - a * a - b * b) / (2.0 * a * b)).clamp(-1.0, 1.0);
-    let bend = axis_angle(&axis, cos_new.acos() - beta);
-    let wrist1 = add(&pe, &mat_vec(&bend, &f));
-    // Swing: the smallest shoulder rotation that points shoulder→wrist at the target.
-    let swing = rotation_between(&sub(&wrist1, &ps), &sub(target, &ps));
-    let gs = mat_mul(&swing, &global[s]);
-    let ge = mat_mul(&swing, &mat_mul(&bend, &global[e]));
-    local[s] = mat_mul(&transpose(&global[c]), &gs);
-    local[e] = mat_mul(&transpose(&gs), &ge);
-    local[w] = mat_mul(&transpose(&ge), &global[w]);
+    let w = ARMS[h][3];
+    limb_ik(local, global, joints, ARMS[h], target, &global[w]);
 }
 
 #[cfg(test)]

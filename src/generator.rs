@@ -383,7 +383,11 @@ impl Generator {
                 StreamObject { index, name: objects[index].name.clone(), alias }
             }
         };
-        let contact = if c.raw_output.unwrap_or(false) { None } else { Some(pipe.contact_stage(object.index)) };
+        let contact = match (c.raw_output.unwrap_or(false), c.foot_lock.unwrap_or(true)) {
+            (true, _) => None,
+            (false, true) => Some(pipe.contact_stage(object.index)),
+            (false, false) => Some(pipe.contact_stage(object.index).with_free_feet()),
+        };
         let anchor = match &continuation {
             Some(k) => {
                 let p = &k.pose;
@@ -473,7 +477,7 @@ impl Generator {
                 from.transform(&ri, &ti);
                 self.blend_from = Some(from);
                 if let (Some(stage), Some(earlier)) = (&mut self.contact, &k.contact) {
-                    *stage = earlier.continued(&ri, &ti);
+                    *stage = earlier.continued(&ri, &ti).with_feet_like(stage);
                 }
             }
             _ => {

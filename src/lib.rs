@@ -40,6 +40,8 @@ pub mod skeleton;
 #[doc(hidden)]
 pub mod assemble;
 #[doc(hidden)]
+pub mod feet;
+#[doc(hidden)]
 pub mod contact;
 #[doc(hidden)]
 pub mod anchor;

@@ -284,6 +284,80 @@ impl Skeleton {
     }
 }
 
+/// The angle of rotation `r` (radians, 0 to π).
+pub fn rotation_angle(r: &Mat3) -> f64 {
+    let q = matrix_to_quaternion(r);
+    2.0 * norm(&[q[0], q[1], q[2]]).atan2(q[3].abs())
+}
+
+/// `r` turned back toward the identity by at most `step` radians.
+pub fn fade_rotation(r: &Mat3, step: f64) -> Mat3 {
+    if *r == IDENTITY {
+        return IDENTITY;
+    }
+    let q = matrix_to_quaternion(r);
+    let v = norm(&[q[0], q[1], q[2]]);
+    let angle = 2.0 * v.atan2(q[3].abs());
+    if angle <= step || v <= 1e-12 {
+        return IDENTITY;
+    }
+    let sign = if q[3] < 0.0 { -1.0 } else { 1.0 };
+    axis_angle(&[sign * q[0] / v, sign * q[1] / v, sign * q[2] / v], angle - step)
+}
+
+/// Two-bone IK on the limb `[parent, root, middle, end]` (collar, shoulder, elbow, wrist;
+/// pelvis, hip, knee, ankle): turns the middle joint, then the root, so the end lands on
+/// `target` (or as near as the slightly bent limb reaches), and gives the end the global
+/// rotation `end` (the hand's or the foot's orientation; its children are local to it).
+/// The middle joint bends in the limb's own plane, so an elbow or a knee keeps the side it
+/// bends to. `global` / `joints` are the pose's FK before the change; `local` is rewritten
+/// for the root, middle and end only.
+pub fn limb_ik(
+    local: &mut [Mat3; CG_NUM_JOINTS],
+    global: &[Mat3; CG_NUM_JOINTS],
+    joints: &[Vec3; CG_NUM_JOINTS],
+    limb: [usize; 4],
+    target: &Vec3,
+    end: &Mat3,
+) {
+    let [c, s, e, w] = limb;
+    let (ps, pe, pw) = (joints[s], joints[e], joints[w]);
+    let u = sub(&pe, &ps);
+    let f = sub(&pw, &pe);
+    let (a, b) = (norm(&u), norm(&f));
+    if !(a > 1e-6 && b > 1e-6 && target.iter().all(|v| v.is_finite())) {
+        return;
+    }
+    // Bend: the angle β between the upper and lower bone (0 = straight) sets |end - root|.
+    let lo = (a - b).abs() + 1e-4;
+    let hi = (a + b) * 0.999;
+    let d = norm(&sub(target, &ps)).clamp(lo, hi);
+    let mut axis = cross(&u, &f);
+    let n = norm(&axis);
+    axis = if n > 1e-9 * a * b {
+        scale(&axis, 1.0 / n)
+    } else {
+        // A straight limb bends about an axis orthogonal to it and to the target.
+        let t = cross(&u, &sub(target, &ps));
+        if norm(&t) > 1e-9 {
+            scale(&t, 1.0 / norm(&t))
+        } else {
+            orthogonal(&scale(&u, 1.0 / a))
+        }
+    };
+    let beta = norm(&cross(&u, &f)).atan2(dot(&u, &f));
+    let cos_new = ((d * d - a * a - b * b) / (2.0 * a * b)).clamp(-1.0, 1.0);
+    let bend = axis_angle(&axis, cos_new.acos() - beta);
+    let end1 = add(&pe, &mat_vec(&bend, &f));
+    // Swing: the smallest root rotation that points root→end at the target.
+    let swing = rotation_between(&sub(&end1, &ps), &sub(target, &ps));
+    let gs = mat_mul(&swing, &global[s]);
+    let ge = mat_mul(&swing, &mat_mul(&bend, &global[e]));
+    local[s] = mat_mul(&transpose(&global[c]), &gs);
+    local[e] = mat_mul(&transpose(&gs), &ge);
+    local[w] = mat_mul(&transpose(&ge), end);
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 /// Bottom up; a module may use those before it.
-const FLOORS: [&str; 18] = [
+const FLOORS: [&str; 19] = [
     "error",
     "frame",
     "config",
@@ -13,6 +13,7 @@ const FLOORS: [&str; 18] = [
     "sampler",
     "skeleton",
     "assemble",
+    "feet",
     "contact",
     "anchor",
     "retarget",

@@ -204,6 +204,12 @@ public:
         raw_.flags = on ? (raw_.flags & ~CG_STREAM_NO_GRASP_PLACEMENT) : (raw_.flags | CG_STREAM_NO_GRASP_PLACEMENT);
         return *this;
     }
+    /// Off: the model's legs are left as they are (its feet may slide), for a host that
+    /// runs its own foot IK; on (the default), a foot the model stands on stays planted.
+    StreamConfig &foot_lock(bool on) {
+        raw_.flags = on ? (raw_.flags & ~CG_STREAM_FREE_FEET) : (raw_.flags | CG_STREAM_FREE_FEET);
+        return *this;
+    }
     const cg_stream_config &raw() const noexcept { return raw_; }
 
 private:

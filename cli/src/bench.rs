@@ -598,6 +598,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         guidance: Some(guidance as f64),
         raw_output: None,
         grasp_placement: o.no_grasp_placement.then_some(false),
+        foot_lock: None,
         anchor: None,
         continue_from: None,
     };

@@ -76,6 +76,10 @@ pub struct Args {
     /// where the model's hand first closes on it (which holds frames back until that grasp).
     #[arg(long)]
     no_grasp_placement: bool,
+    /// Leave the model's legs as they are (its feet may slide), instead of keeping a foot it
+    /// stands on planted.
+    #[arg(long)]
+    free_feet: bool,
     /// Scene anchoring: the character's ground point and heading in the frames' coordinate
     /// system, X,Y,Z[,YAW] (YAW: degrees about the system's up axis; 0 faces native +y).
     #[arg(long, value_name = "X,Y,Z[,YAW]", value_parser = placement, allow_hyphen_values = true)]
@@ -315,6 +319,7 @@ fn options(a: Args) -> Result<Options, String> {
         guidance: a.guidance,
         raw_output: a.raw.then_some(true),
         grasp_placement: a.no_grasp_placement.then_some(false),
+        foot_lock: a.free_feet.then_some(false),
         anchor: None,
         continue_from: None,
     };

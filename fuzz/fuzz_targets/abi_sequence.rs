@@ -404,7 +404,8 @@ fn stream_config(inp: &mut Input) -> Padded<cg_stream_config> {
     c.min_len = u32::from(inp.u8() % 8);
     c.max_len = u32::from(inp.u8() % 8);
     // flags: 0, the raw-output flag, or an unknown bit
-    c.flags = [0, 0, CG_STREAM_NO_GRASP_PLACEMENT, CG_STREAM_RAW_OUTPUT, 1 << 9][usize::from(inp.u8() % 5)];
+    c.flags = [0, 0, CG_STREAM_NO_GRASP_PLACEMENT, CG_STREAM_FREE_FEET, CG_STREAM_RAW_OUTPUT, 1 << 9]
+        [usize::from(inp.u8() % 6)];
     // version 2: scene anchoring, mostly off; placements good, NaN or not unit
     if inp.u8() % 4 == 0 {
         c.anchor = u32::from(inp.u8() % 16);

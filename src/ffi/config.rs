@@ -147,8 +147,12 @@ pub const CG_STREAM_RAW_OUTPUT: u32 = 1 << 0;
 /// of where the model's hand first closes on it (placement from the grasp, which holds the
 /// first frame back until that grasp, at most 128 frames ahead: docs/engine.md).
 pub const CG_STREAM_NO_GRASP_PLACEMENT: u32 = 1 << 1;
+/// Set in `cg_stream_config.flags`: the model's legs are left as they are, so its feet may
+/// slide, instead of a foot it stands on staying planted (for a host that runs its own
+/// foot IK on uneven ground: docs/engine.md).
+pub const CG_STREAM_FREE_FEET: u32 = 1 << 2;
 /// All `CG_STREAM_*` flags this library knows.
-pub const CG_STREAM_FLAGS_ALL: u32 = CG_STREAM_RAW_OUTPUT | CG_STREAM_NO_GRASP_PLACEMENT;
+pub const CG_STREAM_FLAGS_ALL: u32 = CG_STREAM_RAW_OUTPUT | CG_STREAM_NO_GRASP_PLACEMENT | CG_STREAM_FREE_FEET;
 /// Set in `cg_stream_config.anchor`: `character_position` / `character_rotation` place the
 /// character in the host's world.
 pub const CG_ANCHOR_CHARACTER: u32 = 1 << 0;
@@ -488,6 +492,7 @@ pub(crate) unsafe fn stream_config_from_c(cfg: *const cg_stream_config) -> Resul
         guidance: (has_guidance && set(CG_USE_DEFAULT_GUIDANCE)).then_some(c.guidance),
         raw_output: (c.flags & CG_STREAM_RAW_OUTPUT != 0).then_some(true),
         grasp_placement: (c.flags & CG_STREAM_NO_GRASP_PLACEMENT != 0).then_some(false),
+        foot_lock: (c.flags & CG_STREAM_FREE_FEET != 0).then_some(false),
         anchor: anchor_from_c(&c)?,
         continue_from: (c.continue_from != 0).then_some(c.continue_from),
     })
@@ -608,6 +613,9 @@ mod tests {
         c.flags = CG_STREAM_NO_GRASP_PLACEMENT;
         let s = unsafe { stream_config_from_c(&c) }.unwrap();
         assert_eq!(s, StreamConfig { seed: Some(7), grasp_placement: Some(false), ..Default::default() });
+        c.flags = CG_STREAM_FREE_FEET;
+        let s = unsafe { stream_config_from_c(&c) }.unwrap();
+        assert_eq!(s, StreamConfig { seed: Some(7), foot_lock: Some(false), ..Default::default() });
         c.flags = 1 << 5;
         let e = unsafe { stream_config_from_c(&c) }.unwrap_err();
         assert_eq!(e.0, cg_status::CG_ERR_INVALID_ARGUMENT);

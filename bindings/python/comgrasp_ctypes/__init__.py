@@ -83,6 +83,7 @@ USE_DEFAULT_ALL = 63
 # cg_stream_config.flags
 STREAM_RAW_OUTPUT = 1 << 0
 STREAM_NO_GRASP_PLACEMENT = 1 << 1
+STREAM_FREE_FEET = 1 << 2
 #: A position (x, y, z) and a unit quaternion (x, y, z, w) for scene anchoring.
 Placement = Tuple[Sequence[float], Sequence[float]]
 # cg_stream_config.anchor
@@ -656,7 +657,7 @@ class Engine(_Owned):
     def start(self, text: Union[str, bytes, None], *, seed: Optional[int] = None,
               temperature: Optional[float] = None, top_k: Optional[int] = None,
               min_len: Optional[int] = None, max_len: Optional[int] = None, raw_output: bool = False,
-              grasp_placement: bool = True,
+              grasp_placement: bool = True, foot_lock: bool = True,
               character: Optional[Placement] = None, object: Optional[Placement] = None,
               place_character: bool = False, continue_from: Optional[int] = None,
               guidance: Optional[float] = None) -> Stream:
@@ -665,6 +666,8 @@ class Engine(_Owned):
         ``raw_output``: the model's frames without the contact-consistency stage.
         ``grasp_placement=False``: the resting object stays where the model put it instead of
         where the model's hand first closes on it.
+        ``foot_lock=False``: the model's legs as they are (its feet may slide) instead of a
+        foot it stands on staying planted.
         Scene anchoring, each a ``(position xyz, rotation xyzw)`` pair in the engine's
         coordinate system: ``character`` (ground point and heading), ``object`` (start pose;
         reached for), ``place_character`` (with ``object`` only: the character comes to it).
@@ -682,6 +685,8 @@ class Engine(_Owned):
             cfg.flags |= STREAM_RAW_OUTPUT
         if not grasp_placement:
             cfg.flags |= STREAM_NO_GRASP_PLACEMENT
+        if not foot_lock:
+            cfg.flags |= STREAM_FREE_FEET
         for bit, placement, fields in ((ANCHOR_CHARACTER, character, ("character_position", "character_rotation")),
                                        (ANCHOR_OBJECT, object, ("object_position", "object_rotation"))):
             if placement is not None:

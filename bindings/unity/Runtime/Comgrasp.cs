@@ -262,6 +262,8 @@ namespace ComGrasp
         public const uint FlagRawOutput = 1u << 0;
         /// <summary>CG_STREAM_NO_GRASP_PLACEMENT: the resting object stays where the model put it (not where its hand first closes).</summary>
         public const uint FlagNoGraspPlacement = 1u << 1;
+        /// <summary>CG_STREAM_FREE_FEET: the model's legs as they are (its feet may slide), not planted.</summary>
+        public const uint FlagFreeFeet = 1u << 2;
         /// <summary>CG_ANCHOR_*: bits of Anchor.</summary>
         public const uint AnchorCharacter = 1u << 0;
         public const uint AnchorObject = 1u << 1;
@@ -688,6 +690,10 @@ namespace ComGrasp
         /// closes on it (placement from the grasp holds the first frame back until that grasp).
         /// Default false.</summary>
         public bool NoGraspPlacement;
+        /// <summary>The model's legs are left as they are, so its feet may slide (for a host that
+        /// runs its own foot IK, e.g. on uneven ground); by default a foot the model stands on
+        /// stays planted. Default false.</summary>
+        public bool FreeFeet;
         /// <summary>Scene anchoring: the character's ground point and heading in the engine's
         /// coordinates (e.g. its Unity transform's position and rotation).</summary>
         public CgVec3? CharacterPosition;
@@ -794,6 +800,7 @@ namespace ComGrasp
             if (options.Guidance.HasValue) { cfg.Guidance = options.Guidance.Value; cfg.UseDefaults &= ~CgStreamConfig.UseDefaultGuidance; }
             if (options.RawOutput) { cfg.Flags |= CgStreamConfig.FlagRawOutput; }
             if (options.NoGraspPlacement) { cfg.Flags |= CgStreamConfig.FlagNoGraspPlacement; }
+            if (options.FreeFeet) { cfg.Flags |= CgStreamConfig.FlagFreeFeet; }
             if (options.CharacterPosition.HasValue)
             {
                 cfg.Anchor |= CgStreamConfig.AnchorCharacter;

@@ -70,6 +70,14 @@ PLACE_LOOKAHEAD = 128
 NORM_EPS = 1e-12
 
 ARMS = ((13, 16, 18, 20), (14, 17, 19, 21))
+# Planted feet (``feet.rs``): legs as (pelvis, hip, knee, ankle), left then right.
+LEGS = ((0, 1, 4, 7), (0, 2, 5, 8))
+PLANT_SPEED = 0.25
+FOOT_LIFT = 0.05
+FOOT_STEP = 0.3
+FOOT_TURN = 0.8
+FOOT_FADE = 0.3
+FOOT_TURN_FADE = 1.0
 HAND_FIRST = (25, 40)
 LIMITED = (ARMS[0][3], ARMS[1][3], *range(HAND_FIRST[0], HAND_FIRST[0] + 30))
 IDENTITY = np.eye(3)
@@ -407,11 +415,63 @@ class _Limited:
     wrists: list  # global rotation per wrist (positions: joints[0], joints[1])
 
 
+@dataclass
+class _Foot:
+    planted: bool = False
+    at: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the pinned ankle
+    rot: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
+    correction: np.ndarray = field(default_factory=lambda: np.zeros(3))  # shown = model + correction
+    turn: np.ndarray = field(default_factory=lambda: IDENTITY.copy())  # shown = turn @ model
+    last: np.ndarray | None = None  # the model's ankle in the previous frame
+
+
+class Feet:
+    """Planted feet (``feet::Feet``): a foot the model stands on keeps its place and turn."""
+
+    def __init__(self, fps: float, events: Counter):
+        self.dt = 1.0 / fps
+        self.feet = [_Foot(), _Foot()]
+        self.lowest = math.inf
+        self.events = events
+
+    def apply(self, local: np.ndarray, glob: np.ndarray, joints: np.ndarray) -> None:
+        for leg in LEGS:
+            self.lowest = min(self.lowest, float(joints[leg[3]][2]))
+        for foot, leg in zip(self.feet, LEGS):
+            model, g = joints[leg[3]].copy(), glob[leg[3]]
+            if foot.planted:
+                away = _norm((model - foot.at)[:2]) > FOOT_STEP
+                up = model[2] > foot.at[2] + FOOT_LIFT
+                turned = rotation_angle(foot.rot @ g.T) > FOOT_TURN
+                hip, knee = joints[leg[1]], joints[leg[2]]
+                short = _norm(foot.at - hip) > _norm(knee - hip) + _norm(model - knee) + FOOT_LIFT
+                foot.planted = not (away or up or turned or short)
+                if not foot.planted:
+                    self.events["foot_freed"] += 1
+            else:
+                speed = 0.0 if foot.last is None else _norm((model - foot.last)[:2]) / self.dt
+                if speed <= PLANT_SPEED and model[2] <= self.lowest + FOOT_LIFT:
+                    foot.planted = True
+                    foot.at = model + foot.correction
+                    foot.rot = foot.turn @ g
+                    self.events["foot_planted"] += 1
+            foot.last = model
+            if foot.planted:
+                foot.correction = foot.at - model
+                foot.turn = foot.rot @ g.T
+            else:
+                n, step = _norm(foot.correction), FOOT_FADE * self.dt
+                foot.correction = foot.correction * ((n - step) / n) if n > step else np.zeros(3)
+                foot.turn = fade_rotation(foot.turn, FOOT_TURN_FADE * self.dt)
+            if foot.correction.any() or not np.array_equal(foot.turn, IDENTITY):
+                limb_ik(local, glob, joints, leg, model + foot.correction, foot.turn @ g)
+
+
 class ContactStage:
     """One stream's contact state; feed every frame in order (``apply``), then ``finish``
-    the last one."""
+    the last one. ``feet=False``: the legs stay the model's (``CG_STREAM_FREE_FEET``)."""
 
-    def __init__(self, shape: ObjectShape, fps: float):
+    def __init__(self, shape: ObjectShape, fps: float, feet: bool = True):
         self.shape = shape
         self.dt = 1.0 / fps
         self.started = False
@@ -430,6 +490,7 @@ class ContactStage:
         self.pressing = False  # a lifted object held up on the top while levelled
         # How often each rule fired (the reference only: tests check what a fixture covers).
         self.events: Counter[str] = Counter()
+        self.feet = Feet(fps, self.events) if feet else None
 
     def holding(self) -> list[bool]:
         return [h.phase == "holding" for h in self.hands]
@@ -635,6 +696,9 @@ class ContactStage:
                     self.events["reach_missed"] += 1
                 hand.reach = None if hand.phase != "reaching" else hand.reach
 
+        # Last: no rule above moves the legs, so ``joints`` still has the model's feet.
+        if self.feet is not None:
+            self.feet.apply(pose.local, glob, joints)
         self._write(pose, joints)
 
     def finish(self, skel: Skeleton, pose: Pose) -> None:
@@ -938,6 +1002,12 @@ def face_toward(r: np.ndarray, local: np.ndarray):
     return (axis / n, tilt) if tilt > 1e-6 and n > 1e-9 else None
 
 
+def rotation_angle(r: np.ndarray) -> float:
+    """The angle of rotation ``r`` (radians, 0 to pi)."""
+    q = matrix_to_quaternion(r)
+    return 2.0 * math.atan2(_norm(q[:3]), abs(q[3]))
+
+
 def fade_rotation(r: np.ndarray, step: float) -> np.ndarray:
     """``r`` turned back toward the identity by at most ``step`` radians."""
     if np.array_equal(r, IDENTITY):
@@ -964,7 +1034,14 @@ def blend_rotations(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def arm_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, h: int, target: np.ndarray) -> None:
     """Two-bone IK on arm ``h`` (``contact::arm_ik``); rewrites ``local`` in place."""
-    c, s, e, w = ARMS[h]
+    limb_ik(local, glob, joints, ARMS[h], target, glob[ARMS[h][3]])
+
+
+def limb_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, limb, target: np.ndarray,
+            end: np.ndarray) -> None:
+    """Two-bone IK on ``limb`` = (parent, root, middle, end) with the end's global rotation
+    ``end`` (``skeleton::limb_ik``); rewrites ``local`` in place."""
+    c, s, e, w = limb
     ps, pe, pw = joints[s], joints[e], joints[w]
     u, f = pe - ps, pw - pe
     a, b = _norm(u), _norm(f)
@@ -982,13 +1059,13 @@ def arm_ik(local: np.ndarray, glob: np.ndarray, joints: np.ndarray, h: int, targ
     beta = math.atan2(_norm(np.cross(u, f)), float(u @ f))
     cos_new = min(max((d * d - a * a - b * b) / (2.0 * a * b), -1.0), 1.0)
     bend = axis_angle(axis, math.acos(cos_new) - beta)
-    wrist1 = pe + bend @ f
-    swing = rotation_between(wrist1 - ps, target - ps)
+    end1 = pe + bend @ f
+    swing = rotation_between(end1 - ps, target - ps)
     gs = swing @ glob[s]
     ge = swing @ (bend @ glob[e])
     local[s] = glob[c].T @ gs
     local[e] = gs.T @ ge
-    local[w] = ge.T @ glob[w]
+    local[w] = ge.T @ end
 
 
 def grasp_onset(skel: Skeleton, x: np.ndarray) -> np.ndarray | None:
@@ -1011,13 +1088,14 @@ def grasp_onset(skel: Skeleton, x: np.ndarray) -> np.ndarray | None:
 
 
 def apply_contact_stage(x: np.ndarray, rest_joints: np.ndarray, fps: float, shape: ObjectShape,
-                        events: Counter | None = None, place: bool = True) -> np.ndarray:
+                        events: Counter | None = None, place: bool = True, feet: bool = True) -> np.ndarray:
     """A whole de-normalized (T, 335) motion through the stage, frame by frame as the engine
     streams it (the last frame finished); returns the consistent motion as (T, 335) float32.
     ``place``: the resting object starts where the first grasp closes (``grasp_onset``), as
-    the engine's streams do unless told not to. ``events``, when given, is updated with how
-    often each rule fired (``placed`` when the object was moved)."""
-    skel, stage = Skeleton(rest_joints), ContactStage(shape, fps)
+    the engine's streams do unless told not to; ``feet``: planted feet (likewise).
+    ``events``, when given, is updated with how often each rule fired (``placed`` when the
+    object was moved)."""
+    skel, stage = Skeleton(rest_joints), ContactStage(shape, fps, feet)
     x = np.asarray(x)
     centre = grasp_onset(skel, x) if place else None
     if centre is not None:
