@@ -46,6 +46,11 @@
 // A free foot's correction fades back to the model's path at this speed, m/s ...
 #define FOOT_FADE 0.3
 
+// How high a standing body's toe joints (`left_foot`, `right_foot`) are above the ground it
+// stands on, m: SynthGrasp's feet (every subject's, from its foot surface), SMPL-X's within
+// a centimetre. [`ContactStage::ground`] stands the first frame's lower toe there.
+#define GROUND_TOE_HEIGHT 0.034
+
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 

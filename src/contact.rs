@@ -129,6 +129,12 @@ pub const TIP_SPEED: f64 = 3.0;
 /// this far from the box face nearest below it (2°): one set down on an edge would tip over
 /// after the hands let go.
 const SET_DOWN_TILT: f64 = 2.0 * std::f64::consts::PI / 180.0;
+/// How high a standing body's toe joints (`left_foot`, `right_foot`) are above the ground it
+/// stands on, m: SynthGrasp's feet (every subject's, from its foot surface), SMPL-X's within
+/// a centimetre. [`ContactStage::ground`] stands the first frame's lower toe there.
+pub const GROUND_TOE_HEIGHT: f64 = 0.034;
+/// The toe joints.
+const TOES: [usize; 2] = [10, 11];
 /// Frames from the first that [`GraspOnset`] looks through for the model's first grasp
 /// (8 tokens of 16 frames): the engine holds a stream's frames back until it finds one.
 pub const PLACE_LOOKAHEAD: usize = 128;
@@ -562,6 +568,9 @@ pub struct ContactStage {
     pressing: bool,
     /// The feet the model stands on stay planted ([`Feet`]); `None` when the host turned it off.
     feet: Option<Feet>,
+    /// How far the model's world is raised so that its character stands on the ground
+    /// ([`Self::ground`]; fixed by the first frame).
+    lift: Option<f64>,
 }
 
 impl ContactStage {
@@ -586,6 +595,7 @@ impl ContactStage {
             carried_by: [false; 2],
             pressing: false,
             feet: Some(Feet::new(fps)),
+            lift: None,
         }
     }
 
@@ -595,15 +605,41 @@ impl ContactStage {
         self
     }
 
-    /// This stage with `other`'s choice of planted or free feet: a continued stream follows
-    /// its own config, and its feet start free where the earlier stream's were not pinned.
-    pub fn with_feet_like(mut self, other: &ContactStage) -> ContactStage {
+    /// This (continued) stage with what is `other`'s own: the stream's choice of planted or
+    /// free feet (feet start free where the earlier stream's were not pinned) and its
+    /// ground lift (each stream's model frame has its own).
+    pub fn with_settings_of(mut self, other: &ContactStage) -> ContactStage {
         match (&self.feet, &other.feet) {
             (_, None) => self.feet = None,
             (None, Some(fresh)) => self.feet = Some(fresh.clone()),
             (Some(_), Some(_)) => {}
         }
+        self.lift = other.lift;
         self
+    }
+
+    /// Stands the model's character on the ground: its world (body and object) is raised
+    /// by one lift per stream, fixed by the first frame so that its lower toe joint is
+    /// [`GROUND_TOE_HEIGHT`] above z = 0. The engine's skeleton is one body, while the model
+    /// predicts the pelvis height of whichever training subject it has in mind (0.83-1.06 m
+    /// in SynthGrasp), so its character floats up to 15 cm above the ground the object
+    /// falls to (or sinks into it). Call on every frame before anything else reads it (the
+    /// raw frame; [`Self::place`] takes the grasp's centre in the raw frame too).
+    pub fn ground(&mut self, skeleton: &Skeleton, pose: &mut Pose) {
+        let lift = *self.lift.get_or_insert_with(|| {
+            let mut global = [IDENTITY; CG_NUM_JOINTS];
+            let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
+            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+            let lowest = TOES.map(|j| joints[j][2]).into_iter().fold(f64::INFINITY, f64::min);
+            if lowest.is_finite() {
+                GROUND_Z + GROUND_TOE_HEIGHT - lowest
+            } else {
+                0.0
+            }
+        });
+        pose.pelvis[2] += lift;
+        pose.object_translation[2] += lift;
+        pose.object_centre[2] += lift;
     }
 
     /// Which feet are planted (both `false` with free feet).
@@ -650,10 +686,12 @@ impl ContactStage {
 
     /// Moves the object of `pose` (the stream's first frame, raw) so that its centre, as the
     /// stage reckons it from the catalogue's box, lies at `centre` ([`GraspOnset`]); its
-    /// rotation stays. Call before the first [`Self::apply`] (and before anchoring, which
-    /// places the character from the object).
+    /// rotation stays; `centre` is in the raw frame, raised here by the ground lift. Call
+    /// after [`Self::ground`] and before the first [`Self::apply`] (and before anchoring,
+    /// which places the character from the object).
     pub fn place(&self, pose: &mut Pose, centre: &Vec3) {
-        let d = sub(centre, &self.shape.centre_at(&pose.object_rotation, &pose.object_translation));
+        let centre = [centre[0], centre[1], centre[2] + self.lift.unwrap_or(0.0)];
+        let d = sub(&centre, &self.shape.centre_at(&pose.object_rotation, &pose.object_translation));
         pose.object_translation = add(&pose.object_translation, &d);
         pose.object_centre = add(&pose.object_centre, &d);
     }

@@ -477,7 +477,7 @@ impl Generator {
                 from.transform(&ri, &ti);
                 self.blend_from = Some(from);
                 if let (Some(stage), Some(earlier)) = (&mut self.contact, &k.contact) {
-                    *stage = earlier.continued(&ri, &ti).with_feet_like(stage);
+                    *stage = earlier.continued(&ri, &ti).with_settings_of(stage);
                 }
             }
             _ => {
@@ -673,6 +673,9 @@ impl Generator {
             let assembler = &pipe.assembler;
             let mut pose = Pose::default();
             assembler.decode(feats, &mut pose);
+            if let Some(stage) = &mut self.contact {
+                stage.ground(assembler.skeleton(), &mut pose);
+            }
             if self.next_frame == 0 {
                 if let (Some(centre), Some(stage)) = (self.placement, &self.contact) {
                     stage.place(&mut pose, &centre);

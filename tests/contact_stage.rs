@@ -210,15 +210,17 @@ fn raw_output_is_the_models_own() {
             assert_eq!(f.contact[h], u8::from(f.contact_probability[h] > 0.5));
         }
     }
-    // Same tokens, so the same root, and with free feet the same legs; the stage moves the
-    // object, arms and spine, and holds the whole pose back only where a hand would outrun
-    // its speed limit (a seam).
+    // Same tokens, so the same root (raised by the stream's ground lift), and with free feet
+    // the same legs; the stage moves the object, arms and spine, and holds the whole pose
+    // back only where a hand would outrun its speed limit (a seam).
     let consistent = collect(&e, text, StreamConfig { seed: Some(1), foot_lock: Some(false), ..Default::default() });
+    let lift = consistent[0].root_translation[2] - raw[0].root_translation[2];
     let same = raw
         .iter()
         .zip(&consistent)
         .filter(|(a, b)| {
-            a.root_translation == b.root_translation
+            a.root_translation[..2] == b.root_translation[..2]
+                && (b.root_translation[2] - a.root_translation[2] - lift).abs() < 1e-5
                 && a.body_rotations[0] == b.body_rotations[0] // left hip
                 && a.left_hand_rotations == b.left_hand_rotations // fingers
         })
@@ -263,7 +265,7 @@ fn foot_sliding(fr: &[Frame], fps: f64) -> f64 {
     total / 4.0
 }
 
-/// Planted feet: the default model's standing feet slide (CHOIS foot sliding of a few mm per
+/// Standing on the ground and planted feet: the default model's standing feet slide (CHOIS foot sliding of a few mm per
 /// frame, SynthGrasp's ~0); the stage pins them, within issue 15's bar (1.5 × the ground
 /// truth's + 1 mm), and moves a foot no faster than the model's plus `FOOT_FADE` when it
 /// lets one go. Free feet (`foot_lock: Some(false)`) are the model's legs.
@@ -271,12 +273,21 @@ fn foot_sliding(fr: &[Frame], fps: f64) -> f64 {
 fn planted_feet_do_not_slide() {
     let e = engine();
     let fps = e.bundle().unwrap().manifest.fps;
-    let (mut pinned, mut free) = (0.0, 0.0);
+    let (mut pinned, mut free, mut lifts) = (0.0, 0.0, Vec::new());
     for (text, seed) in [(PROMPTS[0], 1), (PROMPTS[1], 2), (PROMPTS[2], 1), (PROMPTS[3], 3)] {
         let on = |cfg: StreamConfig| collect(&e, text, StreamConfig { seed: Some(seed), ..cfg });
         let (planted, loose) =
             (on(StreamConfig::default()), on(StreamConfig { foot_lock: Some(false), ..Default::default() }));
         assert_eq!(planted.len(), loose.len());
+        // The character stands on the ground: the first frame's lower toe joint at
+        // GROUND_TOE_HEIGHT (the model's own stands anywhere from 2 cm below to 15 cm above).
+        let toe = |f: &Frame| f.joint_positions[10][2].min(f.joint_positions[11][2]) as f64;
+        assert!(
+            (toe(&planted[0]) - comgrasp::contact::GROUND_TOE_HEIGHT).abs() < 1e-4,
+            "{text:?}: toe {}",
+            toe(&planted[0])
+        );
+        lifts.push(toe(&planted[0]) - toe(&frames(&e, text, seed, true)[0]));
         let (a, b) = (foot_sliding(&planted, fps), foot_sliding(&loose, fps));
         println!("{text:?} seed {seed}: foot sliding {a:.2} mm planted, {b:.2} mm free");
         // A model that lifts the whole body (both feet 10 cm up: seed 2 of the lift) frees them.
@@ -300,6 +311,7 @@ fn planted_feet_do_not_slide() {
     // Issue 15's bar (1.5 x SynthGrasp's ~0 + 1 mm) on the mean, and not vacuous: the
     // model's own feet slide.
     assert!(pinned / 4.0 <= 1.0 && free / 4.0 > 1.0, "free feet {free} mm, planted {pinned} mm (four streams)");
+    assert!(lifts.iter().any(|l| l.abs() > 0.01), "the model's characters all stood on the ground already: {lifts:?}");
 }
 
 /// Placement from the grasp: the resting object starts where the model's hand first closes
@@ -319,8 +331,11 @@ fn the_resting_object_starts_where_the_first_grasp_closes() {
             assert!(fr.iter().enumerate().all(|(i, f)| f.frame_index == i as u64), "{text:?}: frame order");
             assert!(fr.iter().take(fr.len() - 1).all(|f| f.is_last == 0) && fr.last().unwrap().is_last == 1);
         }
-        // Without placement the object rests where the model's first frame put it.
-        assert_eq!(kept[0].object_translation, raw[0].object_translation, "{text:?}");
+        // Without placement the object rests where the model's first frame put it (in the
+        // model's world raised by the ground lift).
+        let lift = kept[0].root_translation[2] - raw[0].root_translation[2];
+        let raised = |p: [f32; 3]| [p[0], p[1], p[2] + lift];
+        assert!(dist(&kept[0].object_translation, &raised(raw[0].object_translation)) < 1e-5, "{text:?}");
         let onset = (1..raw.len().min(comgrasp::contact::PLACE_LOOKAHEAD)).find_map(|t| {
             (0..2)
                 .find(|&h| {
@@ -340,7 +355,7 @@ fn the_resting_object_starts_where_the_first_grasp_closes() {
                     want = std::array::from_fn(|i| want[i] + c[i] as f64);
                     n += 1.0;
                 }
-                let want = want.map(|v| (v / n) as f32);
+                let want = raised(want.map(|v| (v / n) as f32));
                 let d = dist(&placed_fr[0].object_centre, &want);
                 assert!(
                     d < 1e-3,
@@ -526,6 +541,7 @@ fn the_python_reference_stage_gives_the_same_frames() {
             let (mut pose, mut want) = (Pose::default(), Pose::default());
             asm.decode(&input[t * width..(t + 1) * width], &mut pose);
             asm.decode(&output[t * width..(t + 1) * width], &mut want);
+            stage.ground(asm.skeleton(), &mut pose);
             if let (0, Some(centre)) = (t, onset.centre()) {
                 stage.place(&mut pose, &centre);
             }

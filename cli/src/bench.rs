@@ -567,6 +567,7 @@ fn bench(o: &Args) -> Result<Value, String> {
             let idx = c * f + i;
             let mut pose = Pose::default();
             assembler.decode(&normalized[idx * FRAME_DIM..(idx + 1) * FRAME_DIM], &mut pose);
+            stage.ground(assembler.skeleton(), &mut pose);
             if let (0, Some(centre)) = (idx, onset.centre()) {
                 stage.place(&mut pose, &centre);
             }

@@ -67,6 +67,8 @@ PLACE_HEIGHT = 0.2
 SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
 PLACE_LOOKAHEAD = 128
+GROUND_TOE_HEIGHT = 0.034
+TOES = (10, 11)
 NORM_EPS = 1e-12
 
 ARMS = ((13, 16, 18, 20), (14, 17, 19, 21))
@@ -491,13 +493,28 @@ class ContactStage:
         # How often each rule fired (the reference only: tests check what a fixture covers).
         self.events: Counter[str] = Counter()
         self.feet = Feet(fps, self.events) if feet else None
+        self.lift: float | None = None  # the ground lift, fixed by the first frame
 
     def holding(self) -> list[bool]:
         return [h.phase == "holding" for h in self.hands]
 
+    def ground(self, skel: Skeleton, pose: Pose) -> None:
+        """Raises the model's world (body and object) by one lift per stream, fixed by the
+        first frame, so that its lower toe joint stands GROUND_TOE_HEIGHT above the ground
+        (``ContactStage::ground``); every frame, before anything else reads it."""
+        if self.lift is None:
+            lowest = min(float(skel.forward(pose.local, pose.pelvis)[1][j][2]) for j in TOES)
+            self.lift = GROUND_Z + GROUND_TOE_HEIGHT - lowest if math.isfinite(lowest) else 0.0
+        up = np.array([0.0, 0.0, self.lift])
+        pose.pelvis = pose.pelvis + up
+        pose.object_translation = pose.object_translation + up
+        pose.object_centre = pose.object_centre + up
+
     def place(self, pose: Pose, centre: np.ndarray) -> None:
-        """Moves the first frame's object so that its box centre lies at ``centre`` (its
-        rotation stays); before the first ``apply``."""
+        """Moves the first frame's object so that its box centre lies at ``centre`` (the raw
+        frame's; raised by the ground lift here), its rotation kept; after ``ground``, before
+        the first ``apply``."""
+        centre = centre + np.array([0.0, 0.0, self.lift or 0.0])
         d = centre - self.shape.centre_at(pose.object_rotation, pose.object_translation)
         pose.object_translation = pose.object_translation + d
         pose.object_centre = pose.object_centre + d
@@ -1103,6 +1120,7 @@ def apply_contact_stage(x: np.ndarray, rest_joints: np.ndarray, fps: float, shap
     out = np.empty((len(x), FRAME_DIM), np.float32)
     for t in range(len(x)):
         pose = Pose.from_features(x[t])
+        stage.ground(skel, pose)
         if t == 0 and centre is not None:
             stage.place(pose, centre)
         stage.apply(skel, pose)
