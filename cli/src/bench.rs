@@ -130,6 +130,10 @@ pub struct Args {
     /// grasp before the first frame): run with and without it to see what placement costs.
     #[arg(long)]
     no_grasp_placement: bool,
+    /// Streams leave the model's legs as they are (no planted feet): run with and without
+    /// it to see what the feet cost the contact stage.
+    #[arg(long)]
+    free_feet: bool,
     /// Instead of the one-stream bench: crowds of N concurrent streams (comma-separated,
     /// e.g. 1,8,64,256) on the crowd scheduler and on a thread per stream, in interleaved
     /// rounds (cli/src/crowd_bench.rs); each stream runs --steps token steps (default 16).
@@ -556,6 +560,9 @@ fn bench(o: &Args) -> Result<Value, String> {
     let objects = &bundle.manifest.objects;
     let (object, _) = choose_object(objects, &o.prompt).ok_or("the bundle's object catalogue is empty")?;
     let mut stage = pipeline.contact_stage(object);
+    if o.free_feet {
+        stage = stage.with_free_feet();
+    }
     // Placement from the grasp, as the streams do it (from the frames up to the first grasp).
     let mut onset = GraspOnset::default();
     if !o.no_grasp_placement {
@@ -599,7 +606,7 @@ fn bench(o: &Args) -> Result<Value, String> {
         guidance: Some(guidance as f64),
         raw_output: None,
         grasp_placement: o.no_grasp_placement.then_some(false),
-        foot_lock: None,
+        foot_lock: o.free_feet.then_some(false),
         anchor: None,
         continue_from: None,
     };
