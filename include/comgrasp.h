@@ -26,31 +26,6 @@
 // All joints of the SMPL-X tree (jaw and eyes included, always identity).
 #define CG_NUM_JOINTS 55
 
-// A free foot is planted while the model's ankle moves slower than this over the ground, m/s.
-#define PLANT_SPEED 0.25
-
-// ... and is at most this far above the lowest the model's ankles have been in the stream,
-// m; a planted foot whose model ankle rises this far above its pin is let go (a step). The
-// default model's standing legs swing its ankles 4-5 cm up and 30 cm forward and back
-// while its pelvis stays (a pendulum, not a step), hence the wide margins.
-#define FOOT_LIFT 0.05
-
-// A planted foot is let go when the model's ankle is this far from its pin over the
-// ground, m, or when the leg falls short of the pin by more than [`FOOT_LIFT`] (the pelvis
-// rose: within that, the straightened leg lifts the foot off the pin a little).
-#define FOOT_STEP 0.3
-
-// ... or when the model's foot has turned this far from the pinned one, radians.
-#define FOOT_TURN 0.8
-
-// A free foot's correction fades back to the model's path at this speed, m/s ...
-#define FOOT_FADE 0.3
-
-// How high a standing body's toe joints (`left_foot`, `right_foot`) are above the ground it
-// stands on, m: SynthGrasp's feet (every subject's, from its foot surface), SMPL-X's within
-// a centimetre. [`ContactStage::ground`] stands the first frame's lower toe there.
-#define GROUND_TOE_HEIGHT 0.034
-
 // `cg_stream_event.kind`: the stream started (its first frame follows).
 #define CG_STREAM_EVENT_STARTED 1
 
@@ -581,9 +556,6 @@ typedef struct cg_publisher_stats {
   // Frame subscribers connected right now, in all processes.
   uint64_t subscribers;
 } cg_publisher_stats;
-
-// Each leg as `[pelvis, hip, knee, ankle]`, left then right.
-#define LEGS { { 0, 1, 4, 7, }, { 0, 2, 5, 8, }, }
 
 #ifdef __cplusplus
 extern "C" {

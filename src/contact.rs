@@ -133,6 +133,9 @@ const SET_DOWN_TILT: f64 = 2.0 * std::f64::consts::PI / 180.0;
 /// stands on, m: SynthGrasp's feet (every subject's, from its foot surface), SMPL-X's within
 /// a centimetre. [`ContactStage::ground`] stands the first frame's lower toe there.
 pub const GROUND_TOE_HEIGHT: f64 = 0.034;
+/// How fast a body the model lifts off the ground (both feet up: it floats) is lowered back
+/// onto it, and let up again when the model's feet come back down, m/s.
+pub const GROUND_SPEED: f64 = 0.5;
 /// The toe joints.
 const TOES: [usize; 2] = [10, 11];
 /// Frames from the first that [`GraspOnset`] looks through for the model's first grasp
@@ -569,8 +572,10 @@ pub struct ContactStage {
     /// The feet the model stands on stay planted ([`Feet`]); `None` when the host turned it off.
     feet: Option<Feet>,
     /// How far the model's world is raised so that its character stands on the ground
-    /// ([`Self::ground`]; fixed by the first frame).
+    /// ([`Self::ground`]; fixed by the first frame), and how far its body is lowered now
+    /// (at most 0: a body the model lifts off the ground).
     lift: Option<f64>,
+    drop: f64,
 }
 
 impl ContactStage {
@@ -596,6 +601,7 @@ impl ContactStage {
             pressing: false,
             feet: Some(Feet::new(fps)),
             lift: None,
+            drop: 0.0,
         }
     }
 
@@ -614,7 +620,7 @@ impl ContactStage {
             (None, Some(fresh)) => self.feet = Some(fresh.clone()),
             (Some(_), Some(_)) => {}
         }
-        self.lift = other.lift;
+        (self.lift, self.drop) = (other.lift, other.drop);
         self
     }
 
@@ -623,21 +629,24 @@ impl ContactStage {
     /// [`GROUND_TOE_HEIGHT`] above z = 0. The engine's skeleton is one body, while the model
     /// predicts the pelvis height of whichever training subject it has in mind (0.83-1.06 m
     /// in SynthGrasp), so its character floats up to 15 cm above the ground the object
-    /// falls to (or sinks into it). Call on every frame before anything else reads it (the
-    /// raw frame; [`Self::place`] takes the grasp's centre in the raw frame too).
+    /// falls to (or sinks into it). A body the model lifts later (both feet off the ground:
+    /// it floats, which SynthGrasp's subjects never do) is lowered back onto the ground at
+    /// [`GROUND_SPEED`], the body only (the resting object stays where it is). Call on every
+    /// frame before anything else reads it (the raw frame; [`Self::place`] takes the
+    /// grasp's centre in the raw frame too).
     pub fn ground(&mut self, skeleton: &Skeleton, pose: &mut Pose) {
-        let lift = *self.lift.get_or_insert_with(|| {
-            let mut global = [IDENTITY; CG_NUM_JOINTS];
-            let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
-            skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
-            let lowest = TOES.map(|j| joints[j][2]).into_iter().fold(f64::INFINITY, f64::min);
-            if lowest.is_finite() {
-                GROUND_Z + GROUND_TOE_HEIGHT - lowest
-            } else {
-                0.0
-            }
-        });
-        pose.pelvis[2] += lift;
+        let mut global = [IDENTITY; CG_NUM_JOINTS];
+        let mut joints = [[0.0; 3]; CG_NUM_JOINTS];
+        skeleton.forward(&pose.local, pose.pelvis, &mut global, &mut joints);
+        let toe = TOES.map(|j| joints[j][2]).into_iter().fold(f64::INFINITY, f64::min);
+        if !toe.is_finite() {
+            return;
+        }
+        let lift = *self.lift.get_or_insert(GROUND_Z + GROUND_TOE_HEIGHT - toe);
+        let float = (GROUND_Z + GROUND_TOE_HEIGHT - (toe + lift)).min(0.0);
+        let step = GROUND_SPEED * self.dt;
+        self.drop += (float - self.drop).clamp(-step, step);
+        pose.pelvis[2] += lift + self.drop;
         pose.object_translation[2] += lift;
         pose.object_centre[2] += lift;
     }
@@ -1832,6 +1841,39 @@ mod tests {
             }),
             contact: Box::new(|t| [t >= 40, (5..80).contains(&t)]),
             object: Box::new(|_| HAND_OVER_OBJECT),
+        }
+    }
+
+    /// The model raises the whole body 10 cm over 5 frames: the stage lowers it back onto
+    /// the ground at GROUND_SPEED (the body only: the resting object stays).
+    #[test]
+    fn a_body_lifted_off_the_ground_is_lowered_back_onto_it() {
+        let s = skeleton();
+        // Free feet: planted ones would keep the toes down by stretching the (bent) legs.
+        let shape = ObjectShape { centre: [0.0; 3], half_extents: [0.03; 3], surface: None };
+        let mut stage = ContactStage::new(shape, 30.0).with_free_feet();
+        let mut shown = Vec::new();
+        for t in 0..40 {
+            let mut pose = Pose {
+                pelvis: [0.0, 0.0, 1.0 + 0.1 * ((t as f64 - 10.0) / 5.0).clamp(0.0, 1.0)],
+                object_translation: [0.0, 2.0, 0.8],
+                ..Pose::default()
+            };
+            let raw = pose.pelvis[2];
+            stage.ground(&s, &mut pose);
+            stage.apply(&s, &mut pose);
+            let (_, j) = fk(&s, &pose);
+            shown.push((j[10][2].min(j[11][2]), pose.pelvis[2] - raw, pose.object_translation));
+        }
+        for (t, (toe, _, object)) in shown.iter().enumerate() {
+            assert!(*toe >= GROUND_TOE_HEIGHT - 1e-9, "frame {t}: toe {toe} in the ground");
+            assert!(t > 10 && t < 25 || (toe - GROUND_TOE_HEIGHT).abs() < 1e-9, "frame {t}: toe {toe}");
+            assert_eq!(*object, shown[0].2, "frame {t}: the resting object moved");
+        }
+        let most = shown.iter().map(|s| s.0).fold(0.0, f64::max);
+        assert!(most > GROUND_TOE_HEIGHT + 0.005, "lowered at once (toes at most {most})");
+        for w in shown.windows(2) {
+            assert!(w[1].1 - w[0].1 >= -GROUND_SPEED / 30.0 - 1e-12, "lowered faster than GROUND_SPEED");
         }
     }
 

@@ -98,15 +98,16 @@ def test_staged_frames_keep_their_promises(fixture):
                     db = np.linalg.norm(joints[t + 1, w] - b.object_centre)
                     assert abs(da - db) < 1e-4, (case["prompt"], t)
         # the character stands on the ground: its first frame's lower toe GROUND_TOE_HEIGHT
-        # above it, the model's world raised by one lift for the whole stream
+        # above it, the model's world raised by one lift for the whole stream, the body
+        # lowered (never raised) further while the model floats it
         assert abs(joints[0, list(cs.TOES), 2].min() - cs.GROUND_TOE_HEIGHT) < 1e-5, case["prompt"]
         col = FIELD["root_transl"].start
         lift = y[0, col + 2] - x[0, col + 2]
-        # the stage moves the pelvis only where its speed limit holds the whole pose back (a
-        # token seam), so on most frames it is the model's, lifted; the legs keep the feet
-        # planted, so they slide at most half as much as the model's (case 6: its feet kick
-        # back and up 9 cm, which frees them; the rest ~0)
-        same = (y[:, col:col + 2] == x[:, col:col + 2]).all(axis=1) & (abs(y[:, col + 2] - x[:, col + 2] - lift) < 1e-6)
+        # the stage moves the pelvis over the ground only where its speed limit holds the
+        # whole pose back (a token seam), so on most frames it is the model's; the legs keep
+        # the feet planted, so they slide at most half as much as the model's (case 6: its
+        # feet kick back and up 9 cm, which frees them; the rest ~0)
+        same = (y[:, col:col + 2] == x[:, col:col + 2]).all(axis=1) & (y[:, col + 2] - x[:, col + 2] <= lift + 1e-6)
         assert same.mean() >= 0.75, case["prompt"]
         sliding.append(foot_sliding(joints, fps))
         assert sliding[-1] <= 0.5 * foot_sliding(_fk(rest, x), fps), case["prompt"]
@@ -285,6 +286,29 @@ def test_a_standing_foot_stays_planted_and_a_step_frees_it(rest):
     assert np.linalg.norm(shown[90] - shown[0], axis=-1).min() > 0.5  # the feet followed
     np.testing.assert_allclose(shown[-1], model[-1], atol=1e-9)  # back on the model's path ...
     np.testing.assert_allclose(shown[-20:], shown[-1:].repeat(20, 0), atol=1e-9)  # ... and planted
+
+
+def test_a_body_lifted_off_the_ground_is_lowered_back_onto_it(rest):
+    """The model raises the whole body 10 cm over 5 frames (both feet off the ground) and
+    keeps it there: the stage lowers it back onto the ground at GROUND_SPEED, the resting
+    object stays."""
+    shape = ObjectShape.of([0, 0, 0], [0.03, 0.03, 0.03])
+    x = _still_motion(rest, 40, [0.0, 2.0, 0.8], np.zeros(40))
+    col = FIELD["root_transl"].start + 2
+    x[:, col] += 0.1 * np.clip((np.arange(40) - 10) / 5.0, 0.0, 1.0)
+    events = Counter()
+    # free feet: planted ones would hold the toes lower by straightening the legs
+    y = apply_contact_stage(x, rest, 30.0, shape, events, place=False, feet=False)
+    toes = _fk(rest, y)[:, list(cs.TOES), 2].min(axis=1)
+    raw = _fk(rest, x)[:, list(cs.TOES), 2].min(axis=1)
+    np.testing.assert_allclose(toes[:11], cs.GROUND_TOE_HEIGHT, atol=1e-6)  # on the ground
+    assert raw[15] > cs.GROUND_TOE_HEIGHT + 0.099  # the model floats it 10 cm
+    np.testing.assert_allclose(toes[25:], cs.GROUND_TOE_HEIGHT, atol=1e-6)  # back on the ground
+    # lowered at GROUND_SPEED at most, never pushed into the ground
+    step = np.diff(y[:, col] - x[:, col])
+    assert (step >= -cs.GROUND_SPEED / 30.0 - 1e-6).all() and (toes >= cs.GROUND_TOE_HEIGHT - 1e-6).all()
+    assert events["ground_drop_frames"] > 0
+    np.testing.assert_array_equal(y[:, FIELD["object_transl"].slice], y[:1, FIELD["object_transl"].slice].repeat(40, 0))
 
 
 def test_a_stage_is_per_stream(rest):

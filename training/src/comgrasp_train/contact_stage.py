@@ -68,6 +68,7 @@ SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
 PLACE_LOOKAHEAD = 128
 GROUND_TOE_HEIGHT = 0.034
+GROUND_SPEED = 0.5
 TOES = (10, 11)
 NORM_EPS = 1e-12
 
@@ -494,19 +495,28 @@ class ContactStage:
         self.events: Counter[str] = Counter()
         self.feet = Feet(fps, self.events) if feet else None
         self.lift: float | None = None  # the ground lift, fixed by the first frame
+        self.drop = 0.0  # how far a body the model lifts off the ground is lowered now (<= 0)
 
     def holding(self) -> list[bool]:
         return [h.phase == "holding" for h in self.hands]
 
     def ground(self, skel: Skeleton, pose: Pose) -> None:
         """Raises the model's world (body and object) by one lift per stream, fixed by the
-        first frame, so that its lower toe joint stands GROUND_TOE_HEIGHT above the ground
-        (``ContactStage::ground``); every frame, before anything else reads it."""
+        first frame, so that its lower toe joint stands GROUND_TOE_HEIGHT above the ground,
+        and lowers a body the model lifts off it later at GROUND_SPEED (``ContactStage::
+        ground``); every frame, before anything else reads it."""
+        toe = min(float(skel.forward(pose.local, pose.pelvis)[1][j][2]) for j in TOES)
+        if not math.isfinite(toe):
+            return
         if self.lift is None:
-            lowest = min(float(skel.forward(pose.local, pose.pelvis)[1][j][2]) for j in TOES)
-            self.lift = GROUND_Z + GROUND_TOE_HEIGHT - lowest if math.isfinite(lowest) else 0.0
+            self.lift = GROUND_Z + GROUND_TOE_HEIGHT - toe
+        float_ = min(GROUND_Z + GROUND_TOE_HEIGHT - (toe + self.lift), 0.0)
+        step = GROUND_SPEED * self.dt
+        self.drop += min(max(float_ - self.drop, -step), step)
+        if self.drop < 0.0:
+            self.events["ground_drop_frames"] += 1
+        pose.pelvis = pose.pelvis + np.array([0.0, 0.0, self.lift + self.drop])
         up = np.array([0.0, 0.0, self.lift])
-        pose.pelvis = pose.pelvis + up
         pose.object_translation = pose.object_translation + up
         pose.object_centre = pose.object_centre + up
 
