@@ -5,8 +5,7 @@
 //! seams, where the ground truth's stand still (SynthGrasp's subjects never step). A game
 //! shows it as skating. Per foot, while the model's ankle stays low and slow, the foot is
 //! pinned: its ankle keeps the place and the global rotation it had when it was planted,
-//! and two-bone IK on the hip and knee holds it there (the pelvis and the rest of the body
-//! are the model's). A foot the model lifts, moves a step away or turns is let go, and its
+//! and two-bone IK on the hip and knee holds it there (nothing above the hips moves). A foot the model lifts, moves a step away or turns is let go, and its
 //! correction fades back to the model's path; it is planted again, where it is shown, once
 //! the model's ankle is low and slow again. Runs inside the contact stage, on the speed-
 //! limited model pose (no other rule moves the legs). Causal and allocation-free.
