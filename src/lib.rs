@@ -8,8 +8,9 @@
 //! 2. [`bundle`]: a bundle's files, manifest and verification, from a directory or the
 //!    default embedded in the library (feature `embedded-default`); files only;
 //! 3. [`sampler`] (the cross-language deterministic sampler), [`skeleton`] (FK) and
-//!    [`assemble`] (335-D features -> frames), then [`contact`] (the contact-consistency
-//!    stage: debounced grasps, reach IK, an object that obeys the hands), then [`anchor`]
+//!    [`assemble`] (335-D features -> frames), then [`feet`] (planted feet, leg IK), then
+//!    [`contact`] (the contact-consistency stage: debounced grasps, reach IK, an object that
+//!    obeys the hands, the character on the ground), then [`anchor`]
 //!    (frames in the host's world), [`retarget`] (frames on a host's skeleton) and [`bvh`]
 //!    (BVH files);
 //! 4. [`model`]: the loaded [`Bundle`] and its models (text encoder, step with a
