@@ -162,8 +162,10 @@ def test_raw_output_flag():
         st = e._lib.cg_start_utf8(e.handle, b"a mug", 5, ctypes.byref(cfg), ctypes.byref(h))
         assert st == Status.ERR_INVALID_ARGUMENT and b"flags" in e._lib.cg_last_error()
     assert len(raw) == len(consistent) == len(kept) == 96
-    # without placement from the grasp the resting object starts where the model put it
-    assert list(kept[0].object_translation) == list(raw[0].object_translation)
+    # without placement from the grasp the resting object starts where the model put it over
+    # the ground (its height is the model's raised by the stream's ground lift, and an object
+    # that then starts in the ground rises out of it)
+    assert list(kept[0].object_translation)[:2] == list(raw[0].object_translation)[:2]
     # free feet: the legs are the model's (but where the speed limit holds a token seam
     # back); planted feet move them
     def hip(f):
