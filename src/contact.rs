@@ -138,6 +138,10 @@ pub const GROUND_TOE_HEIGHT: f64 = 0.034;
 pub const GROUND_SPEED: f64 = 0.5;
 /// The toe joints.
 const TOES: [usize; 2] = [10, 11];
+/// A body stands when its lower toe is at least this far below its pelvis, m (SynthGrasp's
+/// ~0.8-1.0); [`ContactStage::ground`] leaves a stream alone whose first frame does not (a
+/// model that poses nonsense, such as the test bundle's random one).
+pub const STANDING: f64 = 0.5;
 /// Frames from the first that [`GraspOnset`] looks through for the model's first grasp
 /// (8 tokens of 16 frames): the engine holds a stream's frames back until it finds one.
 pub const PLACE_LOOKAHEAD: usize = 128;
@@ -576,6 +580,8 @@ pub struct ContactStage {
     /// (at most 0: a body the model lifts off the ground).
     lift: Option<f64>,
     drop: f64,
+    /// The first frame's body stood ([`STANDING`]): else it is neither lifted nor lowered.
+    standing: bool,
 }
 
 impl ContactStage {
@@ -602,6 +608,7 @@ impl ContactStage {
             feet: Some(Feet::new(fps)),
             lift: None,
             drop: 0.0,
+            standing: false,
         }
     }
 
@@ -620,7 +627,7 @@ impl ContactStage {
             (None, Some(fresh)) => self.feet = Some(fresh.clone()),
             (Some(_), Some(_)) => {}
         }
-        (self.lift, self.drop) = (other.lift, other.drop);
+        (self.lift, self.drop, self.standing) = (other.lift, other.drop, other.standing);
         self
     }
 
@@ -642,7 +649,14 @@ impl ContactStage {
         if !toe.is_finite() {
             return;
         }
-        let lift = *self.lift.get_or_insert(GROUND_Z + GROUND_TOE_HEIGHT - toe);
+        if self.lift.is_none() {
+            self.standing = pose.pelvis[2] - toe >= STANDING;
+            self.lift = Some(if self.standing { GROUND_Z + GROUND_TOE_HEIGHT - toe } else { 0.0 });
+        }
+        let lift = self.lift.unwrap_or(0.0);
+        if !self.standing {
+            return;
+        }
         let float = (GROUND_Z + GROUND_TOE_HEIGHT - (toe + lift)).min(0.0);
         let step = GROUND_SPEED * self.dt;
         self.drop += (float - self.drop).clamp(-step, step);

@@ -69,6 +69,7 @@ CONTACT_THRESHOLD = 0.5
 PLACE_LOOKAHEAD = 128
 GROUND_TOE_HEIGHT = 0.034
 GROUND_SPEED = 0.5
+STANDING = 0.5
 TOES = (10, 11)
 NORM_EPS = 1e-12
 
@@ -496,6 +497,7 @@ class ContactStage:
         self.feet = Feet(fps, self.events) if feet else None
         self.lift: float | None = None  # the ground lift, fixed by the first frame
         self.drop = 0.0  # how far a body the model lifts off the ground is lowered now (<= 0)
+        self.standing = False  # the first frame's body stood (else neither lifted nor lowered)
 
     def holding(self) -> list[bool]:
         return [h.phase == "holding" for h in self.hands]
@@ -509,7 +511,10 @@ class ContactStage:
         if not math.isfinite(toe):
             return
         if self.lift is None:
-            self.lift = GROUND_Z + GROUND_TOE_HEIGHT - toe
+            self.standing = float(pose.pelvis[2]) - toe >= STANDING
+            self.lift = GROUND_Z + GROUND_TOE_HEIGHT - toe if self.standing else 0.0
+        if not self.standing:
+            return
         float_ = min(GROUND_Z + GROUND_TOE_HEIGHT - (toe + self.lift), 0.0)
         step = GROUND_SPEED * self.dt
         self.drop += min(max(float_ - self.drop, -step), step)
