@@ -24,32 +24,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from comgrasp_train.grab.paraphrase import Meaning, one
 from comgrasp_train.grab.text_parse import Intent, parse_prompt
 from comgrasp_train.intent_check import check_motion, grasp_offsets, object_sdf_for, track_from_engine, track_from_features
-from quality_report import prompts
+from quality_report import held_out_wording, prompts
 
 RATES = ("intent_ok", "intent_grasp", "intent_unheld_still", "intent_lift", "intent_drink", "intent_pour",
          "intent_pass", "intent_inspect", "intent_offhand")
-
-
-def held_out_wording(k: int, meaning: str) -> str:
-    """A held-out wording of the k-th canonical prompt's meaning ("intent object mode")."""
-    intent, obj, mode = meaning.split()
-    gender = ("female", "male")[k % 2]  # as quality_report.prompts alternates
-    if ">" in mode:
-        first, last = mode.split(">")
-        m = Meaning(gender, intent, obj, None, first, last)
-    else:
-        m = Meaning(gender, intent, obj, mode)
-    return one(m, random.Random(f"held-out {k}"), held_out=True)
 
 
 def run_one(binary: str, bundle: str, text: str, seed: int, t: float, k: int, g: float | None, out: Path,

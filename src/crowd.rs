@@ -41,7 +41,7 @@
 //! scratch are allocated at engine creation, so a round allocates nothing.
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Barrier};
 use std::thread::{self, JoinHandle};
 
 use parking_lot::Mutex;
@@ -112,10 +112,21 @@ impl Scheduler {
                 stop: AtomicBool::new(false),
             });
             let round = Round::new(Arc::clone(&shared), Arc::clone(&live), max_streams, pipeline);
-            let spawned = thread::Builder::new().name(format!("comgrasp-crowd-{i}")).spawn(move || round.run());
+            // `new` returns once the thread runs: a thread's start allocates (std's
+            // per-thread info), which would otherwise fall into the first streams' generation
+            // whenever the OS gets round to starting it (a loaded machine: tests/alloc_free_stream).
+            let started = Arc::new(Barrier::new(2));
+            let running = Arc::clone(&started);
+            let spawned = thread::Builder::new().name(format!("comgrasp-crowd-{i}")).spawn(move || {
+                running.wait();
+                round.run()
+            });
             let mut shard = Shard { shared, thread: None };
             match spawned {
-                Ok(j) => shard.thread = Some(j),
+                Ok(j) => {
+                    started.wait();
+                    shard.thread = Some(j)
+                }
                 Err(e) => {
                     // (the shards started so far stop when `shards` drops)
                     drop(Scheduler { shards, live, max_streams });

@@ -328,6 +328,18 @@ def test_engine_frames_check_like_the_features(synth, tmp_path):
     assert json.loads(report.read_text())["rates"]["intent_ok"] == 1.0
     assert data_main(["-q", "check-engine", str(nofk), "--prompt", fs.texts[0][0]]) == 2
     assert data_main(["-q", "check-engine", str(good), "--prompt", "dance a little"]) == 2
+    # --meaning: a wording the parser does not read is checked against what it asks for.
+    it = intent_of(fs.meta[0])
+    meaning = f"{it.intent} {it.object} {it.hands or 'none'}"
+    assert data_main(["-q", "check-engine", str(good), "--prompt", "dance a little", "--meaning", meaning,
+                      "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["rates"]["intent_ok"] == 1.0
+    assert it.hands in ("left", "right"), it  # one hand holds it: the other asked for fails
+    other = "left" if it.hands == "right" else "right"
+    assert data_main(["-q", "check-engine", str(good), "--prompt", "dance a little", "--meaning",
+                      f"{it.intent} {it.object} {other}", "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["rates"]["intent_ok"] == 0.0
+    assert data_main(["-q", "check-engine", str(good), "--prompt", "x", "--meaning", "lift mug"]) == 2
 
 
 class _StandInVQ(torch.nn.Module):

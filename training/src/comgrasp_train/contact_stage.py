@@ -63,6 +63,7 @@ TIP_SPEED = 3.0
 PRESS_UP_SPEED = 0.6
 LEVEL_HEIGHT = 0.1
 LEVEL_SPEED = 6.0
+SET_DOWN_SPEED = 0.1
 PLACE_HEIGHT = 0.2
 SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
@@ -633,7 +634,11 @@ class ContactStage:
             # where it was: only an object coming down from above the top (or held up on it
             # while levelled) is set down on it
             above_before = self.pressing or self.shape.bottom_at(self.rot, self.pos) >= self.table.height
-            sinking = carried[1][2] < self.pos[2]  # levelling is for setting down
+            # levelling is for setting down: coming down, not turned further over (a pour)
+            def lean(r):
+                return math.acos(min(1.0, max(-1.0, -float((r @ self.base)[2]))))
+
+            sinking = self.pos[2] - carried[1][2] > SET_DOWN_SPEED * self.dt and lean(carried[0]) <= lean(self.rot)
             self.rot, self.pos, self.fall = carried[0], carried[1], 0.0
             depth = min(self.table.height - self.shape.bottom_at(*carried), PRESS_UP_SPEED * self.dt)
             tilted = leans(carried[0]) and above_before  # coming down off its face: level first

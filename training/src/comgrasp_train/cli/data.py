@@ -134,9 +134,19 @@ def cmd_check_engine(args) -> int:
     """The prompt checks on the engine's own frames (``comgrasp generate --fk --out F.npz``)."""
     import numpy as np
 
-    from ..intent_check import check_motion, object_sdf_for, parse_prompt, track_from_engine
+    from ..intent_check import Intent, check_motion, object_sdf_for, parse_prompt, track_from_engine
 
-    prompt, intent = args.prompt, parse_prompt(args.prompt)
+    prompt = args.prompt
+    if args.meaning:  # a wording the parser does not read: what it asks for, given
+        try:
+            name, obj, hands = args.meaning.split()
+        except ValueError:
+            print(f"comgrasp-data check-engine: error: --meaning {args.meaning!r} is not 'INTENT OBJECT HANDS'",
+                  file=sys.stderr)
+            return 2
+        intent = Intent(name, None if hands == "none" else hands, obj)
+    else:
+        intent = parse_prompt(prompt)
     if not intent.known or intent.object is None:
         print(f"comgrasp-data check-engine: error: {prompt!r} is not a prompt the checker reads "
               "(use a template form, e.g. 'The woman lifts the mug with her left hand.')", file=sys.stderr)
@@ -243,6 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("check-engine", help="prompt checks on the engine's frames (comgrasp generate --fk --out F.npz)")
     s.add_argument("files", nargs="+")
     s.add_argument("--prompt", required=True, help="the prompt the files were generated from")
+    s.add_argument("--meaning", default=None, metavar="'INTENT OBJECT HANDS'",
+                   help="what the prompt asks for, e.g. 'pass mug left>right' (HANDS: left, right, both, "
+                        "GIVER>TAKER or none; quality_report.py prompts prints it), for wordings the prompt "
+                        "parser does not read")
     s.add_argument("--json", default=None)
     s.set_defaults(fn=cmd_check_engine)
 
