@@ -45,8 +45,9 @@ CASES = (  # prompt, seed[, placement from the grasp]: together they make every 
     ("Someone grabs the large cube with their left hand and lifts it up", 2),
     # the object where the model put it (the engine's CG_STREAM_NO_GRASP_PLACEMENT): set down tilted
     ("The woman picks up the banana", 3, False),
-    # let go just above the table faster than the put-down's budget: the rest falls (seed 1 did
-    # until the ground drop lowered the floating body that held it)
+    # let go just above the table faster than the put-down's budget: the hand holds on for
+    # PUT_DOWN_FRAMES more, putting it down, and the rest falls (seed 1 did until the ground
+    # drop lowered the floating body that held it)
     ("The woman is lifting the small pyramid with her right hand.", 4),
     # a two-handed set-down that leaves the sphere tilted: it tips
     ("The woman is lifting the large sphere with both hands.", 2),
@@ -54,7 +55,7 @@ CASES = (  # prompt, seed[, placement from the grasp]: together they make every 
 RULES = ("reach", "capture", "release", "recapture", "two_hand_frames", "bow_frames", "press_up", "set_down",
          "fall_frames", "rise_frames", "landed_at_finish", "out_of_reach", "speed_limited", "tip_frames", "level_frames", "reaim", "place_frames",
          "not_set_down_from_below", "press_up_levelling", "not_set_down_tilted", "placed", "kept", "foot_planted",
-         "foot_freed", "ground_drop_frames")
+         "foot_freed", "ground_drop_frames", "put_down_frames")
 
 
 def main() -> int:

@@ -63,6 +63,7 @@ rates = {k: sum(r[k] for r in rows if k in r) / max(1, sum(k in r for r in rows)
 json.dump({"rates": rates, "n": len(rows), "results": rows}, open(sys.argv[1], "w"), indent=1)
 PY
 done
+TABLE=${TABLE:-${BUNDLE%/}_eval/table.json}
 $P/python scripts/quality_report.py bars "$OUT" "$TABLE"
 $P/python scripts/quality_report.py prompts "$ENGINE_PROMPTS" > "$OUT/prompts.tsv"
 $P/python scripts/contact_report.py "$OUT/prompts.tsv" "$OUT/engine" | tee "$OUT/contact.md"

@@ -116,6 +116,9 @@ const TURN_FADE: f64 = 1.0;
 /// A held object let go at most this far above its support is put down on it, m (within
 /// the frame's speed budget: what is left falls).
 pub const PLACE_HEIGHT: f64 = 0.2;
+/// Frames the last hand holding an object holds on past its release while it puts the
+/// object down (a hand that lets go coming down fast is still up to 15 cm above the table).
+const PUT_DOWN_FRAMES: u32 = 3;
 /// Fastest the arm holding an object up off the table rises, m/s (the hand moves too).
 const PRESS_UP_SPEED: f64 = 0.6;
 /// Within this height above its support a held object is levelled onto a face, m.
@@ -520,6 +523,8 @@ struct Hand {
     /// World rotation added to the model's wrist: a two-handed hold turns each hand onto its
     /// grasp of the shared object; it fades at [`TURN_FADE`] afterwards.
     turn: Mat3,
+    /// Frames held on past the release to put the object down ([`PUT_DOWN_FRAMES`]).
+    put_down: u32,
 }
 
 const FREE_HAND: Hand = Hand {
@@ -531,6 +536,7 @@ const FREE_HAND: Hand = Hand {
     rel_rot: IDENTITY,
     rel_pos: [0.0; 3],
     turn: IDENTITY,
+    put_down: 0,
 };
 
 /// The model's pose after the speed limit, as the next frame's limit starts from.
@@ -762,6 +768,9 @@ impl ContactStage {
             }
             let hand = &mut self.hands[h];
             (hand.on, hand.off, hand.phase, hand.latched) = (on, off, phase, latched);
+            if off == 0 {
+                hand.put_down = 0;
+            }
         }
 
         // The bow: the reaching hand that needs the most sets it, else it fades.
@@ -962,11 +971,17 @@ impl ContactStage {
         // Let go, complete reaches (capture against this frame's object pose). The last hand
         // holding an object it could not put down (more than PLACE_HEIGHT above the support
         // below it) keeps it: a model that opens its hand in mid-air would drop it, and a
-        // host would see it fall to the floor.
+        // host would see it fall to the floor. One that has not put it down yet holds on for
+        // up to PUT_DOWN_FRAMES more frames, putting it down, before it lets it fall.
         for h in 0..2 {
             let hand = self.hands[h];
             let last = self.hands[1 - h].phase != Phase::Holding;
             if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES && !(last && self.would_drop()) {
+                if last && hand.put_down < PUT_DOWN_FRAMES && self.would_fall() {
+                    self.hands[h].put_down += 1;
+                    continue;
+                }
+                self.hands[h].put_down = 0;
                 self.hands[h].phase = Phase::Free;
                 self.released = true;
                 let other = 1 - h;
@@ -1276,6 +1291,12 @@ impl ContactStage {
     fn would_drop(&self) -> bool {
         let (bottom, floor) = self.floor();
         bottom - floor > PLACE_HEIGHT
+    }
+
+    /// Whether the object, let go now, would fall at all.
+    fn would_fall(&self) -> bool {
+        let (bottom, floor) = self.floor();
+        bottom - floor > LANDED
     }
 
     /// The unheld object's lowest point and the height it comes to rest at: the table top
@@ -1775,6 +1796,31 @@ mod tests {
             );
         }
         assert_eq!(frames[last + 1].0.object_translation, frames.last().unwrap().0.object_translation);
+    }
+
+    #[test]
+    fn let_go_coming_down_fast_it_is_put_down_before_the_hand_lets_go() {
+        // As below, but the hand comes back down at ~1.9 m/s (25 cm in 4 frames): within
+        // PLACE_HEIGHT of the table the frame's budget is spent on the hand's own motion, so
+        // it would let go with the object still above the top. It holds on, putting it down.
+        let mut s = grasp_and_lift();
+        s.contact = Box::new(|t| [false, (30..95).contains(&t)]);
+        s.wrist = Box::new(|t| {
+            let t = t as f64;
+            let up = 0.25 * ((t - 60.0) / 30.0).clamp(0.0, 1.0) - 0.25 * ((t - 110.0) / 4.0).clamp(0.0, 1.0);
+            [-0.3, 0.27, 0.9 + up]
+        });
+        let frames = run(&s, None);
+        let start = frames[0].0.object_translation;
+        let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
+        let last = *held.last().unwrap();
+        assert!(last > 110 && last <= 114 + PUT_DOWN_FRAMES as usize, "let go at {last}");
+        // Let go resting on the table: nothing moves it afterwards.
+        let rest = frames.last().unwrap().0.object_translation;
+        assert!((rest[2] - start[2]).abs() < 1e-9, "rests on the table: {rest:?}");
+        for (t, (pose, _)) in frames.iter().enumerate().skip(last + 1) {
+            assert_eq!(pose.object_translation, rest, "frame {t}: it moves after the hand let go");
+        }
     }
 
     #[test]

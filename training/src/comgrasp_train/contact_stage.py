@@ -65,6 +65,7 @@ LEVEL_HEIGHT = 0.1
 LEVEL_SPEED = 6.0
 SET_DOWN_SPEED = 0.1
 PLACE_HEIGHT = 0.2
+PUT_DOWN_FRAMES = 3
 SET_DOWN_TILT = 2.0 * math.pi / 180.0
 CONTACT_THRESHOLD = 0.5
 PLACE_LOOKAHEAD = 128
@@ -410,6 +411,7 @@ class _Hand:
     rel_rot: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
     rel_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
     turn: np.ndarray = field(default_factory=lambda: IDENTITY.copy())
+    put_down: int = 0  # frames held on past the release to put the object down
 
 
 @dataclass
@@ -549,7 +551,7 @@ class ContactStage:
             arm = skel.arm_length(h)
             hand = self.hands[h]
             if pose.contact[h]:
-                hand.on, hand.off = hand.on + 1, 0
+                hand.on, hand.off, hand.put_down = hand.on + 1, 0, 0
             else:
                 hand.off, hand.on = hand.off + 1, 0
             hand.latched = hand.latched and hand.off < OFF_FRAMES
@@ -706,6 +708,11 @@ class ContactStage:
                 if last and self._would_drop():  # kept: let go it would fall to the floor
                     self.events["kept"] += 1
                     continue
+                if last and self.hands[h].put_down < PUT_DOWN_FRAMES and self._would_fall():
+                    self.hands[h].put_down += 1  # holds on, putting it down
+                    self.events["put_down_frames"] += 1
+                    continue
+                self.hands[h].put_down = 0
                 self.hands[h].phase = "free"
                 self.released = True
                 self.events["release"] += 1
@@ -918,6 +925,10 @@ class ContactStage:
     def _would_drop(self) -> bool:
         bottom, floor = self._floor()
         return bottom - floor > PLACE_HEIGHT
+
+    def _would_fall(self) -> bool:
+        bottom, floor = self._floor()
+        return bottom - floor > LANDED
 
     def _floor(self) -> tuple[float, float]:
         bottom = self.shape.bottom_at(self.rot, self.pos)
