@@ -1800,20 +1800,11 @@ mod tests {
 
     #[test]
     fn let_go_coming_down_fast_it_is_put_down_before_the_hand_lets_go() {
-        // As below, but the hand comes back down at ~1.9 m/s (25 cm in 4 frames): within
+        // Opened aloft, the hand comes back down at ~1.9 m/s (25 cm in 4 frames): within
         // PLACE_HEIGHT of the table the frame's budget is spent on the hand's own motion, so
         // it would let go with the object still above the top. It holds on, putting it down.
-        let mut s = grasp_and_lift();
-        s.contact = Box::new(|t| [false, (30..95).contains(&t)]);
-        s.wrist = Box::new(|t| {
-            let t = t as f64;
-            let up = 0.25 * ((t - 60.0) / 30.0).clamp(0.0, 1.0) - 0.25 * ((t - 110.0) / 4.0).clamp(0.0, 1.0);
-            [-0.3, 0.27, 0.9 + up]
-        });
-        let frames = run(&s, None);
+        let (frames, last) = opened_aloft(4.0);
         let start = frames[0].0.object_translation;
-        let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
-        let last = *held.last().unwrap();
         assert!(last > 110 && last <= 114 + PUT_DOWN_FRAMES as usize, "let go at {last}");
         // Let go resting on the table: nothing moves it afterwards.
         let rest = frames.last().unwrap().0.object_translation;
@@ -1823,21 +1814,27 @@ mod tests {
         }
     }
 
-    #[test]
-    fn let_go_in_mid_air_it_is_kept_until_it_can_be_put_down() {
-        // The model's hand lifts the object 25 cm and opens there (flag off from frame 95),
-        // then comes back down to where it took it by frame 125.
+    /// The model's hand lifts the object 25 cm and opens there (flag off from frame 95), then
+    /// comes back down to where it took it, from frame 110 over `down` frames: the staged
+    /// frames and the last one the hand holds.
+    fn opened_aloft(down: f64) -> (Vec<(Pose, [Vec3; CG_NUM_JOINTS])>, usize) {
         let mut s = grasp_and_lift();
         s.contact = Box::new(|t| [false, (30..95).contains(&t)]);
-        s.wrist = Box::new(|t| {
+        s.wrist = Box::new(move |t| {
             let t = t as f64;
-            let up = 0.25 * ((t - 60.0) / 30.0).clamp(0.0, 1.0) - 0.25 * ((t - 110.0) / 15.0).clamp(0.0, 1.0);
+            let up = 0.25 * ((t - 60.0) / 30.0).clamp(0.0, 1.0) - 0.25 * ((t - 110.0) / down).clamp(0.0, 1.0);
             [-0.3, 0.27, 0.9 + up]
         });
         let frames = run(&s, None);
+        let last = (0..frames.len()).rfind(|&t| frames[t].0.contact[1]).expect("held");
+        (frames, last)
+    }
+
+    #[test]
+    fn let_go_in_mid_air_it_is_kept_until_it_can_be_put_down() {
+        // Back down by frame 125.
+        let (frames, last) = opened_aloft(15.0);
         let start = frames[0].0.object_translation;
-        let held: Vec<usize> = (0..frames.len()).filter(|&t| frames[t].0.contact[1]).collect();
-        let last = *held.last().unwrap();
         // Kept well past the flag (+ OFF_FRAMES), let go only once within PLACE_HEIGHT of the table.
         assert!(last > 95 + OFF_FRAMES as usize + 5 && last < 125, "let go at {last}");
         let d0 = norm(&frames[96].0.wrist_to_object[1]);
