@@ -873,7 +873,7 @@ impl ContactStage {
                 let above_before = self.pressing || self.shape.bottom_at(&self.rot, &self.pos) >= self.table.height;
                 // Levelling is for setting down: while the object comes down and the hands do not
                 // turn it further over, or the hands let go. A pour low over the table keeps its
-                // tilt (it was levelled away in 8 of 32 pours of the sampling sweep).
+                // tilt (levelled away, 9 of the sampling sweep's 64 pours failed).
                 let lean = |r: &Mat3| (-mat_vec(r, &self.base)[2]).clamp(-1.0, 1.0).acos();
                 let sinking = self.pos[2] - pos[2] > SET_DOWN_SPEED * self.dt && lean(&rot) <= lean(&self.rot);
                 (self.rot, self.pos, self.fall) = (rot, pos, 0.0);
@@ -976,12 +976,15 @@ impl ContactStage {
         for h in 0..2 {
             let hand = self.hands[h];
             let last = self.hands[1 - h].phase != Phase::Holding;
-            if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES && !(last && self.would_drop()) {
-                if last && hand.put_down < PUT_DOWN_FRAMES && self.would_fall() {
+            if hand.phase == Phase::Holding && hand.off >= OFF_FRAMES {
+                let fall = self.fall_height();
+                if last && fall > PLACE_HEIGHT {
+                    continue;
+                }
+                if last && hand.put_down < PUT_DOWN_FRAMES && fall > LANDED {
                     self.hands[h].put_down += 1;
                     continue;
                 }
-                self.hands[h].put_down = 0;
                 self.hands[h].phase = Phase::Free;
                 self.released = true;
                 let other = 1 - h;
@@ -1287,16 +1290,10 @@ impl ContactStage {
         add(&self.pos, &mat_vec(&self.rot, &mat_vec(&transpose(&hand.rel_rot), &scale(&hand.rel_pos, -1.0))))
     }
 
-    /// Whether the object, let go now, would fall more than [`PLACE_HEIGHT`].
-    fn would_drop(&self) -> bool {
+    /// How far the object, let go now, would fall.
+    fn fall_height(&self) -> f64 {
         let (bottom, floor) = self.floor();
-        bottom - floor > PLACE_HEIGHT
-    }
-
-    /// Whether the object, let go now, would fall at all.
-    fn would_fall(&self) -> bool {
-        let (bottom, floor) = self.floor();
-        bottom - floor > LANDED
+        bottom - floor
     }
 
     /// The unheld object's lowest point and the height it comes to rest at: the table top

@@ -705,14 +705,14 @@ class ContactStage:
         for h in range(2):
             last = self.hands[1 - h].phase != "holding"
             if self.hands[h].phase == "holding" and self.hands[h].off >= OFF_FRAMES:
-                if last and self._would_drop():  # kept: let go it would fall to the floor
+                fall = self._fall_height()
+                if last and fall > PLACE_HEIGHT:  # kept: let go it would fall to the floor
                     self.events["kept"] += 1
                     continue
-                if last and self.hands[h].put_down < PUT_DOWN_FRAMES and self._would_fall():
+                if last and self.hands[h].put_down < PUT_DOWN_FRAMES and fall > LANDED:
                     self.hands[h].put_down += 1  # holds on, putting it down
                     self.events["put_down_frames"] += 1
                     continue
-                self.hands[h].put_down = 0
                 self.hands[h].phase = "free"
                 self.released = True
                 self.events["release"] += 1
@@ -922,13 +922,9 @@ class ContactStage:
         hand = self.hands[h]
         return pos + rot @ (hand.rel_pos + hand.rel_rot @ self.shape.centre)
 
-    def _would_drop(self) -> bool:
+    def _fall_height(self) -> float:
         bottom, floor = self._floor()
-        return bottom - floor > PLACE_HEIGHT
-
-    def _would_fall(self) -> bool:
-        bottom, floor = self._floor()
-        return bottom - floor > LANDED
+        return bottom - floor
 
     def _floor(self) -> tuple[float, float]:
         bottom = self.shape.bottom_at(self.rot, self.pos)
