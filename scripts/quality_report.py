@@ -17,7 +17,7 @@ import random
 import sys
 from pathlib import Path
 
-from comgrasp_train.grab.paraphrase import Meaning, one
+from comgrasp_train.grab.paraphrase import Meaning, mode_contact, one
 from comgrasp_train.grab.text import describe
 from comgrasp_train.synth.generate import combinations
 
@@ -47,8 +47,7 @@ def prompts(n: int) -> list[tuple[str, str]]:
             if len(out) == n or not pairs:
                 continue
             obj, mode = pairs[(k * 7) % len(pairs)]
-            first, last = (mode.split(">") + [None])[:2] if ">" in mode else (mode, mode)
-            contact = _contact(mode)
+            contact = mode_contact(mode)
             gender = ("female", "male")[len(out) % 2]
             out.append((describe(gender, intent, obj, contact, True)[1], f"{intent} {obj} {mode}"))
         k += 1
@@ -60,28 +59,7 @@ def held_out_wording(k: int, meaning: str) -> str:
     ("intent object mode") of the k-th prompt of ``prompts`` (k from 0)."""
     intent, obj, mode = meaning.split()
     gender = ("female", "male")[k % 2]  # as prompts alternates
-    if ">" in mode:
-        first, last = mode.split(">")
-        m = Meaning(gender, intent, obj, None, first, last)
-    else:
-        m = Meaning(gender, intent, obj, mode)
-    return one(m, random.Random(f"held-out {k}"), held_out=True)
-
-
-def _contact(mode: str):
-    """(T, 2) contact labels that make ``describe`` name the hand mode."""
-    import numpy as np
-
-    c = np.zeros((4, 2), bool)
-    if mode == "both":
-        c[1:3] = True
-    elif ">" in mode:
-        giver, taker = (0 if s == "left" else 1 for s in mode.split(">"))
-        c[0:2, giver] = True
-        c[1:4, taker] = True
-    else:
-        c[1:3, 0 if mode == "left" else 1] = True
-    return c
+    return one(Meaning.of_mode(gender, intent, obj, mode), random.Random(f"held-out {k}"), held_out=True)
 
 
 def _foot_sliding(npz: Path) -> float:

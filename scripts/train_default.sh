@@ -18,6 +18,9 @@
 #   GPT_STOP=        pause the GPT at this step
 #   TEXT_DROPOUT=0.1 share of GPT training sequences on the null condition (classifier-free guidance)
 #   GUIDANCE=2       the bundle's default guidance scale (pick it with scripts/sampling_sweep.py)
+#   TUNE_STEPS=400   steps of tuning the exported bundle's text encoder towards the meanings
+#                    (comgrasp-train tune-text, train/text_tune.py; ~8 min on 2 cores); 0: off
+#   TUNE_KEEP=0      tune-text --keep (weight of a wording's own embedding in its target; 0: its meaning's)
 #   WIDTH=0.5        VQ conv widths x this (0.5: global 128, body 256, hands 192)
 #   WORKERS=2        processes for synth and prepare
 #   bash scripts/train_default.sh            # CPU or the first CUDA device
@@ -30,6 +33,8 @@ PARAPHRASES=${PARAPHRASES:-16}
 VQ_ITERS=${VQ_ITERS:-2400}
 GPT_ITERS=${GPT_ITERS:-3000}
 TEXT_DROPOUT=${TEXT_DROPOUT:-0.1}
+TUNE_STEPS=${TUNE_STEPS:-400}
+TUNE_KEEP=${TUNE_KEEP:-0}
 GUIDANCE=${GUIDANCE:-2}
 WIDTH=${WIDTH:-0.5}
 WORKERS=${WORKERS:-2}
@@ -56,4 +61,6 @@ $P/comgrasp-train -q train-gpt --data ${GPT_DATA}_prep --vq $RUN/vq --out $RUN/g
   ${GPT_STOP:+--stop-after "$GPT_STOP"}
 [ -z "${GPT_STOP:-}" ] || exit 0
 $P/comgrasp-train export --vq $RUN/vq --gpt $RUN/gpt --out "$OUT" --int8-weights --native-text --guidance "$GUIDANCE"
+[ "$TUNE_STEPS" = 0 ] || $P/comgrasp-train -q tune-text --out $RUN/text --bundle "$OUT" --steps "$TUNE_STEPS" \
+  --keep "$TUNE_KEEP"
 RUN=$RUN DATA=${DATA}_prep BUNDLE=$OUT OUT=$RUN/eval bash scripts/quality_report.sh

@@ -22,6 +22,7 @@ from comgrasp_train.export.step_graph import OnnxStepRunner
 from comgrasp_train.export.text_encoder_export import _session, sha256_file
 from comgrasp_train.export.tiny import make_tiny_bundle, tiny_gpt, tiny_normalizer, tiny_vq
 from comgrasp_train.export.verify import BundleError, load_and_verify_bundle
+from comgrasp_train.grab.paraphrase import Meaning
 from comgrasp_train.models.configs import make_config
 from comgrasp_train.models.gpt_configs import STREAMS, TransformerConfig
 from comgrasp_train.models.sampling import SamplingParams, SplitMix64, run_sampling_loop
@@ -205,6 +206,57 @@ def test_reexport_text_encoder_in_place(tiny, tmp_path):
                                                                "bytes": word.stat().st_size}}))
     with pytest.raises(BundleError, match="embeddings.word_embeddings.weight.npy: uint8"):
         load_and_verify_bundle(root)
+
+
+@pytest.mark.filterwarnings("ignore:tiny-random-bert")
+def test_a_tuned_text_encoder_travels_in_the_bundle(tiny, tmp_path):
+    """Re-exported into a bundle, the tuned encoder is what the bundle's parity holds and what
+    bundle_text_encoder rebuilds from native/text (not the untuned one its seed would give),
+    and a plain re-export of that bundle keeps it and its record."""
+    from comgrasp_train.export.bundle import bundle_text_encoder, reexport_text_encoder
+    from comgrasp_train.export.tiny import tiny_text_encoder
+    from comgrasp_train.export.verify import load_and_verify_bundle
+    from comgrasp_train.text_encoder import apply_text_weights
+    from comgrasp_train.train.text_tune import TextTuneConfig, tune_text_encoder
+
+    student = tiny_text_encoder(0)
+    cfg = TextTuneConfig(steps=20, batch=16, lr=3e-3, warmup=5, keep=0.0, wordings=4, held_out=0, weights="fp32")
+    meanings = [Meaning("female", intent, "mug", "left") for intent in ("lift", "drink", "pour")]
+    tune_text_encoder(cfg, tiny_text_encoder(0), student, tmp_path / "run", meanings=meanings)
+    root = tmp_path / "b"
+    shutil.copytree(tiny[0], root)
+    apply_text_weights(student, "int8")
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        m = reexport_text_encoder(root, native=True, encoder=student, tuned={"config": {"keep": 0.0}}, command="t")
+        assert m["provenance"]["text_encoder_weights"]["tuned"] == {"config": {"keep": 0.0}}
+        assert bundle_text_encoder(m) is None  # without the bundle's files it cannot be rebuilt
+        enc = bundle_text_encoder(m, root=root)
+        assert enc.weights == "int8"
+        enc._warned_truncation = True  # a parity prompt is longer than max_tokens on purpose
+        cases = json.loads((root / "parity/text/cases.json").read_text())["cases"]
+        prompts = [c["prompt"] for c in cases]
+        for k, p in enumerate(prompts):
+            np.testing.assert_array_equal(np.load(root / f"parity/text/case{k}_embedding.npy"),
+                                          enc.encode([p])[0].numpy())
+        untuned = apply_text_weights(tiny_text_encoder(0), "int8")
+        untuned._warned_truncation = True
+        assert (untuned.encode(prompts) - enc.encode(prompts)).abs().max() > 1e-2
+        m2 = reexport_text_encoder(root, native=True, command="again")
+    finally:
+        torch.set_num_threads(n)
+    assert m2["provenance"]["text_encoder_weights"]["tuned"] == {"config": {"keep": 0.0}}
+    assert load_and_verify_bundle(root)["files"]["text_encoder.onnx"] == m["files"]["text_encoder.onnx"]
+
+
+def test_tune_text_takes_only_a_minilm_bundle(tiny, tmp_path, capsys):
+    """tune-text's targets are the package MiniLM's: another encoder is refused, and nothing is written."""
+    from comgrasp_train.cli.train import main
+
+    assert main(["tune-text", "--out", str(tmp_path / "run"), "--bundle", str(tiny[0])]) == 2
+    assert "only an all-MiniLM-L6-v2 text encoder can be tuned" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 # ----------------------------------------------------------------------------- parity replay

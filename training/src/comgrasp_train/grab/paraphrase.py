@@ -24,6 +24,8 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..objects.catalogue import CATALOGUE
 from .text import GRAB_NOUNS, INTENT_PHRASES, object_noun
 
@@ -111,6 +113,30 @@ class Meaning:
         return Meaning(meta.get("gender", "neutral"), meta["intent"], meta["object"], meta.get("hands"),
                        meta.get("first"), meta.get("last"))
 
+    @staticmethod
+    def of_mode(gender: str, intent: str, obj_name: str, mode: str) -> Meaning:
+        """From a SynthGrasp hand mode (``synth.generate.hand_modes``): 'left', 'right',
+        'both', or a pass 'giver>taker'."""
+        if ">" in mode:
+            first, last = mode.split(">")
+            return Meaning(gender, intent, obj_name, None, first, last)
+        return Meaning(gender, intent, obj_name, mode)
+
+
+def mode_contact(mode: str) -> np.ndarray:
+    """(4, 2) [left, right] contact labels from which ``text.hands_from_contact`` reads the
+    hand mode back, so that ``text.describe`` names it."""
+    c = np.zeros((4, 2), bool)
+    if mode == "both":
+        c[1:3] = True
+    elif ">" in mode:
+        giver, taker = (0 if s == "left" else 1 for s in mode.split(">"))
+        c[0:2, giver] = True
+        c[1:4, taker] = True
+    else:
+        c[1:3, 0 if mode == "left" else 1] = True
+    return c
+
 
 def object_names(obj_name: str) -> tuple[str, ...]:
     """Every noun naming the object: the catalogue's aliases, or GRAB's plain noun."""
@@ -191,4 +217,5 @@ def _all_training_words() -> set[str]:
     return words | set(TRAIN_ONE_HAND) | set(TRAIN_BOTH) | set(TRAIN_PASS)
 
 
-__all__ = ["HELD_OUT_VERBS", "Meaning", "TRAIN_VERBS", "object_names", "object_noun", "one", "paraphrases"]
+__all__ = ["HELD_OUT_VERBS", "Meaning", "TRAIN_VERBS", "mode_contact", "object_names", "object_noun", "one",
+           "paraphrases"]
