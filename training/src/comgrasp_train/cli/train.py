@@ -187,9 +187,10 @@ def cmd_export(args) -> int:
 
 def cmd_tune_text(args) -> int:
     from ..export.bundle import reexport_text_encoder
+    from ..export.text_encoder_export import sha256_file
     from ..export.verify import load_and_verify_bundle
     from ..text_encoder import load_text_encoder, text_weights_of
-    from ..train.text_tune import TUNED_FILE, TextTuneConfig, load_tuned, sha256_of, tune_text_encoder
+    from ..train.text_tune import CONFIG_FILE, REPORT_FILE, TUNED_FILE, TextTuneConfig, load_tuned, tune_text_encoder
 
     manifest = None
     if args.bundle:
@@ -199,7 +200,7 @@ def cmd_tune_text(args) -> int:
             raise ValueError(f"{args.bundle}: only an all-MiniLM-L6-v2 text encoder can be tuned, not {te.get('name')!r}")
         tuned = (prov.get("text_encoder_weights") or {}).get("tuned")
         if tuned:
-            done = Path(args.out) / "report.json"
+            done = Path(args.out) / REPORT_FILE
             if done.is_file() and json.loads(done.read_text()).get("sha256") == tuned.get("sha256"):
                 print(f"{args.bundle}: its text encoder is this run's already")
                 return 0
@@ -210,11 +211,11 @@ def cmd_tune_text(args) -> int:
     cfg = TextTuneConfig(steps=args.steps, lr=args.lr, keep=args.keep, anchor=args.anchor, wordings=args.wordings,
                          held_out=args.held_out, weights=weights, seed=args.seed)
     out = Path(args.out)
-    done = out / "report.json"
-    if done.is_file() and json.loads((out / "config.json").read_text()) == cfg.to_dict():
+    done = out / REPORT_FILE
+    if done.is_file() and json.loads((out / CONFIG_FILE).read_text()) == cfg.to_dict():
         report = json.loads(done.read_text())  # tuned already with this config: reuse it
         student = load_tuned(load_text_encoder(), out / TUNED_FILE)
-        if sha256_of(out / TUNED_FILE) != report["sha256"]:
+        if sha256_file(out / TUNED_FILE) != report["sha256"]:
             raise ValueError(f"{out / TUNED_FILE} is not the file {done} reports (sha256 differs)")
     else:
         max_tokens = manifest["text_encoder"]["max_tokens"] if manifest else None

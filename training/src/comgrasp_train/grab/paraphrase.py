@@ -122,6 +122,11 @@ class Meaning:
             return Meaning(gender, intent, obj_name, None, first, last)
         return Meaning(gender, intent, obj_name, mode)
 
+    @property
+    def mode(self) -> str:
+        """The SynthGrasp hand mode (the inverse of ``of_mode``)."""
+        return f"{self.first}>{self.last}" if self.hands is None and self.first else str(self.hands)
+
 
 def mode_contact(mode: str) -> np.ndarray:
     """(4, 2) [left, right] contact labels from which ``text.hands_from_contact`` reads the

@@ -33,7 +33,6 @@ the report (``provenance.text_encoder_weights.tuned``) and holds the tuned weigh
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass, fields
@@ -43,6 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..export.text_encoder_export import sha256_file
 from ..grab.paraphrase import Meaning, mode_contact, paraphrases
 from ..grab.text import describe
 from ..text_encoder import TEXT_WEIGHTS, TextEncoder, pool_token_states
@@ -106,16 +106,12 @@ def synthgrasp_meanings() -> list[Meaning]:
             for obj, mode in pairs for g in ("male", "female")]
 
 
-def _mode(m: Meaning) -> str:
-    return f"{m.first}>{m.last}" if m.hands is None and m.first else str(m.hands)
-
-
 def make_wordings(meanings: list[Meaning], cfg: TextTuneConfig) -> Wordings:
     """The training wordings of each meaning (templates, then ``cfg.wordings`` paraphrases)
     and ``cfg.held_out`` held-out ones, seeded per meaning."""
     train, held, canonical = [], [], []
     for k, m in enumerate(meanings):
-        texts = describe(m.gender, m.intent, m.obj_name, mode_contact(_mode(m)), True)
+        texts = describe(m.gender, m.intent, m.obj_name, mode_contact(m.mode), True)
         canonical.append(len(train) + CANONICAL)
         texts += paraphrases(m, cfg.wordings, f"tune {cfg.seed} {k}")
         train += [(t, k) for t in dict.fromkeys(texts)]
@@ -137,7 +133,7 @@ def factor_accuracy(emb: torch.Tensor, labels: list[int], cents: torch.Tensor, m
 
     def key(i: int) -> tuple:
         m = meanings[i]
-        return m.intent, m.obj_name, _mode(m), m.gender
+        return m.intent, m.obj_name, m.mode, m.gender
 
     out = {f: float(np.mean([key(p)[j] == key(t)[j] for p, t in zip(pred, labels)])) for j, f in enumerate(FACTORS)}
     out["cos"] = float((emb * cents[torch.tensor(labels)]).sum(1).mean())
@@ -165,10 +161,6 @@ def load_tuned(encoder: TextEncoder, path: str | Path) -> TextEncoder:
     encoder.network.load_state_dict(sd, strict=False)
     encoder.clear_cache()
     return encoder
-
-
-def sha256_of(path: str | Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def tune_text_encoder(cfg: TextTuneConfig, frozen: TextEncoder, student: TextEncoder, out_dir: str | Path,
@@ -239,7 +231,7 @@ def tune_text_encoder(cfg: TextTuneConfig, frozen: TextEncoder, student: TextEnc
     rounded = _rounded_copy(student, cfg.weights)
     rep = {"meanings": k, "train_wordings": len(texts), "held_out_wordings": len(words.held_out),
            "before": before, "after": report(rounded), "seconds": round(time.time() - t0, 1),
-           "sha256": sha256_of(out / TUNED_FILE)}
+           "sha256": sha256_file(out / TUNED_FILE)}
     (out / REPORT_FILE).write_text(json.dumps(rep, indent=1) + "\n", encoding="utf-8")
     return rep
 
@@ -254,5 +246,5 @@ def _rounded_copy(student: TextEncoder, weights: str) -> TextEncoder:
     return apply_text_weights(enc, weights)
 
 
-__all__ = ["TUNED_FILE", "TextTuneConfig", "Wordings", "centroids", "factor_accuracy", "load_tuned",
+__all__ = ["CONFIG_FILE", "REPORT_FILE", "TUNED_FILE", "TextTuneConfig", "Wordings", "centroids", "factor_accuracy", "load_tuned",
            "make_wordings", "synthgrasp_meanings", "tune_text_encoder", "tuned_state"]
