@@ -12,15 +12,19 @@
 #   3. train-gpt on those until the DEADLINE (`--deadline`: its loading, i.e. coding the
 #      sequences with the VQ's own normalization and embedding their texts, counts against
 #      it), keeping the lowest validation NLL;
+#      The Transformers learn on the int8-tok4 text encoder, the one the default bundle
+#      embeds (export's --native-text keeps its size; plain int8 adds 5.8 MB);
 #   4. the runs without optimizer state (best.pt in fp16, config, stats, logs) ->
 #      $PACK/runs.tgz.part-aa, -ab, ... (15 MiB pieces; `cat` joins them), also when a phase
 #      failed (the script then exits non-zero).
-# Env (defaults: one device command of at most 600 s; the shipped VQ's run had SEQS=1600
-# VQ_SECONDS=150 DEADLINE=395, and the shipped Transformers were trained on 3,000 sequences,
-# which is why SEQS is 3000: with 1,120 training sequences the GPT memorised after 500 steps,
-# see docs/training.md):
+# Env (defaults: one device command of at most 600 s. The H200 run of 2026-11-27 had
+# SEQS=1600 VQ_SECONDS=150 DEADLINE=395, and its GPT memorised its 1,120 training sequences
+# after 500 steps. The shipped Transformers learnt from 7,000 of 10,000; SEQS is 5000 because
+# that run made 1,600 sequences and their features in 108 s on 14 workers, so 10,000 would
+# outlast the VQ's phase (this 2-core CPU makes them 3x faster per core: measure there first);
+# docs/training.md):
 #   PY=python3 with torch and this package importable; WORK=scratch folder; PACK=output folder
-#   SEQS_VQ=800 SEQS=3000 PARAPHRASES=16 WORKERS=$(nproc) WIDTH=0.5
+#   SEQS_VQ=800 SEQS=5000 PARAPHRASES=16 WORKERS=$(nproc) WIDTH=0.5
 #   VQ_SECONDS=210 VQ_BATCH=64 (x 256 frames) VQ_LR=1e-3 GPT_BATCH=128 GPT_LR=4e-4 DEADLINE=520
 #   TEXT_DROPOUT=0.1 (train-gpt --text-dropout: the null condition of classifier-free
 #   guidance; choose the bundle's --guidance with scripts/sampling_sweep.py, docs/training.md)
@@ -32,7 +36,7 @@ PY=${PY:-.venv/bin/python}
 WORK=${WORK:-runs/timed}
 PACK=${PACK:-$WORK/pack}
 SEQS_VQ=${SEQS_VQ:-800}
-SEQS=${SEQS:-3000}
+SEQS=${SEQS:-5000}
 PARAPHRASES=${PARAPHRASES:-16}
 WORKERS=${WORKERS:-$(nproc)}
 WIDTH=${WIDTH:-0.5}
@@ -69,7 +73,7 @@ stamp "VQ done (rc $RC): $(tail -n 1 "$WORK/vq.out")"
 if [ "$RC" = 0 ]; then
   stamp "train-gpt until $DEADLINE s"
   $TRAIN train-gpt --data "$WORK/data_prep" --vq "$WORK/vq" --out "$WORK/gpt" --preset small --batch "$GPT_BATCH" \
-    --lr "$GPT_LR" --text-weights int8 --text-dropout "$TEXT_DROPOUT" --deadline "$((START + DEADLINE))" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
+    --lr "$GPT_LR" --text-weights int8-tok4 --text-dropout "$TEXT_DROPOUT" --deadline "$((START + DEADLINE))" --ckpt-every 100000 >"$WORK/gpt.out" 2>&1 \
     || RC=$?
   stamp "GPT done (rc $RC): $(tail -n 1 "$WORK/gpt.out")"
 fi

@@ -12,10 +12,12 @@ Per run (its best checkpoint), one JSON line:
   the signed height error of the resting object (``rest_up_mm``, frame 0) and how far above
   its resting object each grasping wrist closes (``grasp_up_mm``; ``grasp_up_gt_mm`` the
   same for the ground truth; ``intent_check.grasp_offsets``);
-* on every test sequence of ``--intent`` (default pour): the reconstruction through the
-  engine's contact stage against its prompt, as `evaluate` checks it: ``intent_ok`` and the
-  intent's own rule (``rule_ok``; the share of all sequences), and the median of the rule's
-  value (pour: the largest tilt of the held object) over the sequences that grasp at all.
+* on every test sequence of each ``--intent`` (default pour; a comma list, or ``all`` for
+  SynthGrasp's six, then also ``all``'s pooled ``intent_ok`` over them): the reconstruction
+  through the engine's contact stage against its prompt, as `evaluate` checks it:
+  ``intent_ok`` and the intent's own rule (``rule_ok``; the share of all sequences), and the
+  median of the rule's value (pour: the largest tilt of the held object) over the sequences
+  that grasp at all.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from comgrasp_train.evaluate import outputs_of, prompt_for, reconstruct
-from comgrasp_train.intent_check import check_features, grasp_offsets, intent_of, track_from_features
+from comgrasp_train.intent_check import SYNTH_INTENTS, check_features, grasp_offsets, intent_of, track_from_features
 from comgrasp_train.layout import COMPONENT_SLICES, FIELD
 from comgrasp_train.metrics import rotation_angle_deg
 from comgrasp_train.models.vq_losses import hand_axes
@@ -89,7 +91,8 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="train-vq output folders")
     ap.add_argument("--data", required=True, help="a prepared SynthGrasp folder (its test part)")
     ap.add_argument("--limit", type=int, default=60, help="test sequences for the FK errors")
-    ap.add_argument("--intent", default="pour", help="SynthGrasp intent checked through the contact stage")
+    ap.add_argument("--intent", default="pour",
+                    help="SynthGrasp intents checked through the contact stage (comma list, or all)")
     args = ap.parse_args(argv)
     torch.set_grad_enabled(False)
     fs = load_prepared(args.data, "test")[0]
@@ -97,7 +100,13 @@ def main(argv=None) -> int:
         vq, _, info = load_vq(run, which="best")
         norm = Normalizer.load(Path(run) / "stats.npz")  # the run's own, as evaluate reads it
         out = {"run": run, "step": info["checkpoint"]["step"], **fk_rows(vq, norm, fs.spread(args.limit))}
-        out[args.intent] = intent_rows(vq, norm, fs, args.intent)
+        intents = SYNTH_INTENTS if args.intent == "all" else args.intent.split(",")
+        for intent in intents:
+            out[intent] = intent_rows(vq, norm, fs, intent)
+        if len(intents) > 1:  # pooled over the sequences, not averaged over the intents
+            n = sum(out[i]["sequences"] for i in intents)
+            out["all"] = {"sequences": n,
+                          "intent_ok": round(sum(out[i]["intent_ok"] * out[i]["sequences"] for i in intents) / n, 3)}
         print(json.dumps(out), flush=True)
     return 0
 
