@@ -13,11 +13,11 @@ Per run (its best checkpoint), one JSON line:
   its resting object each grasping wrist closes (``grasp_up_mm``; ``grasp_up_gt_mm`` the
   same for the ground truth; ``intent_check.grasp_offsets``);
 * on every test sequence of each ``--intent`` (default pour; a comma list, or ``all`` for
-  SynthGrasp's six, then also ``all``'s pooled ``intent_ok`` over them): the reconstruction
-  through the engine's contact stage against its prompt, as `evaluate` checks it:
-  ``intent_ok`` and the intent's own rule (``rule_ok``; the share of all sequences), and the
-  median of the rule's value (pour: the largest tilt of the held object) over the sequences
-  that grasp at all.
+  SynthGrasp's six): the reconstruction through the engine's contact stage against its
+  prompt, as `evaluate` checks it: ``intent_ok`` (``obeyed`` of ``sequences``) and the
+  intent's own rule (``rule_ok``; the share of all sequences), and the median of the rule's
+  value (pour: the largest tilt of the held object) over the sequences that grasp at all;
+  with more than one intent also ``pooled``, ``intent_ok`` over all their sequences.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def intent_rows(vq, norm, fs, intent: str) -> dict[str, float]:
             values.append(r.values[RULE_VALUE[intent]])
     if not ok:
         raise SystemExit(f"no test sequence has intent {intent!r}")
-    return {"sequences": len(ok), "intent_ok": round(float(np.mean(ok)), 3), "rule_ok": round(float(np.mean(rule)), 3),
+    return {"sequences": len(ok), "obeyed": int(sum(ok)), "intent_ok": round(float(np.mean(ok)), 3), "rule_ok": round(float(np.mean(rule)), 3),
             f"median_{RULE_VALUE.get(intent, 'value')}": round(float(np.median(values)), 3) if values else None}
 
 
@@ -96,17 +96,16 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_grad_enabled(False)
     fs = load_prepared(args.data, "test")[0]
+    intents = SYNTH_INTENTS if args.intent == "all" else args.intent.split(",")
     for run in args.runs:
         vq, _, info = load_vq(run, which="best")
         norm = Normalizer.load(Path(run) / "stats.npz")  # the run's own, as evaluate reads it
         out = {"run": run, "step": info["checkpoint"]["step"], **fk_rows(vq, norm, fs.spread(args.limit))}
-        intents = SYNTH_INTENTS if args.intent == "all" else args.intent.split(",")
         for intent in intents:
             out[intent] = intent_rows(vq, norm, fs, intent)
         if len(intents) > 1:  # pooled over the sequences, not averaged over the intents
             n = sum(out[i]["sequences"] for i in intents)
-            out["all"] = {"sequences": n,
-                          "intent_ok": round(sum(out[i]["intent_ok"] * out[i]["sequences"] for i in intents) / n, 3)}
+            out["pooled"] = {"sequences": n, "intent_ok": round(sum(out[i]["obeyed"] for i in intents) / n, 3)}
         print(json.dumps(out), flush=True)
     return 0
 
