@@ -13,8 +13,9 @@
 //!   the support it started on (within [`SUPPORT_RADIUS`] of its start) or above the ground,
 //!   it falls under gravity and lands there; it never hangs in the air.
 //! * **Reach correction.** When a grasp starts, the wrist's target lies from the object's
-//!   centre along the model's own wrist-to-object vector (its predicted grasp), as far out
-//!   as puts the hand's nearest joint [`GRIP_GAP`] off the object's surface. Two-bone IK on the
+//!   centre along the model's own wrist-to-object vector (its predicted grasp), at its
+//!   length, kept between where the palm and where the whole hand first comes [`GRIP_GAP`]
+//!   off the object's surface ([`grip_offset`]). Two-bone IK on the
 //!   shoulder and elbow (plus a spine bow up to [`MAX_BOW`] when the arm alone is too short)
 //!   blends the wrist onto it over a few frames; the wrist keeps its global rotation, so
 //!   the hand's orientation and the fingers are the model's. A target beyond
@@ -71,6 +72,8 @@ const GRIP_SCAN_STEPS: u32 = 12;
 const GRIP_SEARCH_STEPS: u32 = 8;
 /// Longest wrist-to-centre distance beyond the object's half-diagonal, m.
 pub const GRIP_MARGIN: f64 = 0.12;
+/// The palm among [`hand_offsets`]: the wrist and each finger's base joint.
+const PALM: [usize; 6] = [0, 1, 4, 7, 10, 13];
 /// Largest forward bow of the spine the reach may add, radians (split over the three
 /// spine joints; the legs and pelvis never move).
 pub const MAX_BOW: f64 = 0.6;
@@ -1415,22 +1418,37 @@ fn arm_length(skeleton: &Skeleton, h: usize) -> f64 {
 
 /// The grasp's wrist offset from the object centre, in the object frame. Its direction is
 /// the model's own wrist-to-object vector (its predicted grasp; never from below the
-/// support); its length puts the hand, as the model holds it (`hand`: the wrist's and the
-/// 15 finger joints' offsets from the wrist, world), where its nearest joint is
-/// [`GRIP_GAP`] off the object ([`ObjectShape::distance`]): touching it, no joint inside. At most the box's
-/// half diagonal + [`GRIP_MARGIN`].
+/// support), and so is its length, kept between the first touch of the palm ([`PALM`]) and
+/// that of the whole hand (`hand`: the wrist's and the 15 finger joints' offsets from the
+/// wrist, world; [`first_touch`]): the object sits in the palm as the model holds it, never
+/// inside the palm nor clear of every finger. The first touch of any joint alone would
+/// hold a cup at the fingertips of a hand still open at the reach's start (5-7 cm out:
+/// docs/training.md, "The stage's grip holds cups at the fingertips"). With no valid model
+/// vector, the first touch of the whole hand along the wrist's direction.
 fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos: &Vec3, hand: &[Vec3; 16]) -> Vec3 {
     let centre = shape.centre_at(rot, pos);
-    let mut v = *model;
-    if !(norm(&v) > 1e-6 && v.iter().all(|x| x.is_finite())) {
-        v = sub(wrist, &centre);
-    }
+    let valid = norm(model) > 1e-6 && model.iter().all(|x| x.is_finite());
+    let mut v = if valid { *model } else { sub(wrist, &centre) };
     v[2] = v[2].max(0.0);
     let n = norm(&v);
     let dir = if n > 1e-6 { scale(&v, 1.0 / n) } else { [0.0, 0.0, 1.0] };
     let rt = transpose(rot);
-    let clear = |len: f64| hand_clear(shape, &rt, &scale(&dir, len), hand, GRIP_GAP);
     let hi = norm(&shape.half_extents) + GRIP_MARGIN;
+    let whole = first_touch(shape, &rt, &dir, hand, hi);
+    let len = if valid {
+        let palm = first_touch(shape, &rt, &dir, &PALM.map(|k| hand[k]), hi);
+        n.max(palm).min(whole)
+    } else {
+        whole
+    };
+    mat_vec(&rt, &scale(&dir, len))
+}
+
+/// The wrist's distance from the object centre along `dir` (world; `rt` the object's
+/// rotation transposed) where one of the `hand` joints (offsets from the wrist) first comes
+/// within [`GRIP_GAP`] of the object, coming in from `hi`; `hi` when none does there.
+fn first_touch<const N: usize>(shape: &ObjectShape, rt: &Mat3, dir: &Vec3, hand: &[Vec3; N], hi: f64) -> f64 {
+    let clear = |len: f64| hand_clear(shape, rt, &scale(dir, len), hand, GRIP_GAP);
     let (mut lo, mut up) = (0.0, hi);
     // From outside in: the first touch, then bisection. A hand can lie clear of an object
     // again farther in (in a torus's hole), so bisection alone may end there.
@@ -1452,7 +1470,7 @@ fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos:
             }
         }
     }
-    mat_vec(&rt, &scale(&dir, up))
+    up
 }
 
 /// The wrist's and the 15 finger joints' offsets from the wrist of hand `h` (world).
@@ -1470,8 +1488,8 @@ fn hand_offsets(joints: &[Vec3; CG_NUM_JOINTS], h: usize) -> [Vec3; 16] {
 /// so the joints are tried nearest box first and the surface is searched only for those
 /// whose box is nearer than `gap` (the answer of measuring all of them, at a fraction of
 /// the cost).
-fn hand_clear(shape: &ObjectShape, rt: &Mat3, wrist: &Vec3, hand: &[Vec3; 16], gap: f64) -> bool {
-    let mut joints: [(f64, Vec3); 16] = std::array::from_fn(|k| {
+fn hand_clear<const N: usize>(shape: &ObjectShape, rt: &Mat3, wrist: &Vec3, hand: &[Vec3; N], gap: f64) -> bool {
+    let mut joints: [(f64, Vec3); N] = std::array::from_fn(|k| {
         let p = mat_vec(rt, &add(wrist, &hand[k]));
         (box_distance(&p, &shape.half_extents), p)
     });
@@ -1750,6 +1768,34 @@ mod tests {
             let v = dist(&w[1].0.object_translation, &w[0].0.object_translation) * 30.0;
             assert!(v < 3.5, "object speed {v} m/s");
         }
+    }
+
+    #[test]
+    fn the_grip_keeps_the_models_length_between_the_palms_touch_and_the_fingertips() {
+        // An open hand: five straight fingers of three joints 3 cm apart, along +x from the
+        // wrist, 2 cm between fingers. Coming in from -x the fingertips touch the box (3 cm
+        // half-width) with the wrist 3 + 0.5 + 9 = 12.5 cm from its centre, the base joints
+        // at 6.5 cm.
+        let hand: [Vec3; 16] = std::array::from_fn(|k| {
+            if k == 0 {
+                return [0.0; 3];
+            }
+            let (finger, joint) = ((k - 1) / 3, (k - 1) % 3);
+            [0.03 * (joint + 1) as f64, 0.02 * finger as f64 - 0.04, 0.0]
+        });
+        let shape = ObjectShape { centre: [0.0; 3], half_extents: [0.03, 0.03, 0.05], surface: None };
+        // Turned a quarter about z (the box looks the same): the grip comes back in its frame.
+        let turn = axis_angle(&[0.0, 0.0, 1.0], std::f64::consts::FRAC_PI_2);
+        let wrist = [-0.3, 0.0, 0.0];
+        let grip = |model: &Vec3| grip_offset(model, &shape, &turn, &wrist, &[0.0; 3], &hand);
+        // Nearer than the palm allows, as the model holds it, farther than the fingertips.
+        for (model, want) in [(0.04, 0.065), (0.09, 0.09), (0.2, 0.125)] {
+            let got = mat_vec(&turn, &grip(&[-model, 0.0, 0.0]));
+            assert!(dist(&got, &[-want, 0.0, 0.0]) < 3e-4, "model {model} m: wrist at {got:?}, want {want} m out");
+        }
+        // No model vector: the whole hand's first touch along the wrist's direction.
+        let got = mat_vec(&turn, &grip(&[f64::NAN, 0.0, 0.0]));
+        assert!(dist(&got, &[-0.125, 0.0, 0.0]) < 3e-4, "{got:?}");
     }
 
     /// The model's hand lifts the object 20 cm and then goes 15 cm below where it took it,

@@ -272,6 +272,26 @@ def test_arm_ik_puts_the_wrist_on_target_and_keeps_the_hand(rest):
     np.testing.assert_allclose(joints2[40:55] - joints2[21], joints[40:55] - joints[21], atol=1e-12)
 
 
+def test_the_grip_keeps_the_models_length_between_the_palms_touch_and_the_fingertips():
+    # As contact.rs's test: an open hand, five straight fingers of three joints 3 cm apart
+    # along +x, 2 cm between fingers. From -x the fingertips touch the box (3 cm half-width)
+    # with the wrist 12.5 cm from its centre, the base joints at 6.5 cm.
+    hand = np.zeros((16, 3))
+    for k in range(1, 16):
+        finger, joint = divmod(k - 1, 3)
+        hand[k] = [0.03 * (joint + 1), 0.02 * finger - 0.04, 0.0]
+    shape = ObjectShape.of([0.0, 0.0, 0.0], [0.03, 0.03, 0.05])
+    c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # the box looks the same
+
+    def grip(model):
+        return turn @ cs.grip_offset(np.asarray(model, float), shape, turn, np.array([-0.3, 0.0, 0.0]), np.zeros(3), hand)
+
+    for model, want in ((0.04, 0.065), (0.09, 0.09), (0.2, 0.125)):
+        np.testing.assert_allclose(grip([-model, 0.0, 0.0]), [-want, 0.0, 0.0], atol=3e-4)
+    np.testing.assert_allclose(grip([math.nan, 0.0, 0.0]), [-0.125, 0.0, 0.0], atol=3e-4)  # none: whole hand
+
+
 def test_a_standing_foot_stays_planted_and_a_step_frees_it(rest):
     """The model's pelvis sways 2 cm (its feet slide with it): the shown ankles and toes stay
     where they were planted; then it moves 1 m (steps, in effect): the feet follow, no faster

@@ -41,6 +41,7 @@ GRIP_SCAN_STEPS = 12
 GRIP_SEARCH_STEPS = 8
 SURFACE_SPACING = 0.01
 GRIP_MARGIN = 0.12
+PALM = (0, 1, 4, 7, 10, 13)  # hand_offsets rows: the wrist and each finger's base joint
 MAX_BOW = 0.6
 BOW_REACH = 0.94
 BOW_FADE = 0.5
@@ -990,19 +991,30 @@ def hand_gap(shape: ObjectShape, rt: np.ndarray, wrist: np.ndarray, hand: np.nda
 
 def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: np.ndarray, pos: np.ndarray,
                 hand: np.ndarray) -> np.ndarray:
+    """``contact::grip_offset``: the grasp's wrist offset from the object centre (object frame)."""
     centre = shape.centre_at(rot, pos)
     v = np.asarray(model, np.float64).copy()
-    if not (_norm(v) > 1e-6 and np.isfinite(v).all()):
+    valid = bool(_norm(v) > 1e-6 and np.isfinite(v).all())
+    if not valid:
         v = wrist - centre
     v[2] = max(v[2], 0.0)
     n = _norm(v)
     direction = v / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
     rt = rot.T
+    hi = _norm(shape.half_extents) + GRIP_MARGIN
+    whole = first_touch(shape, rt, direction, hand, hi)
+    if not valid:
+        return rt @ (direction * whole)
+    palm = first_touch(shape, rt, direction, hand[list(PALM)], hi)
+    return rt @ (direction * min(max(n, palm), whole))
 
+
+def first_touch(shape: ObjectShape, rt: np.ndarray, direction: np.ndarray, hand: np.ndarray, hi: float) -> float:
+    """``contact::first_touch``: the wrist's distance from the centre along ``direction`` where
+    one of ``hand``'s joints first comes within GRIP_GAP of the object, coming in from ``hi``."""
     def gap(length: float) -> float:
         return hand_gap(shape, rt, direction * length, hand)
 
-    hi = _norm(shape.half_extents) + GRIP_MARGIN
     lo, up = 0.0, hi
     if gap(hi) >= GRIP_GAP:
         for k in reversed(range(GRIP_SCAN_STEPS)):  # from outside in: the first touch
@@ -1017,7 +1029,7 @@ def grip_offset(model: np.ndarray, shape: ObjectShape, rot: np.ndarray, wrist: n
                 up = mid
             else:
                 lo = mid
-    return rt @ (direction * up)
+    return up
 
 
 def lowest_axis(r: np.ndarray) -> np.ndarray:
