@@ -1423,7 +1423,7 @@ fn arm_length(skeleton: &Skeleton, h: usize) -> f64 {
 /// wrist, world; [`first_touch`]): the object sits in the palm as the model holds it, never
 /// inside the palm nor clear of every finger. The first touch of any joint alone would
 /// hold a cup at the fingertips of a hand still open at the reach's start (5-7 cm out:
-/// docs/training.md, "The stage's grip holds cups at the fingertips"). With no valid model
+/// docs/training.md, "The stage's grip held cups at the fingertips"). With no valid model
 /// vector, the first touch of the whole hand along the wrist's direction.
 fn grip_offset(model: &Vec3, shape: &ObjectShape, rot: &Mat3, wrist: &Vec3, pos: &Vec3, hand: &[Vec3; 16]) -> Vec3 {
     let centre = shape.centre_at(rot, pos);

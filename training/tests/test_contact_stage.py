@@ -281,8 +281,7 @@ def test_the_grip_keeps_the_models_length_between_the_palms_touch_and_the_finger
         finger, joint = divmod(k - 1, 3)
         hand[k] = [0.03 * (joint + 1), 0.02 * finger - 0.04, 0.0]
     shape = ObjectShape.of([0.0, 0.0, 0.0], [0.03, 0.03, 0.05])
-    c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
-    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # the box looks the same
+    turn = cs.axis_angle(np.array([0.0, 0.0, 1.0]), math.pi / 2)  # the box looks the same
 
     def grip(model):
         return turn @ cs.grip_offset(np.asarray(model, float), shape, turn, np.array([-0.3, 0.0, 0.0]), np.zeros(3), hand)
