@@ -6,7 +6,7 @@
 # manifest records the exact configs and commands under provenance). The shipped model is
 # these defaults, except that its VQ ran to a two-hour deadline instead of VQ_ITERS (its
 # schedule fitted to 2,826 steps, stopped at 2,501; best.pt is step 2,500): ~2 h for the VQ
-# and ~1 h for the Transformers on a 2-core CPU, plus ~40 min for the data (docs/training.md).
+# and ~1 h for the Transformers on a 2-core CPU, plus ~40 min for both data sets (docs/training.md).
 #   SEQS=3000        SynthGrasp sequences for the VQ (seed 1; split synthgrasp: test s9+s10, val s8)
 #   GPT_SEQS=10000   SynthGrasp sequences for the Transformers (the same generator and seed;
 #                    their codes come from the VQ above; more data is what they lack)
